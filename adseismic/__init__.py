@@ -1,0 +1,1 @@
+"""adseismic: differentiable seismic wave propagation with NVIDIA Warp."""

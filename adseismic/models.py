@@ -1,0 +1,338 @@
+"""Gridded P-wave velocity models: the `Model` object, file loaders and resampling.
+
+Conventions used throughout:
+
+* Axis order is always (z, x) in 2D and (z, y, x) in 3D; z is depth, positive down.
+* Velocities are in m/s, coordinates and spacings in metres.
+* Node ``i`` along an axis sits at ``origin + i * spacing``; the model covers the closed box
+  between its first and last node (`Model.extent`).
+
+This module imports neither Warp nor ObsPy at import time; ObsPy is imported only when a SEG-Y
+file is loaded.
+"""
+from __future__ import annotations
+
+import math
+import pathlib
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy import ndimage
+
+
+_AXES = {2: "zx", 3: "zyx"}  # model axis order by dimension
+
+
+class ModelError(ValueError):
+    """A velocity model or its ``model:`` spec is invalid; the message names the key and the fix."""
+
+
+def _per_axis(value, ndim: int, key: str) -> tuple[float, ...]:
+    """Expand a scalar or length-``ndim`` sequence to a tuple of ``ndim`` finite floats."""
+    try:
+        arr = None if isinstance(value, (str, bytes)) else np.atleast_1d(np.asarray(value, float))
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.ndim != 1 or arr.size not in (1, ndim) or not np.all(np.isfinite(arr)):
+        raise ModelError(f"{key}: {value!r} is not a number or a list of {ndim} numbers "
+                         f"in axis order {_AXES[ndim]}; give one value per axis (metres)")
+    return tuple(float(v) for v in np.broadcast_to(arr, (ndim,)))
+
+
+def _check_velocities(values: np.ndarray, key: str, note: str = "") -> None:
+    """Raise ModelError naming ``key`` if any velocity is non-finite or <= 0."""
+    bad = ~(np.isfinite(values) & (values > 0))
+    if bad.any():
+        first = np.unravel_index(int(np.argmax(bad)), values.shape)
+        where = ", ".join(f"{a}={i}" for a, i in zip(_AXES[values.ndim], first))
+        raise ModelError(f"{key}: {int(bad.sum())} of {values.size} velocities{note} are "
+                         f"non-finite or <= 0; the first is {float(values[first])} m/s at index "
+                         f"({where}); every velocity must be a positive finite number (m/s)")
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """Gridded P-wave velocity model.
+
+    values: float64 ndarray, shape (nz, nx) in 2D or (nz, ny, nx) in 3D, m/s (read-only copy).
+        Axis order is always (z, [y,] x); z is depth, positive down.
+    spacing: tuple of per-axis grid spacing in metres, same axis order (scalar accepted).
+    origin: tuple of world coordinates (m) of values[0, ...0], same axis order (default zeros).
+    name: str (for logs/plots).
+    """
+
+    values: np.ndarray
+    spacing: tuple
+    origin: tuple = None
+    name: str = ""
+
+    def __post_init__(self):
+        values = np.array(self.values, dtype=np.float64)
+        if values.ndim not in (2, 3):
+            raise ModelError(f"values: shape {values.shape} is neither (nz, nx) nor "
+                             f"(nz, ny, nx); give a 2D or 3D array")
+        spacing = _per_axis(self.spacing, values.ndim, "spacing")
+        if min(spacing) <= 0:
+            raise ModelError(f"spacing: {spacing} has a value <= 0; grid spacings are "
+                             f"positive distances in metres")
+        origin = _per_axis(0.0 if self.origin is None else self.origin, values.ndim, "origin")
+        _check_velocities(values, "values")
+        values.setflags(write=False)
+        object.__setattr__(self, "values", values)
+        object.__setattr__(self, "spacing", spacing)
+        object.__setattr__(self, "origin", origin)
+
+    @classmethod
+    def from_array(cls, values, spacing, origin=None, name: str = "") -> "Model":
+        """Model from an (nz,[ny,]nx) array in m/s; spacing (m) scalar or per axis; origin (m)."""
+        return cls(values, spacing, origin, name)
+
+    @property
+    def ndim(self) -> int:
+        return self.values.ndim
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.values.shape
+
+    @property
+    def extent(self) -> tuple[tuple[float, float], ...]:
+        """Per axis (z, [y,] x): (min, max) world coordinate (m) of the first and last node."""
+        return tuple((o, o + (n - 1) * d) for o, n, d in zip(self.origin, self.shape, self.spacing))
+
+    @property
+    def vmin(self) -> float:
+        return float(self.values.min())
+
+    @property
+    def vmax(self) -> float:
+        return float(self.values.max())
+
+    def contains(self, points) -> np.ndarray:
+        """Bool array of shape (...) for points (..., ndim) in world metres, axis order (z,[y,]x):
+        True where the point lies within [first node, last node] on every axis (with a
+        tolerance of 1e-9 spacing for round-off)."""
+        p = np.asarray(points, dtype=float)
+        if p.shape[-1:] != (self.ndim,):
+            raise ModelError(f"points: shape {p.shape} does not end in {self.ndim} coordinates "
+                             f"({_AXES[self.ndim]}); pass an array of shape (..., {self.ndim})")
+        lo, hi = np.array(self.extent).T
+        tol = 1e-9 * np.array(self.spacing)
+        return np.all((p >= lo - tol) & (p <= hi + tol), axis=-1)
+
+    def resample(self, spacing: float, origin: tuple, shape: tuple) -> "Model":
+        """Model on the regular grid with equal ``spacing`` (m) on all axes, node 0 at ``origin``
+        (m, axis order z,[y,]x) and ``shape`` nodes.
+
+        Works on slowness 1/v, which interpolates travel times better than velocity:
+        1. Anti-alias: along each axis where r = spacing / old_spacing > 1 (coarsening), the
+           slowness is smoothed with a Gaussian of sigma = 0.5 * r input cells (edges
+           replicated); axes that are refined or kept are not smoothed.
+        2. (Multi)linear interpolation of the slowness at the new nodes; new nodes outside the
+           input extent take the value of the nearest edge node (crop / edge replication).
+        """
+        h = float(spacing)
+        if not (math.isfinite(h) and h > 0):
+            raise ModelError(f"spacing: {spacing!r} is not a positive number of metres")
+        origin = _per_axis(origin, self.ndim, "origin")
+        if len(shape) != self.ndim or min(shape) < 1:
+            raise ModelError(f"shape: {tuple(shape)} is not {self.ndim} positive node counts "
+                             f"in axis order {_AXES[self.ndim]}")
+        ratio = np.array([h / d for d in self.spacing])
+        slow = ndimage.gaussian_filter(1.0 / self.values, np.where(ratio > 1, 0.5 * ratio, 0.0),
+                                       mode="nearest")
+        for axis, (o_new, n_new, o, d, n) in enumerate(
+                zip(origin, shape, self.origin, self.spacing, self.shape)):
+            idx = np.clip((o_new + h * np.arange(n_new) - o) / d, 0, n - 1)
+            i0 = np.minimum(np.floor(idx).astype(int), n - 1)
+            w = (idx - i0).reshape([-1 if a == axis else 1 for a in range(self.ndim)])
+            i1 = np.minimum(i0 + 1, n - 1)
+            slow = (1 - w) * slow.take(i0, axis) + w * slow.take(i1, axis)
+        return Model(1.0 / slow, h, origin, self.name)
+
+
+# ----------------------------------------------------------------------------------- loading
+
+_UNITS = {  # stored value a -> velocity in m/s
+    "m/s": lambda a: a,
+    "km/s": lambda a: 1e3 * a,
+    "s/m": lambda a: 1.0 / a,
+    "s2/km2": lambda a: 1e3 / np.sqrt(a),
+    "s2/m2": lambda a: 1.0 / np.sqrt(a),
+}
+_GENERATOR_KEYS = {
+    "constant": {"velocity"},
+    "layered": {"velocities", "interfaces"},
+    "gaussian_anomaly": {"background", "perturbation", "center", "radius"},
+}
+_FILE_KEYS = {
+    "raw": {"shape", "dtype", "endian"},
+    "npy": set(),
+    "hdf5": {"dataset", "spacing_dataset"},
+    "segy": set(),
+}
+_COMMON_KEYS = {"kind", "name", "origin"}
+
+
+def load_model(spec: dict, base_dir: pathlib.Path | None = None) -> Model:
+    """Build the Model described by the parsed YAML ``model:`` section ``spec``.
+
+    Generator kinds (constant, layered, gaussian_anomaly) call `adseismic.data_synthetic.generators`;
+    file kinds (raw, npy, hdf5, segy) read ``path`` (relative to ``base_dir``, default the current
+    directory), transpose the stored ``axes`` to (z,[y,]x) and convert ``units`` to m/s.
+    ``spacing`` and ``origin`` are always given in model axis order (z,[y,]x); an HDF5
+    ``spacing_dataset`` is read in the stored axis order (``axes``). Optional ``name`` names the
+    model (default: the kind, or the file name). Unknown keys are rejected (typos would otherwise
+    be silently ignored). All problems raise ModelError naming ``model.<key>``.
+    """
+    if not isinstance(spec, dict):
+        raise ModelError(f"model: {spec!r} is not a mapping; write the model section as "
+                         f"'model: {{kind: ..., ...}}'")
+    kind = spec.get("kind")
+    kinds = list(_GENERATOR_KEYS) + list(_FILE_KEYS)
+    if kind not in kinds:
+        raise ModelError(f"model.kind: {kind!r} is not one of {', '.join(kinds)}; "
+                         f"set the kind of model to build or read")
+    if kind in _GENERATOR_KEYS:
+        allowed = _COMMON_KEYS | {"shape", "spacing"} | _GENERATOR_KEYS[kind]
+    else:
+        allowed = _COMMON_KEYS | {"path", "units", "axes", "spacing"} | _FILE_KEYS[kind]
+    unknown = sorted(set(spec) - allowed)
+    if unknown:
+        raise ModelError(f"model.{unknown[0]}: {spec[unknown[0]]!r} is not a key of a {kind!r} "
+                         f"model; use only {', '.join(sorted(allowed))}")
+    if kind in _GENERATOR_KEYS:
+        model = _generate(kind, spec)
+    else:
+        model = _load_file(kind, spec, pathlib.Path.cwd() if base_dir is None else base_dir)
+    return replace(model, name=str(spec["name"])) if "name" in spec else model
+
+
+def _require(spec: dict, key: str, what: str):
+    if key not in spec:
+        raise ModelError(f"model.{key}: missing; a {spec['kind']!r} model needs {what}")
+    return spec[key]
+
+
+def _generate(kind: str, spec: dict) -> Model:
+    from adseismic.data_synthetic import generators  # lazy: generators imports this module
+
+    params = {k: _require(spec, k, "this value") for k in ("shape", "spacing") + tuple(
+        sorted(_GENERATOR_KEYS[kind]))}
+    try:
+        return getattr(generators, kind)(origin=spec.get("origin"), **params)
+    except ModelError as e:  # generator messages start with the parameter (= key) name
+        raise ModelError(f"model.{e}") from None
+
+
+def _load_file(kind: str, spec: dict, base_dir: pathlib.Path) -> Model:
+    # --- validate the spec and the file before reading anything
+    raw_path = _require(spec, "path", "the path of the file to read")
+    path = pathlib.Path(raw_path).expanduser()
+    path = path if path.is_absolute() else pathlib.Path(base_dir) / path
+    if not path.is_file():
+        raise ModelError(f"model.path: {str(raw_path)!r} does not exist (looked for {path}); "
+                         f"give an absolute path or one relative to {base_dir}")
+    units = spec.get("units", "m/s")
+    if units not in _UNITS:
+        raise ModelError(f"model.units: {units!r} is not one of {', '.join(_UNITS)}; "
+                         f"set the units the file stores")
+    if "spacing" in spec and "spacing_dataset" in spec:
+        raise ModelError(f"model.spacing_dataset: {spec['spacing_dataset']!r} given together "
+                         f"with model.spacing; keep only one of them")
+    if "spacing" not in spec and not (kind == "hdf5" and "spacing_dataset" in spec):
+        alt = " or spacing_dataset (name of an HDF5 dataset holding it)" if kind == "hdf5" else ""
+        raise ModelError(f"model.spacing: missing; give the grid spacing in metres (a number "
+                         f"or one per axis, z,[y,]x){alt}")
+
+    # --- read the stored array
+    if kind == "raw":
+        data = _read_raw(spec, path)
+    elif kind == "npy":
+        try:
+            data = np.load(path, allow_pickle=False)
+        except ValueError as e:
+            raise ModelError(f"model.path: {path} is not a readable .npy array ({e}); "
+                             f"save it with numpy.save") from None
+    elif kind == "hdf5":
+        data, spacing_stored = _read_hdf5(spec, path)
+    else:
+        data = _read_segy(path)
+    if data.ndim not in (2, 3):
+        raise ModelError(f"model.path: {path} holds an array of shape {data.shape}; "
+                         f"a velocity model needs 2 or 3 axes")
+
+    # --- reorder axes to (z,[y,]x), convert units, check values
+    axes = spec.get("axes", "xz" if kind == "segy" else _AXES[data.ndim])
+    if not isinstance(axes, str) or sorted(axes) != sorted(_AXES[data.ndim]):
+        raise ModelError(f"model.axes: {axes!r} is not an ordering of {_AXES[data.ndim]!r} for "
+                         f"the {data.ndim}D stored array of shape {data.shape}; name the stored "
+                         f"axes slowest first, e.g. {_AXES[data.ndim][::-1]!r}")
+    order = [axes.index(a) for a in _AXES[data.ndim]]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        values = _UNITS[units](np.transpose(data, order).astype(np.float64))
+    _check_velocities(values, f"model.path ({path.name})", f" (converted from {units})")
+    if "spacing" in spec:
+        spacing = _per_axis(spec["spacing"], data.ndim, "model.spacing")
+    else:
+        spacing = tuple(np.asarray(_per_axis(spacing_stored, data.ndim,
+                                             f"model.spacing_dataset ({spec['spacing_dataset']})"))[order])
+    try:
+        return Model(values, spacing, spec.get("origin"), path.stem)
+    except ModelError as e:
+        raise ModelError(f"model.{e}") from None
+
+
+def _read_raw(spec: dict, path: pathlib.Path) -> np.ndarray:
+    """Headerless binary array: ``shape`` in stored axis order, ``dtype``, ``endian``."""
+    shape = _require(spec, "shape", "the stored array shape (slowest axis first, as in 'axes')")
+    if not (isinstance(shape, (list, tuple)) and all(isinstance(n, int) and n > 0 for n in shape)):
+        raise ModelError(f"model.shape: {shape!r} is not a list of positive integers; give the "
+                         f"stored array shape, slowest axis first")
+    try:
+        dtype = np.dtype(spec.get("dtype", "float32"))
+    except TypeError:
+        raise ModelError(f"model.dtype: {spec['dtype']!r} is not a numpy dtype; use e.g. "
+                         f"float32 or float64") from None
+    endian = spec.get("endian", "little")
+    if endian not in ("little", "big"):
+        raise ModelError(f"model.endian: {endian!r} is not little or big; set the byte order "
+                         f"the file was written with")
+    dtype = dtype.newbyteorder("<" if endian == "little" else ">")
+    count, need = path.stat().st_size / dtype.itemsize, math.prod(shape)
+    if count != need:
+        raise ModelError(f"model.shape: {path.name} has {count:g} {dtype.name} values but shape "
+                         f"{shape} needs {need}; fix shape (stored order) or dtype")
+    return np.fromfile(path, dtype=dtype).reshape(shape)
+
+
+def _read_hdf5(spec: dict, path: pathlib.Path) -> tuple[np.ndarray, object]:
+    """Dataset ``dataset`` and, if ``spacing_dataset`` is given, that dataset's values."""
+    import h5py
+
+    name = _require(spec, "dataset", "the name of the HDF5 dataset holding the model")
+    with h5py.File(path, "r") as f:
+        found = []
+        f.visititems(lambda n, obj: found.append(n) if isinstance(obj, h5py.Dataset) else None)
+        for key in ("dataset", "spacing_dataset"):
+            if key in spec and spec[key] not in found:
+                raise ModelError(f"model.{key}: {spec[key]!r} is not a dataset in {path.name}; "
+                                 f"it has {', '.join(found)}")
+        spacing = f[spec["spacing_dataset"]][()] if "spacing_dataset" in spec else None
+        return f[name][()], spacing
+
+
+def _read_segy(path: pathlib.Path) -> np.ndarray:
+    """SEG-Y with one trace per x position, samples along z: array (ntraces, nsamples)."""
+    import obspy
+
+    try:
+        stream = obspy.read(str(path), format="SEGY", unpack_trace_headers=False)
+    except Exception as e:  # ObsPy raises assorted types for unreadable files
+        raise ModelError(f"model.path: {path} could not be read as SEG-Y ({e}); "
+                         f"check the file or choose another kind") from None
+    lengths = {len(tr.data) for tr in stream}
+    if len(lengths) != 1:
+        raise ModelError(f"model.path: {path.name} has traces of {len(lengths)} different "
+                         f"lengths {sorted(lengths)}; a gridded model needs equal-length traces")
+    return np.stack([tr.data for tr in stream])

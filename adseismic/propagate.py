@@ -1,0 +1,213 @@
+"""Forward acoustic propagation: the small functional API on top of kernels/acoustic.py.
+
+Conventions (shared by every public function of adseismic):
+- velocity: (nz, nx) or (nz, ny, nx) array in m/s on a regular grid of spacing dx (m), axis order
+  (z, [y,] x) with z depth (positive down); node (0, ..., 0) is at coordinate 0 m.
+- locations: metres in the same axis order, shape (n_shots, n_per_shot, ndim).
+- source_amplitudes: (n_shots, n_sources_per_shot, nt); the source term s(t) of
+  (1/v^2) d2u/dt2 - laplacian(u) = s(t) delta(x - x_s), so that in a homogeneous medium
+  u = s(t - r/v) / (4 pi r) in 3D (units of s: [u] m^(ndim-2)).
+- receiver data: (n_shots, n_receivers_per_shot, nt) samples of u at t = n dt, n = 0..nt-1.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+from tqdm.auto import tqdm
+
+from adseismic.kernels.acoustic import HICKS_RADIUS, Acoustic
+from adseismic.numerics import cfl_limit, check_order
+
+log = logging.getLogger(__name__)
+
+DTYPES = {"float32": wp.float32, "float64": wp.float64}
+DEFAULT_PML_WIDTH = 20
+DEFAULT_PML_REFLECTION = {2: 1e-3, 4: 1e-3, 8: 1e-5}  # reference.md section 3
+BLOWUP_FACTOR = 1e3  # max|u| after the source ends vs. its peak during injection
+
+
+class PropagationError(RuntimeError):
+    """The simulation became unstable (non-finite or runaway wavefield)."""
+
+
+@dataclass
+class ForwardResult:
+    """Output of :func:`forward`.
+
+    receiver_amplitudes: (n_shots, n_receivers_per_shot, nt), samples of u at t = n dt.
+    dt: time step (s). snapshots: (n_snapshots, n_shots, *grid shape) or None; snapshot_times (s).
+    """
+
+    receiver_amplitudes: np.ndarray
+    dt: float
+    snapshots: np.ndarray | None = None
+    snapshot_times: np.ndarray | None = None
+
+
+def init_warp():
+    wp.config.quiet = True
+    wp.init()
+
+
+def resolve_device(device: str) -> str:
+    """Validate a device string ("cpu", "cuda", "cuda:N") against what Warp sees."""
+    init_warp()
+    try:
+        return str(wp.get_device(device))
+    except Exception as exc:  # Warp raises RuntimeError/ValueError depending on the failure
+        have = ", ".join(d.alias for d in wp.get_devices())
+        raise ValueError(f"device {device!r} is not available ({exc}); available: {have}") from None
+
+
+def dominant_frequency(source_amplitudes: np.ndarray, dt: float) -> float:
+    """Peak of the summed amplitude spectrum of all source traces (Hz)."""
+    spec = np.abs(np.fft.rfft(source_amplitudes.reshape(-1, source_amplitudes.shape[-1]), n=4 * source_amplitudes.shape[-1])).sum(0)
+    freqs = np.fft.rfftfreq(4 * source_amplitudes.shape[-1], dt)
+    return float(freqs[1:][np.argmax(spec[1:])])
+
+
+def to_zyx(locations: np.ndarray, ndim: int) -> np.ndarray:
+    """(S, n, ndim) metres in model axis order -> (S, n, 3) as (z, y, x) with y = 0 in 2D."""
+    loc = np.asarray(locations, dtype=float)
+    if ndim == 3:
+        return loc
+    out = np.zeros(loc.shape[:-1] + (3,))
+    out[..., 0], out[..., 2] = loc[..., 0], loc[..., 1]
+    return out
+
+
+def check_inputs(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order):
+    """Shape, value and stability checks shared by forward and gradient; raises ValueError."""
+    v = np.asarray(velocity)
+    ndim = v.ndim
+    if ndim not in (2, 3):
+        raise ValueError(f"velocity must be 2D (nz, nx) or 3D (nz, ny, nx); got shape {v.shape}")
+    check_order(order)
+    if not np.all(np.isfinite(v)) or v.min() <= 0:
+        bad = np.argwhere(~np.isfinite(v) | (v <= 0))
+        raise ValueError(f"velocity has {len(bad)} non-finite or non-positive values (first at index {tuple(bad[0])}); fix the model")
+    amp = np.asarray(source_amplitudes)
+    sl, rl = np.asarray(source_locations), np.asarray(receiver_locations)
+    if amp.ndim != 3:
+        raise ValueError(f"source_amplitudes must be (n_shots, n_sources, nt); got shape {amp.shape}")
+    for name, loc in (("source_locations", sl), ("receiver_locations", rl)):
+        if loc.ndim != 3 or loc.shape[0] != amp.shape[0] or loc.shape[2] != ndim:
+            raise ValueError(f"{name} must be (n_shots={amp.shape[0]}, n, ndim={ndim}) metres; got shape {loc.shape}")
+        extent = (np.array(v.shape) - 1) * dx
+        outside = np.any((loc < 0) | (loc > extent), axis=-1)
+        if outside.any():
+            i = np.argwhere(outside)[0]
+            raise ValueError(f"{name}[{i[0]}, {i[1]}] = {loc[i[0], i[1]].tolist()} m lies outside the grid [0, {extent.tolist()}] m")
+    if sl.shape[1] != amp.shape[1]:
+        raise ValueError(f"source_locations has {sl.shape[1]} sources per shot but source_amplitudes has {amp.shape[1]}")
+    limit = cfl_limit(order, ndim)
+    courant = float(v.max()) * dt / dx
+    if courant > limit:
+        raise ValueError(
+            f"dt = {dt:.6g} s is unstable: Courant number v_max dt/dx = {courant:.4f} exceeds the limit "
+            f"{limit:.4f} of order {order} in {ndim}D; use dt <= {limit * dx / v.max():.6g} s"
+        )
+    return ndim
+
+
+def make_propagator(velocity, dx, dt, n_shots, order, pml_width, pml_reflection, pml_frequency,
+                    free_surface, device, precision) -> Acoustic:  # fmt: skip
+    """The Acoustic launch helper for this grid, with defaults filled in."""
+    if precision not in DTYPES:
+        raise ValueError(f"precision {precision!r} is not one of {sorted(DTYPES)}")
+    width = DEFAULT_PML_WIDTH if pml_width is None else int(pml_width)
+    if width < HICKS_RADIUS:
+        raise ValueError(f"pml_width = {width} cells is below the source/receiver operator's half-width {HICKS_RADIUS}; use >= {HICKS_RADIUS}")
+    refl = DEFAULT_PML_REFLECTION[order] if pml_reflection is None else float(pml_reflection)
+    return Acoustic(np.shape(velocity), dx, dt, order, n_shots, width, refl, pml_frequency, float(np.max(velocity)),
+                    free_surface=free_surface, dtype=DTYPES[precision], device=resolve_device(device))  # fmt: skip
+
+
+def velocity_3d(velocity) -> np.ndarray:
+    v = np.asarray(velocity, dtype=float)
+    return v[:, None, :] if v.ndim == 2 else v
+
+
+class BlowupGuard:
+    """Stops a run whose wavefield turns non-finite or keeps growing after the source has ended."""
+
+    def __init__(self, prop: Acoustic, source_amplitudes: np.ndarray, every: int):
+        self.prop, self.every = prop, max(int(every), 1)
+        a = np.abs(source_amplitudes).max(axis=(0, 1))
+        active = np.nonzero(a > 1e-3 * a.max())[0] if a.max() > 0 else np.array([0])
+        self.source_end = int(active[-1]) + 1
+        self.peak = 0.0
+        self.stats = wp.zeros(2, dtype=prop.dtype, device=prop.device)
+
+    def __call__(self, u, n: int):
+        if n % self.every:
+            return
+        self.prop.monitor(u, self.stats)
+        amax, nonfinite = self.stats.numpy()
+        if n <= self.source_end:
+            self.peak = max(self.peak, float(amax))
+        runaway = n > self.source_end and self.peak > 0 and amax > BLOWUP_FACTOR * self.peak
+        if nonfinite or runaway:
+            p = self.prop
+            what = f"{int(nonfinite)} non-finite values" if nonfinite else f"max|u| = {amax:.3g}, {amax / self.peak:.3g} x its peak while the source was active"
+            raise PropagationError(
+                f"wavefield blew up at step {n} (t = {n * p.dt:.6g} s): {what}. Likely cause: dt = {p.dt:.6g} s is too "
+                f"close to the stability limit for this model (order {p.order}, {p.ndim}D, CFL limit {cfl_limit(p.order, p.ndim):.4f}), "
+                "a velocity model with extreme contrasts, or a PML whose damping is too strong for its width"
+            )
+
+
+def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4,
+            pml_width=None, pml_reflection=None, pml_frequency=None, free_surface=False, device="cpu",
+            precision="float32", snapshot_every=0, check_every=25, progress=False) -> ForwardResult:  # fmt: skip
+    """Simulate the acoustic wave equation for all shots at once.
+
+    velocity (nz, [ny,] nx) m/s; dx m; dt s; source_amplitudes (n_shots, n_src, nt);
+    source/receiver_locations (n_shots, n, ndim) metres (axis order z, [y,] x).
+    order: spatial order 2, 4 or 8. pml_width: cells (default 20) on every absorbing side;
+    pml_reflection: target reflection coefficient; pml_frequency: CPML alpha frequency (Hz,
+    default the sources' dominant frequency). free_surface: pressure-release top boundary at z = 0.
+    device: "cpu" or "cuda:N". precision: "float32" or "float64".
+    snapshot_every: keep the physical wavefield every that many steps (0: none).
+    check_every: steps between blow-up checks. Raises ValueError on bad input or an unstable dt,
+    PropagationError if the run blows up.
+    """
+    amp = np.asarray(source_amplitudes, dtype=float)
+    ndim = check_inputs(velocity, dx, dt, amp, source_locations, receiver_locations, order)
+    n_shots, _, nt = amp.shape
+    f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
+    prop = make_propagator(velocity, dx, dt, n_shots, order, pml_width, pml_reflection, f_pml, free_surface, device, precision)
+    dtype, dev = prop.dtype, prop.device
+
+    vpad = prop.pad_model(wp.array(velocity_3d(velocity), dtype=dtype, device=dev))
+    w_amp = wp.array(amp, dtype=dtype, device=dev)
+    w_src = wp.array(to_zyx(source_locations, ndim), dtype=dtype, device=dev)
+    w_rec = wp.array(to_zyx(receiver_locations, ndim), dtype=dtype, device=dev)
+    data = wp.zeros((n_shots, w_rec.shape[1], nt), dtype=dtype, device=dev)
+    guard = BlowupGuard(prop, amp, check_every)
+    snaps, snap_t = [], []
+    o = prop.origin
+    phys = (slice(None), slice(o[0], o[0] + prop.shape[0]), slice(o[1], o[1] + (prop.shape[1] if ndim == 3 else 1)), slice(o[2], o[2] + prop.shape[-1]))
+
+    st = prop.new_state()
+    for n in tqdm(range(nt), desc="time steps", unit="step", disable=not progress, leave=False):
+        prop.record(st.u, data, w_rec, n)
+        if snapshot_every and n % snapshot_every == 0:
+            field = st.u.numpy()[phys]
+            snaps.append(field[:, :, 0, :] if ndim == 2 else field)
+            snap_t.append(n * dt)
+        if n == nt - 1:
+            break
+        st = prop.step(st, vpad)
+        prop.inject(st.u, vpad, w_amp, w_src, n)
+        guard(st.u, n + 1)
+    return ForwardResult(
+        receiver_amplitudes=data.numpy().astype(float),
+        dt=float(dt),
+        snapshots=np.stack(snaps) if snaps else None,
+        snapshot_times=np.asarray(snap_t) if snaps else None,
+    )

@@ -1,0 +1,283 @@
+"""Scene planning: model no more than a scene needs.
+
+From the velocity range, the wavelet's frequency content, the spatial order and an accuracy target,
+the planner chooses (each value can be pinned in the config's `simulation` section):
+
+- dx: the coarsest spacing whose worst-direction group-velocity error at f_max (the wavelet's -20 dB
+  upper band edge) stays within `accuracy`, for the slowest wave (fewest points per wavelength) and the
+  fastest (largest Courant number, where time dispersion grows), using the scheme's exact dispersion
+  relation (adseismic.numerics);
+- dt: cfl_safety x the exact CFL limit; a smaller dt is chosen when that makes the whole run cheaper
+  (at order 8 time dispersion near the CFL limit would otherwise force a finer grid);
+- record length: the longest straight-ray source-receiver travel time plus the wavelet's duration;
+- domain: the source/receiver box plus an aperture margin of v_max T / 2 (nothing farther can send
+  energy back to a receiver within the record), cut to the model, plus the PML;
+and resamples the model onto that grid.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+from adseismic.models import Model
+from adseismic.numerics import cfl_limit, dispersion_error, ppw_for_error
+from adseismic.propagate import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH, ForwardResult, forward
+from adseismic.wavelets import duration, make_wavelet, spectral_fmax
+
+# Padded-grid cell updates per second used for the time estimate (per shot, forward); measured rates
+# are in docs/benchmarks.md, these are deliberately conservative round numbers.
+EST_RATE = {"cpu": 1.0e8, "cuda": 5.0e10}
+SAFETY_STEPS = (1.0, 0.8, 0.6, 0.45, 0.3, 0.2)
+
+
+@dataclass
+class Plan:
+    """The planner's decisions. Lengths in m, times in s, frequencies in Hz; axis order (z,[y,]x)."""
+
+    ndim: int
+    order: int
+    dx: float
+    dt: float
+    nt: int
+    shape: tuple
+    origin: tuple
+    pml_width: int
+    pml_reflection: float
+    free_surface: bool
+    device: str
+    precision: str
+    f_max: float
+    expected_error: float
+    courant: float
+    cfl_limit: float
+    padded_cells: int
+    memory_bytes: int
+    seconds_per_shot: float
+    n_shots: int = 1
+    reasons: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+
+    def describe(self) -> str:
+        grid = " x ".join(str(n) for n in self.shape)
+        axes = "z, y, x" if self.ndim == 3 else "z, x"
+        lines = [
+            f"grid      {grid} cells ({axes}), dx = {self.dx:g} m, origin {tuple(round(o, 3) for o in self.origin)} m",
+            f"          why: {self.reasons['dx']}",
+            f"dt        {self.dt:.6g} s (Courant {self.courant:.3f}, limit {self.cfl_limit:.3f} for order {self.order} in {self.ndim}D)",
+            f"          why: {self.reasons['dt']}",
+            f"nt        {self.nt} steps = {self.nt * self.dt:.4g} s record",
+            f"          why: {self.reasons['nt']}",
+            f"domain    {self.reasons['domain']}",
+            f"PML       {self.pml_width} cells, target reflection {self.pml_reflection:g}{', free surface on top' if self.free_surface else ''}",
+            f"accuracy  expected group-velocity error {100 * self.expected_error:.2f}% at f_max = {self.f_max:.3g} Hz",
+            f"cost      {self.padded_cells:,} padded cells x {self.nt} steps x {self.n_shots} shot(s); "
+            f"~{self.memory_bytes / 2**20:.0f} MiB, ~{self.seconds_per_shot:.3g} s per shot on {self.device} ({self.precision}, estimate)",
+        ]
+        lines += [f"WARNING   {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+@dataclass
+class Scene:
+    """A planned simulation: locations in metres relative to grid node 0 (axis order z,[y,]x).
+
+    source_locations (n_shots, 1, ndim); receiver_locations (n_shots, n_receivers, ndim);
+    source_amplitudes (n_shots, 1, nt); wavelet (nt,).
+    """
+
+    plan: Plan
+    model: Model
+    source_locations: np.ndarray
+    receiver_locations: np.ndarray
+    source_amplitudes: np.ndarray
+    wavelet: np.ndarray
+
+
+def _nice_floor(x: float, digits: int = 2) -> float:
+    """Round down to `digits` significant digits (keeps plans readable and reproducible)."""
+    e = math.floor(math.log10(x)) - digits + 1
+    return math.floor(x / 10**e) * 10**e
+
+
+def wavelet_band(kind: str, params: dict):
+    """(f_max at -20 dB in Hz, duration in s) of a configured wavelet, sampled finely."""
+    if "peak_frequency" in params:
+        dt0 = 1.0 / (50.0 * float(params["peak_frequency"]))
+        nt0 = int(round((float(params.get("delay") or 0.0) + 10.0 / float(params["peak_frequency"])) / dt0))
+    else:
+        dt0 = float(params.get("dt_in", 1e-3))
+        nt0 = len(params["samples"])
+    w = make_wavelet(kind, nt0, dt0, **params)
+    return spectral_fmax(w, dt0, -20.0), duration(w, dt0)
+
+
+def straight_ray_times(model: Model, sources: np.ndarray, receivers: np.ndarray) -> np.ndarray:
+    """Travel times (s) along straight rays through the model's slowness, (n_sources, n_receivers)."""
+    slow = 1.0 / model.values
+    h = min(model.spacing)
+    org, spc = np.array(model.origin), np.array(model.spacing)
+    out = np.zeros((len(sources), len(receivers)))
+    for i, s in enumerate(sources):
+        seg = receivers - s
+        length = np.linalg.norm(seg, axis=1)
+        n = max(int(np.ceil(length.max() / (0.5 * h))), 1) + 1
+        frac = np.linspace(0.0, 1.0, n)
+        pts = s[None, None, :] + frac[None, :, None] * seg[:, None, :]  # (n_rec, n, ndim)
+        idx = ((pts - org) / spc).reshape(-1, model.ndim).T
+        vals = map_coordinates(slow, idx, order=1, mode="nearest").reshape(len(receivers), n)
+        out[i] = np.trapezoid(vals, frac, axis=1) * length
+    return out
+
+
+def _group_error(order, ndim, vmin, vmax, f_max, dx, dt) -> float:
+    """Worst group-velocity error at f_max over the slowest and the fastest wave."""
+    return max(dispersion_error(order, ndim, v / (f_max * dx), v * dt / dx)["group"][0] for v in (vmin, vmax))
+
+
+def _choose_dx_dt(order, ndim, vmin, vmax, f_max, accuracy, safety, pins, extent_cells_fn, t_record):
+    """(dx, dt, reason_dx, reason_dt) minimising cells x steps subject to the accuracy target."""
+    limit = cfl_limit(order, ndim)
+    if pins.get("dt") is not None and pins.get("dx") is not None:
+        return pins["dx"], pins["dt"], "pinned by the config", "pinned by the config"
+    best = None
+    for s in SAFETY_STEPS:
+        c_max = safety * s * limit
+        c_min = c_max * vmin / vmax
+        try:
+            ppw_slow = ppw_for_error(order, ndim, c_min, accuracy)
+            ppw_fast = ppw_for_error(order, ndim, c_max, accuracy)
+        except ValueError:
+            continue
+        dx = pins["dx"] if pins.get("dx") is not None else _nice_floor(min(vmin / (f_max * ppw_slow), vmax / (f_max * ppw_fast)))
+        dt = pins["dt"] if pins.get("dt") is not None else _nice_floor(c_max * dx / vmax)
+        # rounding moves the Courant number, and the error is not monotonic in it: re-check
+        while pins.get("dx") is None and _group_error(order, ndim, vmin, vmax, f_max, dx, dt) > accuracy:
+            dx = _nice_floor(0.98 * dx)
+            dt = pins["dt"] if pins.get("dt") is not None else _nice_floor(c_max * dx / vmax)
+        cost = extent_cells_fn(dx) * t_record / dt
+        if best is None or cost < best[0]:
+            why = (f"{vmin / (f_max * dx):.1f} points per minimum wavelength (v_min {vmin:.0f} m/s at f_max {f_max:.3g} Hz) "
+                   f"meet the {100 * accuracy:g}% group-velocity target at order {order}")  # fmt: skip
+            why_dt = f"{safety * s:.2f} x the CFL limit (the cheapest dt/dx pair that meets the accuracy target)"
+            best = (cost, dx, dt, why if pins.get("dx") is None else "pinned by the config", why_dt if pins.get("dt") is None else "pinned by the config")
+        if pins.get("dt") is not None:
+            break
+    if best is None:
+        raise ValueError(f"simulation.accuracy: {accuracy:g} cannot be reached at order {order}; raise the target (e.g. 0.01) or use order 4 or 8")
+    return best[1:]
+
+
+def plan_scene(config) -> Plan:
+    """Plan the simulation grid, time step, record and domain for a ForwardConfig (see config.py)."""
+    model, geo, sim = config.model, config.geometry, config.simulation
+    ndim, order = model.ndim, int(sim.order)
+    src, rec = np.asarray(geo.sources, float), np.asarray(geo.receivers, float)
+    for name, pts in (("geometry.sources", src), ("geometry.receivers", rec)):
+        inside = model.contains(pts)
+        if not inside.all():
+            i = int(np.argmin(inside))
+            raise ValueError(f"{name}[{i}] = {pts[i].tolist()} m lies outside the model {[list(e) for e in model.extent]} m; move it inside or extend the model")
+    warnings = []
+    f_max, w_len = wavelet_band(config.wavelet.kind, config.wavelet.params)
+
+    t_direct = float(straight_ray_times(model, src, rec).max())
+    if sim.duration is not None:
+        t_record = float(sim.duration)
+        why_nt = "pinned by the config"
+        if t_record < t_direct:
+            warnings.append(f"record length {t_record:g} s is shorter than the longest direct arrival ({t_direct:.3g} s)")
+    else:
+        t_record = t_direct + w_len
+        why_nt = f"longest straight-ray source-receiver time {t_direct:.3g} s + wavelet duration {w_len:.3g} s"
+
+    pts = np.vstack([src, rec])
+    lo_m = np.array([e[0] for e in model.extent])
+    hi_m = np.array([e[1] for e in model.extent])
+    if sim.domain == "model":
+        lo, hi = lo_m, hi_m
+        why_domain = "the whole model (domain: model)"
+    else:
+        margin = float(sim.margin) if sim.margin is not None else model.vmax * t_record / 2.0
+        lo = np.maximum(pts.min(0) - margin, lo_m)
+        hi = np.minimum(pts.max(0) + margin, hi_m)
+        why_domain = (f"sources/receivers box + {margin:.0f} m margin ({'pinned' if sim.margin is not None else 'v_max T / 2: nothing farther returns energy within the record'}), "
+                      "cut to the model")  # fmt: skip
+    org, spc = np.array(model.origin), np.array(model.spacing)
+    i0 = np.floor((lo - org) / spc + 1e-9).astype(int)
+    i1 = np.ceil((hi - org) / spc - 1e-9).astype(int) + 1
+    box = model.values[tuple(slice(a, b) for a, b in zip(i0, i1))]
+    vmin, vmax = float(box.min()), float(box.max())
+
+    pml = DEFAULT_PML_WIDTH if sim.pml_width is None else int(sim.pml_width)
+
+    def cells(dx):
+        n = np.ceil((hi - lo) / dx - 1e-9) + 1 + 2 * pml
+        return float(np.prod(n))
+
+    pins = {"dx": sim.dx, "dt": sim.dt}
+    dx, dt, why_dx, why_dt = _choose_dx_dt(order, ndim, vmin, vmax, f_max, float(sim.accuracy), float(sim.cfl_safety), pins, cells, t_record)
+    limit = cfl_limit(order, ndim)
+    courant = vmax * dt / dx
+    if courant > limit:
+        raise ValueError(
+            f"simulation.dt: {dt:g} s is unstable with dx = {dx:g} m and v_max = {vmax:.0f} m/s: Courant number "
+            f"{courant:.4f} exceeds the exact limit {limit:.4f} (order {order}, {ndim}D); use dt <= {limit * dx / vmax:.6g} s"
+        )
+    err = _group_error(order, ndim, vmin, vmax, f_max, dx, dt)
+    if err > float(sim.accuracy):
+        warnings.append(
+            f"under-resolved: expected group-velocity error {100 * err:.2f}% at f_max {f_max:.3g} Hz exceeds the target "
+            f"{100 * sim.accuracy:g}% ({vmin / (f_max * dx):.1f} points per minimum wavelength at dx = {dx:g} m); "
+            f"over the longest path ({t_direct:.3g} s) that is ~{err * t_direct * 1e3:.1f} ms of travel-time error"
+        )
+    if courant < 0.2 * limit:
+        warnings.append(f"dt is {courant / limit:.2f} of the CFL limit: the run takes {limit / courant:.1f}x more steps than needed for stability")
+
+    shape = tuple(int(n) for n in np.ceil((hi - lo) / dx - 1e-9) + 1)  # covers every source and receiver
+    nt = int(math.ceil(t_record / dt)) + 1
+    refl = DEFAULT_PML_REFLECTION[order] if sim.pml_reflection is None else float(sim.pml_reflection)
+    padded = int(np.prod([n + 2 * pml + order for n in shape]))
+    itemsize = 4 if sim.precision == "float32" else 8
+    memory = itemsize * (3 * padded + padded) + itemsize * len(rec) * nt
+    device_kind = "cuda" if str(sim.device).startswith("cuda") else "cpu"
+    return Plan(
+        ndim=ndim, order=order, dx=float(dx), dt=float(dt), nt=nt, shape=shape, origin=tuple(float(x) for x in lo),
+        pml_width=pml, pml_reflection=refl, free_surface=bool(sim.free_surface), device=str(sim.device),
+        precision=str(sim.precision), f_max=float(f_max), expected_error=float(err), courant=float(courant),
+        cfl_limit=float(limit), padded_cells=padded, memory_bytes=int(memory),
+        seconds_per_shot=padded * nt / EST_RATE[device_kind], n_shots=len(src),
+        reasons={"dx": why_dx, "dt": why_dt, "nt": why_nt, "domain": why_domain}, warnings=warnings,
+    )  # fmt: skip
+
+
+def build_scene(config, plan: Plan | None = None) -> Scene:
+    """Plan (unless given) and materialise the scene: resampled model, locations, source wavelets."""
+    plan = plan or plan_scene(config)
+    model = config.model.resample(plan.dx, plan.origin, plan.shape)
+    origin = np.array(plan.origin)
+    src = np.asarray(config.geometry.sources, float) - origin
+    rec = np.asarray(config.geometry.receivers, float) - origin
+    n_shots = len(src)
+    wavelet = make_wavelet(config.wavelet.kind, plan.nt, plan.dt, **config.wavelet.params)
+    return Scene(
+        plan=plan,
+        model=model,
+        source_locations=src[:, None, :],
+        receiver_locations=np.broadcast_to(rec, (n_shots, *rec.shape)).copy(),
+        source_amplitudes=np.broadcast_to(wavelet, (n_shots, 1, plan.nt)).copy(),
+        wavelet=wavelet,
+    )
+
+
+def run_forward(scene: Scene, snapshot_every: int = 0, progress: bool = False) -> ForwardResult:
+    """Run the planned forward simulation for every shot of the scene at once."""
+    p = scene.plan
+    return forward(
+        scene.model.values, p.dx, p.dt, scene.source_amplitudes, scene.source_locations, scene.receiver_locations,
+        order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface,
+        device=p.device, precision=p.precision, snapshot_every=snapshot_every, progress=progress,
+    )  # fmt: skip

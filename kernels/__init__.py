@@ -1,0 +1,1 @@
+"""Warp kernels and their launch helpers, one module per physics."""

@@ -1,0 +1,437 @@
+"""Warp kernels for the constant-density acoustic wave equation, 2D and 3D.
+
+Equation:  (1/v^2) d2u/dt2 - laplacian(u) = s(t) delta(x - x_s),
+scheme:    u[n+1] = 2 u[n] - u[n-1] + v^2 dt^2 (L u[n] + s[n] delta_h),
+with L the order-2/4/8 Laplacian whose second derivatives are stretched by a convolutional PML
+(Komatitsch & Martin 2007; second-order form of Pasalic & McGarry 2010) along every absorbing axis:
+
+    d2u/dx2  ->  d2u/dx2 + d(psi)/dx + zeta,
+    psi[n]  = b psi[n-1]  + a du/dx[n],
+    zeta[n] = b zeta[n-1] + a (d2u/dx2 + d(psi)/dx)[n].
+
+Layout. Every field is (n_shots, nz, ny, nx) with x contiguous; 2D uses ny = 1. Each axis is padded
+as [halo R][PML][physical grid][PML][halo R] with R = order/2; halo cells stay zero and are never
+written, so stencils need no bounds checks. With a free surface the top has no PML: its first
+non-halo row is the surface (u = 0) and reads above it mirror the field with a sign change
+(pressure release by antisymmetric imaging). psi and zeta are stored only in strips along each axis
+("strip" index j; Axis.store maps a padded index to j, Axis.pos maps back), which keeps the memory of
+a taped time step close to one wavefield.
+
+Off-grid sources and receivers use one operator for injection and recording (so the two are exact
+adjoints): a Kaiser-windowed sinc of half-width HICKS_RADIUS cells per axis (Hicks 2002, shape
+parameter HICKS_B for wavenumbers up to pi/2, i.e. >= 4 points per wavelength), mirrored with a
+sign change across a free surface.
+
+All kernels write fresh outputs from inputs (or add with atomics), never read-modify their own
+input, so each time step can be differentiated by wp.Tape when given its own arrays.
+"""
+
+
+import functools
+import math
+
+import numpy as np
+import warp as wp
+
+from adseismic.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
+
+HICKS_RADIUS = 4
+HICKS_B = 6.31
+_I0_TERMS = 20
+
+
+def _i0(x: float) -> float:
+    total, term = 1.0, 1.0
+    for k in range(1, _I0_TERMS + 1):
+        term *= (x / 2.0) ** 2 / k**2
+        total += term
+    return total
+
+
+@functools.lru_cache(maxsize=None)
+def build(ndim: int, order: int, dtype, free_surface: bool):
+    """Kernels for one (ndim, order, dtype, free_surface) combination, compiled once per process."""
+    R = order // 2
+    A = SECOND_DERIVATIVE[order]
+    B = FIRST_DERIVATIVE[order]
+    HR = HICKS_RADIUS
+    W = 2 * HR
+    NPTS = W**ndim
+    INV_I0B = 1.0 / _i0(HICKS_B)
+    fs = bool(free_surface)
+    three = ndim == 3
+    arr1 = wp.array(dtype=dtype)
+    arr3 = wp.array3d(dtype=dtype)
+    arr4 = wp.array4d(dtype=dtype)
+
+    @wp.struct
+    class Axis:
+        a: wp.array(dtype=dtype)  # CPML coefficient a per padded index (0 outside the PML)
+        b: wp.array(dtype=dtype)  # CPML coefficient b per padded index
+        store: wp.array(dtype=wp.int32)  # strip index per padded index, -1 outside the strip
+        pos: wp.array(dtype=wp.int32)  # padded index per strip index
+
+    @wp.func
+    def at(u: arr4, s: int, z: int, y: int, x: int, top: int) -> dtype:
+        # Field value; above a free surface (row `top`) the antisymmetric image.
+        if wp.static(fs):
+            if z < top:
+                return -u[s, 2 * top - z, y, x]
+        return u[s, z, y, x]
+
+    @wp.func
+    def d2z(u: arr4, s: int, z: int, y: int, x: int, top: int) -> dtype:
+        acc = dtype(wp.static(A[0])) * u[s, z, y, x]
+        for k in range(wp.static(R)):
+            acc += dtype(wp.static(A[k + 1])) * (at(u, s, z + k + 1, y, x, top) + at(u, s, z - k - 1, y, x, top))
+        return acc
+
+    @wp.func
+    def d2y(u: arr4, s: int, z: int, y: int, x: int) -> dtype:
+        acc = dtype(wp.static(A[0])) * u[s, z, y, x]
+        for k in range(wp.static(R)):
+            acc += dtype(wp.static(A[k + 1])) * (u[s, z, y + k + 1, x] + u[s, z, y - k - 1, x])
+        return acc
+
+    @wp.func
+    def d2x(u: arr4, s: int, z: int, y: int, x: int) -> dtype:
+        acc = dtype(wp.static(A[0])) * u[s, z, y, x]
+        for k in range(wp.static(R)):
+            acc += dtype(wp.static(A[k + 1])) * (u[s, z, y, x + k + 1] + u[s, z, y, x - k - 1])
+        return acc
+
+    def make_psi(axis: int):
+        # psi along one axis (0: z, 1: y, 2: x) for every cell of that axis' strip.
+        @wp.kernel(module="unique")
+        def psi_kernel(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype):
+            s, i, j, k = wp.tid()
+            if wp.static(axis == 0):
+                p = ax.pos[i]
+            elif wp.static(axis == 1):
+                p = ax.pos[j]
+            else:
+                p = ax.pos[k]
+            a = ax.a[p]
+            val = dtype(0.0)
+            if a != dtype(0.0):
+                du = dtype(0.0)
+                for m in range(wp.static(R)):
+                    if wp.static(axis == 0):
+                        du += dtype(wp.static(B[m])) * (u[s, p + m + 1, j, k] - u[s, p - m - 1, j, k])
+                    elif wp.static(axis == 1):
+                        du += dtype(wp.static(B[m])) * (u[s, i, p + m + 1, k] - u[s, i, p - m - 1, k])
+                    else:
+                        du += dtype(wp.static(B[m])) * (u[s, i, j, p + m + 1] - u[s, i, j, p - m - 1])
+                val = ax.b[p] * psi_old[s, i, j, k] + a * du * inv_dx
+            psi_new[s, i, j, k] = val
+
+        return psi_kernel
+
+    def make_dpsi(axis: int):
+        # First derivative of a psi strip along its own axis at strip cell (i, j, k).
+        @wp.func
+        def dpsi(psi: arr4, s: int, i: int, j: int, k: int) -> dtype:
+            acc = dtype(0.0)
+            for m in range(wp.static(R)):
+                if wp.static(axis == 0):
+                    acc += dtype(wp.static(B[m])) * (psi[s, i + m + 1, j, k] - psi[s, i - m - 1, j, k])
+                elif wp.static(axis == 1):
+                    acc += dtype(wp.static(B[m])) * (psi[s, i, j + m + 1, k] - psi[s, i, j - m - 1, k])
+                else:
+                    acc += dtype(wp.static(B[m])) * (psi[s, i, j, k + m + 1] - psi[s, i, j, k - m - 1])
+            return acc
+
+        return dpsi
+
+    dpsi_z, dpsi_y, dpsi_x = make_dpsi(0), make_dpsi(1), make_dpsi(2)
+
+    @wp.kernel(module="unique")
+    def step(
+        u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
+        psi_z: arr4, psi_y: arr4, psi_x: arr4,
+        zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis,
+        dt2: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        s, zi, yi, xi = wp.tid()
+        z = zi + wp.static(R)
+        x = xi + wp.static(R)
+        y = yi
+        if wp.static(three):
+            y = yi + wp.static(R)
+        if wp.static(fs):
+            if z == top:
+                u_next[s, z, y, x] = dtype(0.0)
+                return
+        inv_dx2 = inv_dx * inv_dx
+        uzz = d2z(u, s, z, y, x, top) * inv_dx2
+        jz = az.store[z]
+        if jz >= 0:
+            g = uzz + dpsi_z(psi_z, s, jz, y, x) * inv_dx
+            zn = az.b[z] * zeta_z[s, jz, y, x] + az.a[z] * g
+            zeta_z_new[s, jz, y, x] = zn
+            uzz = g + zn
+        uxx = d2x(u, s, z, y, x) * inv_dx2
+        jx = ax.store[x]
+        if jx >= 0:
+            g = uxx + dpsi_x(psi_x, s, z, y, jx) * inv_dx
+            zn = ax.b[x] * zeta_x[s, z, y, jx] + ax.a[x] * g
+            zeta_x_new[s, z, y, jx] = zn
+            uxx = g + zn
+        lap = uzz + uxx
+        if wp.static(three):
+            uyy = d2y(u, s, z, y, x) * inv_dx2
+            jy = ay.store[y]
+            if jy >= 0:
+                g = uyy + dpsi_y(psi_y, s, z, jy, x) * inv_dx
+                zn = ay.b[y] * zeta_y[s, z, jy, x] + ay.a[y] * g
+                zeta_y_new[s, z, jy, x] = zn
+                uyy = g + zn
+            lap = lap + uyy
+        vv = v[z, y, x]
+        u_next[s, z, y, x] = dtype(2.0) * u[s, z, y, x] - u_prev[s, z, y, x] + vv * vv * dt2 * lap
+
+    @wp.func
+    def hicks(d: dtype) -> dtype:
+        # Kaiser-windowed sinc weight at distance d (cells) from the point.
+        r2 = dtype(1.0) - (d * d) / dtype(wp.static(float(HR * HR)))
+        if r2 <= dtype(0.0):
+            return dtype(0.0)
+        pd = dtype(wp.static(math.pi)) * d
+        sinc = dtype(1.0) - pd * pd / dtype(6.0)
+        if wp.abs(pd) > dtype(1.0e-3):
+            sinc = wp.sin(pd) / pd
+        y = dtype(wp.static(HICKS_B / 2.0)) * wp.sqrt(r2)
+        y2 = y * y
+        term = dtype(1.0)
+        total = dtype(1.0)
+        for k in range(wp.static(_I0_TERMS)):
+            term = term * y2 / dtype(wp.static(float((k + 1) * (k + 1))))
+            total = total + term
+        return sinc * total * dtype(wp.static(INV_I0B))
+
+    @wp.func
+    def point(loc: arr3, s: int, n: int, q: int, origin: wp.vec3i, inv_dx: dtype, top: int):
+        # q-th stencil node of the operator at loc[s, n] (metres, (z, y, x)): padded index and weight.
+        zc = loc[s, n, 0] * inv_dx + dtype(origin[0])
+        xc = loc[s, n, 2] * inv_dx + dtype(origin[2])
+        qz = q // wp.static(W ** (ndim - 1))
+        qx = q % wp.static(W)
+        iz = int(wp.floor(zc)) - wp.static(HR - 1) + qz
+        ix = int(wp.floor(xc)) - wp.static(HR - 1) + qx
+        w = hicks(dtype(iz) - zc) * hicks(dtype(ix) - xc)
+        iy = int(0)
+        if wp.static(three):
+            yc = loc[s, n, 1] * inv_dx + dtype(origin[1])
+            iy = int(wp.floor(yc)) - wp.static(HR - 1) + (q // wp.static(W)) % wp.static(W)
+            w = w * hicks(dtype(iy) - yc)
+        if wp.static(fs):
+            if iz == top:
+                w = dtype(0.0)
+            elif iz < top:
+                iz = 2 * top - iz
+                w = -w
+        return wp.vec3i(iz, iy, ix), w
+
+    @wp.kernel(module="unique")
+    def inject(
+        u_next: arr4, v: arr3, amp: arr3, loc: arr3, n: int,
+        origin: wp.vec3i, scale: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        # u_next += v^2 dt^2 s[n] w / dx^ndim at the operator's nodes (scale = dt^2 / dx^ndim).
+        s, src, q = wp.tid()
+        idx, w = point(loc, s, src, q, origin, inv_dx, top)
+        if w != dtype(0.0):
+            vv = v[idx[0], idx[1], idx[2]]
+            wp.atomic_add(u_next, s, idx[0], idx[1], idx[2], scale * vv * vv * w * amp[s, src, n])
+
+    @wp.kernel(module="unique")
+    def record(u: arr4, data: arr3, loc: arr3, n: int, origin: wp.vec3i, inv_dx: dtype, top: int):
+        s, rec, q = wp.tid()
+        idx, w = point(loc, s, rec, q, origin, inv_dx, top)
+        if w != dtype(0.0):
+            wp.atomic_add(data, s, rec, n, w * u[s, idx[0], idx[1], idx[2]])
+
+    @wp.kernel(module="unique")
+    def pad_model(v: arr3, vpad: arr3, origin: wp.vec3i):
+        # Padded model from the physical one, extended by edge replication into PML and halo.
+        z, y, x = wp.tid()
+        iz = wp.clamp(z - origin[0], 0, v.shape[0] - 1)
+        iy = wp.clamp(y - origin[1], 0, v.shape[1] - 1)
+        ix = wp.clamp(x - origin[2], 0, v.shape[2] - 1)
+        vpad[z, y, x] = v[iz, iy, ix]
+
+    @wp.kernel(module="unique")
+    def monitor(u: arr4, stats: arr1):
+        # stats[0] = max |u|, stats[1] = number of non-finite values (blow-up detection).
+        s, z, y, x = wp.tid()
+        val = u[s, z, y, x]
+        if wp.isfinite(val):
+            wp.atomic_max(stats, 0, wp.abs(val))
+        else:
+            wp.atomic_add(stats, 1, dtype(1.0))
+
+    return _Kernels(
+        Axis=Axis, step=step, psi=(make_psi(0), make_psi(1), make_psi(2)), inject=inject,
+        record=record, pad_model=pad_model, monitor=monitor, halo=R, operator_points=NPTS,
+    )  # fmt: skip
+
+
+class _Kernels:
+    """Namespace of the compiled kernels of one configuration (see build)."""
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+
+def _strip_layout(n_lo: int, n_hi: int, length: int, halo: int):
+    """Strip storage of psi/zeta along one axis of padded length `length`.
+
+    Each absorbing side stores [halo][PML][halo cells where d(psi)/dx is non-zero][halo zero cells],
+    mirrored on the high side; the zero cells let d(psi)/dx read its neighbours without bounds checks.
+    Returns (store, pos): store[p] = strip index of padded index p where the step needs psi/zeta (else
+    -1); pos[j] = padded index of strip cell j.
+    """
+    store = -np.ones(length, dtype=np.int32)
+    pos = []
+    if n_lo > 0:
+        region = list(range(0, 3 * halo + n_lo))
+        store[: 2 * halo + n_lo] = region[: 2 * halo + n_lo]
+        pos += region
+    if n_hi > 0:
+        region = list(range(length - 3 * halo - n_hi, length))
+        base = len(pos)
+        for j, p in enumerate(region):
+            if j >= halo:
+                store[p] = base + j
+        pos += region
+    return store, np.asarray(pos or [0], dtype=np.int32)
+
+
+def cpml_profile(n_lo: int, n_hi: int, length: int, halo: int, dx: float, dt: float, vmax: float,
+                 reflection: float, frequency: float):  # fmt: skip
+    """CPML recursion coefficients (a, b) per padded index (Komatitsch & Martin 2007, kappa = 1).
+
+    d(x) = d0 (x/L)^2 with d0 = 3 vmax ln(1/reflection) / (2 L); alpha(x) = pi f (1 - x/L); x is the
+    distance into the layer of thickness L = width dx.
+    """
+    a = np.zeros(length)
+    b = np.ones(length)
+    for width, cells in ((n_lo, [(p, halo + n_lo - p) for p in range(halo, halo + n_lo)]),
+                         (n_hi, [(p, p - (length - halo - n_hi) + 1) for p in range(length - halo - n_hi, length - halo)])):  # fmt: skip
+        if width == 0:
+            continue
+        thick = width * dx
+        d0 = 3.0 * vmax * np.log(1.0 / reflection) / (2.0 * thick)
+        for p, depth in cells:
+            frac = depth * dx / thick
+            d = d0 * frac**2
+            alpha = np.pi * frequency * (1.0 - frac)
+            b[p] = np.exp(-(d + alpha) * dt)
+            a[p] = d * (b[p] - 1.0) / (d + alpha) if d + alpha > 0 else 0.0
+    return a, b
+
+
+class State:
+    """Wavefields at one time level n: u_prev = u[n-1], u = u[n], psi[n-1], zeta[n-1] (z, y, x)."""
+
+    def __init__(self, u_prev, u, psi, zeta):
+        self.u_prev, self.u, self.psi, self.zeta = u_prev, u, psi, zeta
+
+    def arrays(self):
+        return [self.u_prev, self.u, *self.psi, *self.zeta]
+
+
+class Acoustic:
+    """Launch helper: padded grid, CPML coefficients and one time step of the acoustic scheme.
+
+    shape: physical grid (nz, nx) or (nz, ny, nx) cells; dx (m) and dt (s); pml_width cells on every
+    absorbing side; positions passed to inject/record are metres from the physical grid's node 0.
+    """
+
+    def __init__(self, shape, dx, dt, order, n_shots, pml_width, pml_reflection, pml_frequency, vmax,
+                 free_surface=False, dtype=wp.float32, device="cpu"):  # fmt: skip
+        self.ndim = len(shape)
+        self.shape = tuple(int(n) for n in shape)
+        self.dx, self.dt, self.order, self.n_shots = float(dx), float(dt), int(order), int(n_shots)
+        self.dtype, self.device = dtype, device
+        self.k = build(self.ndim, self.order, dtype, bool(free_surface))
+        R = self.k.halo
+        shape3 = (self.shape[0], self.shape[1] if self.ndim == 3 else 1, self.shape[-1])
+        nb = int(pml_width)
+        lo = [0 if free_surface else nb, nb if self.ndim == 3 else 0, nb]
+        hi = [nb, nb if self.ndim == 3 else 0, nb]
+        halo = [R, R if self.ndim == 3 else 0, R]
+        self.padded = tuple(shape3[a] + lo[a] + hi[a] + 2 * halo[a] for a in range(3))
+        self.origin = wp.vec3i(*(halo[a] + lo[a] for a in range(3)))
+        self.top = R
+        self.axes, self.strip_width = [], []
+        for a in range(3):
+            L = self.padded[a]
+            store, pos = _strip_layout(lo[a], hi[a], L, halo[a])
+            ca, cb = cpml_profile(lo[a], hi[a], L, halo[a], dx, dt, vmax, pml_reflection, pml_frequency)
+            axis = self.k.Axis()
+            axis.a = wp.array(ca, dtype=dtype, device=device)
+            axis.b = wp.array(cb, dtype=dtype, device=device)
+            axis.store = wp.array(store, dtype=wp.int32, device=device)
+            axis.pos = wp.array(pos, dtype=wp.int32, device=device)
+            self.axes.append(axis)
+            self.strip_width.append(len(pos) if lo[a] + hi[a] > 0 else 0)
+        self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * halo[1], self.padded[2] - 2 * R)
+        self.inv_dx = dtype(1.0 / dx)
+        self.dt2 = dtype(dt * dt)
+        self.src_scale = dtype(dt * dt / dx**self.ndim)
+
+    def strip_shape(self, axis: int):
+        shape = [self.n_shots, *self.padded]
+        shape[axis + 1] = max(self.strip_width[axis], 1)
+        return tuple(shape)
+
+    def new_state(self, requires_grad=False) -> State:
+        def zeros(shape):
+            return wp.zeros(shape, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+
+        full = (self.n_shots, *self.padded)
+        return State(zeros(full), zeros(full), [zeros(self.strip_shape(a)) for a in range(3)],
+                     [zeros(self.strip_shape(a)) for a in range(3)])  # fmt: skip
+
+    def pad_model(self, v, requires_grad=False):
+        """Padded model (Lz, Ly, Lx) from the physical one (wp.array3d, (nz, ny, nx), m/s)."""
+        vpad = wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+        wp.launch(self.k.pad_model, dim=self.padded, inputs=[v, vpad, self.origin], device=self.device)
+        return vpad
+
+    def step(self, st: State, vpad, out: State | None = None) -> State:
+        """Advance st (level n) to level n+1. With out=None the step is done in place (forward only);
+        with `out` (fresh arrays, e.g. under a tape) st is left unchanged and out is returned."""
+        if out is None:
+            out = State(st.u, st.u_prev, st.psi, st.zeta)  # u[n+1] overwrites u[n-1]; psi, zeta in place
+            u_next = st.u_prev
+        else:
+            out = State(st.u, out.u, out.psi, out.zeta)
+            u_next = out.u
+        for a in range(3):
+            if self.strip_width[a]:
+                wp.launch(self.k.psi[a], dim=self.strip_shape(a),
+                          inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx], device=self.device)  # fmt: skip
+        wp.launch(self.k.step, dim=self.interior,
+                  inputs=[st.u, st.u_prev, u_next, vpad, *out.psi, *st.zeta, *out.zeta, *self.axes,
+                          self.dt2, self.inv_dx, self.top], device=self.device)  # fmt: skip
+        return out
+
+    def inject(self, u, vpad, amplitudes, locations, n: int):
+        """Add source samples n (amplitudes (S, n_src, nt)) at locations (S, n_src, 3) metres into u."""
+        wp.launch(self.k.inject, dim=(self.n_shots, locations.shape[1], self.k.operator_points),
+                  inputs=[u, vpad, amplitudes, locations, n, self.origin, self.src_scale, self.inv_dx, self.top],
+                  device=self.device)  # fmt: skip
+
+    def record(self, u, data, locations, n: int):
+        """data[:, :, n] += receiver samples of u at locations (S, n_rec, 3) metres."""
+        wp.launch(self.k.record, dim=(self.n_shots, locations.shape[1], self.k.operator_points),
+                  inputs=[u, data, locations, n, self.origin, self.inv_dx, self.top], device=self.device)  # fmt: skip
+
+    def monitor(self, u, stats):
+        """stats (2,) <- [max |u|, count of non-finite values]."""
+        stats.zero_()
+        wp.launch(self.k.monitor, dim=u.shape, inputs=[u, stats], device=self.device)
