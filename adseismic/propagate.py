@@ -49,7 +49,8 @@ class ForwardResult:
 
 
 def init_warp():
-    wp.config.quiet = True
+    """Initialise Warp without its banner and per-module load lines (they drown progress bars)."""
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
     wp.init()
 
 
@@ -115,15 +116,17 @@ def check_inputs(velocity, dx, dt, source_amplitudes, source_locations, receiver
 
 
 def make_propagator(velocity, dx, dt, n_shots, order, pml_width, pml_reflection, pml_frequency,
-                    free_surface, device, precision) -> Acoustic:  # fmt: skip
-    """The Acoustic launch helper for this grid, with defaults filled in."""
+                    free_surface, device, precision, pml_velocity=None) -> Acoustic:  # fmt: skip
+    """The Acoustic launch helper for this grid, with defaults filled in (pml_velocity: the CPML
+    damping's reference speed, default max(velocity); fix it when the model changes between runs)."""
     if precision not in DTYPES:
         raise ValueError(f"precision {precision!r} is not one of {sorted(DTYPES)}")
     width = DEFAULT_PML_WIDTH if pml_width is None else int(pml_width)
     if width < HICKS_RADIUS:
         raise ValueError(f"pml_width = {width} cells is below the source/receiver operator's half-width {HICKS_RADIUS}; use >= {HICKS_RADIUS}")
     refl = DEFAULT_PML_REFLECTION[order] if pml_reflection is None else float(pml_reflection)
-    return Acoustic(np.shape(velocity), dx, dt, order, n_shots, width, refl, pml_frequency, float(np.max(velocity)),
+    vref = float(np.max(velocity)) if pml_velocity is None else float(pml_velocity)
+    return Acoustic(np.shape(velocity), dx, dt, order, n_shots, width, refl, pml_frequency, vref,
                     free_surface=free_surface, dtype=DTYPES[precision], device=resolve_device(device))  # fmt: skip
 
 
@@ -161,50 +164,92 @@ class BlowupGuard:
             )
 
 
+@dataclass
+class Setup:
+    """Device-side inputs of one simulation: the launch helper and the Warp arrays it reads.
+
+    amplitudes (S, n_src, nt); sources, receivers (S, n, 3) metres as (z, y, x); velocity (nz, ny, nx) m/s.
+    """
+
+    prop: Acoustic
+    ndim: int
+    nt: int
+    velocity: wp.array
+    amplitudes: wp.array
+    sources: wp.array
+    receivers: wp.array
+
+
+def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4, pml_width=None,
+          pml_reflection=None, pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu",
+          precision="float32", requires_grad=()) -> Setup:  # fmt: skip
+    """Validate the inputs and move them to the device; requires_grad names the arrays to differentiate
+    ("velocity", "source_amplitudes", "source_locations")."""
+    amp = np.asarray(source_amplitudes, dtype=float)
+    ndim = check_inputs(velocity, dx, dt, amp, source_locations, receiver_locations, order)
+    f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
+    prop = make_propagator(velocity, dx, dt, amp.shape[0], order, pml_width, pml_reflection, f_pml, free_surface, device, precision, pml_velocity)
+
+    def put(x, name):
+        return wp.array(x, dtype=prop.dtype, device=prop.device, requires_grad=name in requires_grad)
+
+    return Setup(prop, ndim, amp.shape[2], put(velocity_3d(velocity), "velocity"), put(amp, "source_amplitudes"),
+                 put(to_zyx(source_locations, ndim), "source_locations"), put(to_zyx(receiver_locations, ndim), "receiver_locations"))  # fmt: skip
+
+
+def run_steps(su: Setup, st, vpad, data, steps: range, taped=False, callback=None):
+    """Record u[n] into data[:, :, n - steps.start] and advance one step, for n in steps; returns the
+    state at steps.stop (or at nt - 1). taped: every level gets fresh arrays (for wp.Tape); else the
+    state is updated in place. callback(state, n) runs at each level n after recording."""
+    prop = su.prop
+    for n in steps:
+        prop.record(st.u, data, su.receivers, n - steps.start)
+        if callback is not None:
+            callback(st, n)
+        if n == su.nt - 1:
+            break
+        st = prop.step(st, vpad, prop.new_state(requires_grad=True, with_prev=False) if taped else None)
+        prop.inject(st.u, vpad, su.amplitudes, su.sources, n)
+    return st
+
+
 def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4,
-            pml_width=None, pml_reflection=None, pml_frequency=None, free_surface=False, device="cpu",
-            precision="float32", snapshot_every=0, check_every=25, progress=False) -> ForwardResult:  # fmt: skip
+            pml_width=None, pml_reflection=None, pml_frequency=None, pml_velocity=None, free_surface=False,
+            device="cpu", precision="float32", snapshot_every=0, check_every=25, progress=False) -> ForwardResult:  # fmt: skip
     """Simulate the acoustic wave equation for all shots at once.
 
     velocity (nz, [ny,] nx) m/s; dx m; dt s; source_amplitudes (n_shots, n_src, nt);
     source/receiver_locations (n_shots, n, ndim) metres (axis order z, [y,] x).
     order: spatial order 2, 4 or 8. pml_width: cells (default 20) on every absorbing side;
     pml_reflection: target reflection coefficient; pml_frequency: CPML alpha frequency (Hz,
-    default the sources' dominant frequency). free_surface: pressure-release top boundary at z = 0.
+    default the sources' dominant frequency); pml_velocity: CPML reference speed (m/s, default
+    max(velocity)). free_surface: pressure-release top boundary at z = 0.
     device: "cpu" or "cuda:N". precision: "float32" or "float64".
     snapshot_every: keep the physical wavefield every that many steps (0: none).
     check_every: steps between blow-up checks. Raises ValueError on bad input or an unstable dt,
     PropagationError if the run blows up.
     """
-    amp = np.asarray(source_amplitudes, dtype=float)
-    ndim = check_inputs(velocity, dx, dt, amp, source_locations, receiver_locations, order)
-    n_shots, _, nt = amp.shape
-    f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
-    prop = make_propagator(velocity, dx, dt, n_shots, order, pml_width, pml_reflection, f_pml, free_surface, device, precision)
-    dtype, dev = prop.dtype, prop.device
-
-    vpad = prop.pad_model(wp.array(velocity_3d(velocity), dtype=dtype, device=dev))
-    w_amp = wp.array(amp, dtype=dtype, device=dev)
-    w_src = wp.array(to_zyx(source_locations, ndim), dtype=dtype, device=dev)
-    w_rec = wp.array(to_zyx(receiver_locations, ndim), dtype=dtype, device=dev)
-    data = wp.zeros((n_shots, w_rec.shape[1], nt), dtype=dtype, device=dev)
-    guard = BlowupGuard(prop, amp, check_every)
+    su = setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order=order, pml_width=pml_width,
+               pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
+               free_surface=free_surface, device=device, precision=precision)  # fmt: skip
+    prop = su.prop
+    data = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
+    guard = BlowupGuard(prop, np.asarray(source_amplitudes), check_every)
     snaps, snap_t = [], []
-    o = prop.origin
-    phys = (slice(None), slice(o[0], o[0] + prop.shape[0]), slice(o[1], o[1] + (prop.shape[1] if ndim == 3 else 1)), slice(o[2], o[2] + prop.shape[-1]))
+    o, ny = prop.origin, (prop.shape[1] if su.ndim == 3 else 1)
+    phys = (slice(None), slice(o[0], o[0] + prop.shape[0]), slice(o[1], o[1] + ny), slice(o[2], o[2] + prop.shape[-1]))
+    bar = tqdm(total=su.nt, desc="time steps", unit="step", disable=not progress, leave=False)
 
-    st = prop.new_state()
-    for n in tqdm(range(nt), desc="time steps", unit="step", disable=not progress, leave=False):
-        prop.record(st.u, data, w_rec, n)
+    def callback(st, n):
+        guard(st.u, n)
         if snapshot_every and n % snapshot_every == 0:
-            field = st.u.numpy()[phys]
-            snaps.append(field[:, :, 0, :] if ndim == 2 else field)
+            field = st.u.numpy()[phys].copy()  # on the CPU .numpy() is a view of a reused buffer
+            snaps.append(field[:, :, 0, :] if su.ndim == 2 else field)
             snap_t.append(n * dt)
-        if n == nt - 1:
-            break
-        st = prop.step(st, vpad)
-        prop.inject(st.u, vpad, w_amp, w_src, n)
-        guard(st.u, n + 1)
+        bar.update()
+
+    run_steps(su, prop.new_state(), prop.pad_model(su.velocity), data, range(su.nt), callback=callback)
+    bar.close()
     return ForwardResult(
         receiver_amplitudes=data.numpy().astype(float),
         dt=float(dt),

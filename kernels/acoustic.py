@@ -263,6 +263,19 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         vpad[z, y, x] = v[iz, iy, ix]
 
     @wp.kernel(module="unique")
+    def scatter(du_next: arr4, u_next: arr4, u: arr4, u_prev: arr4, v: arr3, dv: arr3):
+        # Born secondary source: d(u[n+1])/dv . dv = 2 dv / v (u[n+1] - 2 u[n] + u[n-1]), since every
+        # increment of the scheme (update and injection) is proportional to v^2 at its node.
+        s, zi, yi, xi = wp.tid()
+        z = zi + wp.static(R)
+        x = xi + wp.static(R)
+        y = yi
+        if wp.static(three):
+            y = yi + wp.static(R)
+        inc = u_next[s, z, y, x] - dtype(2.0) * u[s, z, y, x] + u_prev[s, z, y, x]
+        du_next[s, z, y, x] = du_next[s, z, y, x] + dtype(2.0) * dv[z, y, x] / v[z, y, x] * inc
+
+    @wp.kernel(module="unique")
     def monitor(u: arr4, stats: arr1):
         # stats[0] = max |u|, stats[1] = number of non-finite values (blow-up detection).
         s, z, y, x = wp.tid()
@@ -274,7 +287,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
     return _Kernels(
         Axis=Axis, step=step, psi=(make_psi(0), make_psi(1), make_psi(2)), inject=inject,
-        record=record, pad_model=pad_model, monitor=monitor, halo=R, operator_points=NPTS,
+        record=record, pad_model=pad_model, scatter=scatter, monitor=monitor, halo=R, operator_points=NPTS,
     )  # fmt: skip
 
 
@@ -384,16 +397,21 @@ class Acoustic:
         self.src_scale = dtype(dt * dt / dx**self.ndim)
 
     def strip_shape(self, axis: int):
+        """Shape of psi/zeta along `axis`; (1, 1, 1, 1) for an axis without CPML (never read)."""
+        if not self.strip_width[axis]:
+            return (1, 1, 1, 1)
         shape = [self.n_shots, *self.padded]
-        shape[axis + 1] = max(self.strip_width[axis], 1)
+        shape[axis + 1] = self.strip_width[axis]
         return tuple(shape)
 
-    def new_state(self, requires_grad=False) -> State:
+    def new_state(self, requires_grad=False, with_prev=True) -> State:
+        """Zero state; with_prev=False leaves u_prev None (a step's output shares its input's u)."""
+
         def zeros(shape):
             return wp.zeros(shape, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
 
         full = (self.n_shots, *self.padded)
-        return State(zeros(full), zeros(full), [zeros(self.strip_shape(a)) for a in range(3)],
+        return State(zeros(full) if with_prev else None, zeros(full), [zeros(self.strip_shape(a)) for a in range(3)],
                      [zeros(self.strip_shape(a)) for a in range(3)])  # fmt: skip
 
     def pad_model(self, v, requires_grad=False):
@@ -430,6 +448,10 @@ class Acoustic:
         """data[:, :, n] += receiver samples of u at locations (S, n_rec, 3) metres."""
         wp.launch(self.k.record, dim=(self.n_shots, locations.shape[1], self.k.operator_points),
                   inputs=[u, data, locations, n, self.origin, self.inv_dx, self.top], device=self.device)  # fmt: skip
+
+    def scatter(self, du_next, u_next, u, u_prev, vpad, dvpad):
+        """du_next += 2 dv/v (u_next - 2 u + u_prev): the Born (tangent-linear) source term."""
+        wp.launch(self.k.scatter, dim=self.interior, inputs=[du_next, u_next, u, u_prev, vpad, dvpad], device=self.device)
 
     def monitor(self, u, stats):
         """stats (2,) <- [max |u|, count of non-finite values]."""

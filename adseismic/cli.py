@@ -1,0 +1,302 @@
+"""The ``adseismic`` command line.
+
+    adseismic plan CONFIG                      validate a config, print the planner's decisions
+    adseismic forward CONFIG -o OUTDIR         plan, simulate every shot, write data.h5 + PNGs
+
+Exit codes: 0 success; 2 invalid input (config, model, refused plan: the message says which key
+and how to fix it, no traceback); 3 the simulation blew up (PropagationError; no data.h5 is
+written); 1 anything unexpected (with traceback).
+
+Each subcommand is a (register, run) pair in :data:`COMMANDS`; adding one (``fwi``, ``locate``,
+``bench``) means writing its two functions and adding it there.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import logging
+import os
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+from adseismic.config import ConfigError, ForwardConfig, load_config
+from adseismic.models import ModelError
+
+log = logging.getLogger("adseismic")
+
+EXIT_OK, EXIT_ERROR, EXIT_INPUT, EXIT_UNSTABLE = 0, 1, 2, 3
+SNAPSHOT_LIMIT_BYTES = 8 * 2**30  # refuse snapshot settings that would hold more than this
+
+
+class CommandError(Exception):
+    """Raised by a subcommand to exit with ``code`` and ``message`` (no traceback)."""
+
+    def __init__(self, message: str, code: int = EXIT_INPUT):
+        super().__init__(message)
+        self.code = code
+
+
+def version() -> str:
+    try:
+        from importlib.metadata import version as _v
+
+        return _v("adseismic")
+    except Exception:  # not installed (running from a source tree)
+        return "unknown"
+
+
+# --------------------------------------------------------------------------------- helpers
+
+def _plan(config: ForwardConfig):
+    from adseismic.scene import plan_scene
+
+    return plan_scene(config)
+
+
+def _warnings_text(plan) -> list[str]:
+    """Warnings that plan.describe() does not already print."""
+    text = plan.describe()
+    return [w for w in getattr(plan, "warnings", []) if w not in text]
+
+
+def snapshot_every(config: ForwardConfig, plan) -> int:
+    """Time steps between snapshots (0: none) from output.snapshot_interval (s); refuses settings
+    whose snapshots would not fit in memory (ConfigError naming output.snapshot_interval)."""
+    interval = config.output.snapshot_interval
+    if not interval:
+        return 0
+    every = max(1, int(round(interval / plan.dt)))
+    n_snap = (plan.nt - 1) // every + 1
+    itemsize = 4 if plan.precision == "float32" else 8
+    nbytes = n_snap * config.n_shots * int(np.prod(plan.shape)) * itemsize
+    if nbytes > SNAPSHOT_LIMIT_BYTES:
+        raise ConfigError(
+            f"output.snapshot_interval: {interval:g} s gives {n_snap} snapshots x {config.n_shots} "
+            f"shots x {int(np.prod(plan.shape)):,} cells = {nbytes / 2**30:.1f} GiB, above the "
+            f"{SNAPSHOT_LIMIT_BYTES / 2**30:.0f} GiB limit; use an interval of at least "
+            f"{interval * nbytes / SNAPSHOT_LIMIT_BYTES:.3g} s, or 0 for none")
+    if abs(every * plan.dt - interval) > 0.01 * interval:
+        log.info("output.snapshot_interval %g s rounded to %d steps = %.4g s", interval, every,
+                 every * plan.dt)
+    return every
+
+
+class _Logging:
+    """Context: 'adseismic' logger to ``logfile`` (INFO) and stderr (INFO, or WARNING if quiet)."""
+
+    def __init__(self, logfile: pathlib.Path | None, quiet: bool):
+        self.logfile, self.quiet, self.handlers = logfile, quiet, []
+
+    def __enter__(self):
+        fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
+        err = logging.StreamHandler(sys.stderr)
+        err.setLevel(logging.WARNING if self.quiet else logging.INFO)
+        err.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
+        self.handlers.append(err)
+        if self.logfile is not None:
+            fh = logging.FileHandler(self.logfile, mode="w", encoding="utf-8")
+            fh.setLevel(logging.INFO)
+            fh.setFormatter(fmt)
+            self.handlers.append(fh)
+        self.level = log.level
+        log.setLevel(logging.INFO)
+        for h in self.handlers:
+            log.addHandler(h)
+        return self
+
+    def __exit__(self, *exc):
+        for h in self.handlers:
+            log.removeHandler(h)
+            h.close()
+        log.setLevel(self.level)
+        return False
+
+
+def _write_text_atomic(path: pathlib.Path, text: str) -> None:
+    part = path.with_name(path.name + ".part")
+    part.write_text(text, encoding="utf-8")
+    os.replace(part, path)
+
+
+def _config_text(config: ForwardConfig) -> str:
+    if config.path is not None:
+        return pathlib.Path(config.path).read_text(encoding="utf-8")
+    import yaml
+
+    return yaml.safe_dump(config.raw, sort_keys=False)
+
+
+# --------------------------------------------------------------------------------- plan
+
+def _register_plan(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", type=pathlib.Path, help="YAML config file")
+
+
+def cmd_plan(args) -> int:
+    config = load_config(args.config)
+    plan = _plan(config)
+    print(f"plan for {args.config} ({config.model.ndim}D, {config.n_shots} shot(s), "
+          f"{len(config.geometry.receivers)} receivers)")
+    print(plan.describe())
+    for w in _warnings_text(plan):
+        print(f"WARNING   {w}")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------------- forward
+
+def _register_forward(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", type=pathlib.Path, help="YAML config file")
+    p.add_argument("-o", "--output", "--outdir", dest="outdir", type=pathlib.Path, required=True,
+                   help="output directory (created if needed; existing outputs are replaced)")
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
+                   help="show a progress bar over time steps (default: on)")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar, log only warnings to stderr (the log file is complete)")
+
+
+def cmd_forward(args) -> int:
+    from adseismic import io, plotting
+    from adseismic.propagate import PropagationError, resolve_device
+    from adseismic.scene import build_scene, run_forward
+
+    # --- everything that can be refused is checked before OUTDIR is touched
+    config = load_config(args.config)
+    plan = _plan(config)
+    every = snapshot_every(config, plan)
+    resolve_device(plan.device)  # ValueError if the device is not available here
+    outdir = args.outdir
+    if outdir.exists() and not outdir.is_dir():
+        raise CommandError(f"-o: {outdir} exists and is not a directory; choose another output "
+                           f"directory")
+    scene = build_scene(config, plan)
+    progress = args.progress and not args.quiet
+
+    outdir.mkdir(parents=True, exist_ok=True)
+    with _Logging(outdir / "forward.log", args.quiet):
+        log.info("adseismic %s forward %s -> %s", version(), args.config, outdir)
+        log.info("plan:\n%s", plan.describe())
+        for w in plan.warnings:
+            log.warning("%s", w)
+        # outputs of an earlier run would no longer match config.yaml and forward.log
+        stale = [outdir / "data.h5", outdir / "model.png", outdir / "snapshots_shot0.png",
+                 *outdir.glob("gather_shot*.png")]
+        stale = [p for p in stale if p.exists()]
+        if stale:
+            log.info("replacing the outputs of an earlier run in %s: %s", outdir,
+                        ", ".join(p.name for p in stale))
+            for p in stale:
+                p.unlink()
+        text = _config_text(config)
+        _write_text_atomic(outdir / "config.yaml", text)
+
+        n_shots = config.n_shots
+        log.info("running %d shot(s), %d steps of %.6g s on %s (%s)", n_shots, plan.nt, plan.dt,
+                 plan.device, plan.precision)
+        t0 = time.perf_counter()
+        try:
+            result = run_forward(scene, snapshot_every=every, progress=progress)
+        except PropagationError as e:
+            log.error("%s", e)
+            raise CommandError(f"simulation failed: {e}; no data.h5 was written",
+                               EXIT_UNSTABLE) from None
+        seconds = time.perf_counter() - t0
+        rate = plan.padded_cells * plan.nt * n_shots / max(seconds, 1e-9)
+        log.info("simulated in %.2f s (%.3g padded cell updates per second)", seconds, rate)
+
+        src_world = np.asarray(config.geometry.sources, float)
+        rec_world = np.asarray(config.geometry.receivers, float)
+        params = {k: v for k, v in config.wavelet.params.items() if k != "samples"}
+        attrs = {
+            "dx": plan.dx, "order": plan.order, "precision": plan.precision,
+            "device": plan.device, "free_surface": bool(plan.free_surface),
+            "pml_width": plan.pml_width, "pml_reflection": plan.pml_reflection,
+            "f_max": plan.f_max, "courant": plan.courant, "cfl_limit": plan.cfl_limit,
+            "expected_error": plan.expected_error, "grid_origin": tuple(plan.origin),
+            "n_shots": n_shots, "wavelet_kind": config.wavelet.kind,
+            "wavelet_params": repr(params), "model_name": config.model.name,
+            "adseismic_version": version(),
+            "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "config_yaml": text, "config_path": str(pathlib.Path(args.config).resolve()),
+            "plan": plan.describe(), "seconds": seconds,
+        }
+        ndim = config.model.ndim
+        units = "units of source_wavelet" + (" x m" if ndim == 3 else "")
+        store = np.float32 if plan.precision == "float32" else np.float64  # as simulated
+        data_path = io.write_forward(
+            outdir / "data.h5", receiver_data=result.receiver_amplitudes.astype(store),
+            source_wavelet=scene.wavelet, dt=result.dt, source_coordinates=src_world,
+            receiver_coordinates=rec_world, velocity=scene.model.values, spacing=plan.dx,
+            origin=plan.origin, attrs=attrs, snapshots=result.snapshots,
+            snapshot_times=result.snapshot_times, units=units)
+        log.info("wrote %s", data_path)
+
+        pngs = [plotting.plot_model(outdir / "model.png", scene.model.values, plan.dx,
+                                    plan.origin, src_world, rec_world,
+                                    title=config.model.name or "velocity model")]
+        for k in range(n_shots):
+            where = ", ".join(f"{a}={v:g}" for a, v in zip("zyx" if ndim == 3 else "zx",
+                                                            src_world[k]))
+            pngs.append(plotting.plot_gather(outdir / f"gather_shot{k}.png",
+                                             result.receiver_amplitudes[k], result.dt,
+                                             rec_world[:, -1],
+                                             title=f"shot {k} (source {where} m)"))
+        if result.snapshots is not None:
+            pngs.append(plotting.plot_snapshots(
+                outdir / "snapshots_shot0.png", result.snapshots[:, 0], result.snapshot_times,
+                plan.dx, plan.origin, src_world[:1], title="shot 0 wavefield u"))
+        log.info("wrote %d figures", len(pngs))
+
+    if not args.quiet:
+        print(plan.describe())
+    print(f"wrote {outdir}/: data.h5 ({n_shots} shots x {len(rec_world)} receivers x {plan.nt} "
+          f"samples), config.yaml, forward.log, {', '.join(p.name for p in pngs)}")
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------------- main
+
+#: name -> (help, register(parser), run(args) -> exit code)
+COMMANDS = {
+    "plan": ("validate a config and print the planned grid, time step and cost",
+             _register_plan, cmd_plan),
+    "forward": ("run the forward simulation of a config and write data.h5 and figures",
+                _register_forward, cmd_forward),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="adseismic",
+        description="Differentiable seismic wave propagation (NVIDIA Warp). Units: m, s, m/s, Hz.")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (help_, register, run) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        register(p)
+        p.set_defaults(func=run)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Run the command line with ``argv`` (default sys.argv[1:]); returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help(sys.stderr)
+        return EXIT_INPUT
+    try:
+        return args.func(args)
+    except CommandError as e:
+        print(f"adseismic {args.command}: error: {e}", file=sys.stderr)
+        return e.code
+    except (ConfigError, ModelError, ValueError) as e:
+        print(f"adseismic {args.command}: error: {e}", file=sys.stderr)
+        return EXIT_INPUT
+
+
+if __name__ == "__main__":
+    sys.exit(main())

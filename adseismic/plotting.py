@@ -1,0 +1,179 @@
+"""PNG figures of a forward run: the model with the acquisition, shot gathers, snapshots.
+
+Uses matplotlib's object API with the Agg canvas (no pyplot, no global backend switch, no
+display needed). Every figure is written atomically: to ``<name>.png.part`` first, renamed into
+place when complete. Coordinates are in world metres (shown in km when the section is wider than
+2 km), axis order (z, [y,] x); 3D volumes are shown as the x-z slice through a given y.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+
+import numpy as np
+
+__all__ = ["plot_model", "plot_gather", "plot_snapshots", "save_figure", "xz_slice"]
+
+
+def _figure(width: float, height: float):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def save_figure(fig, path) -> pathlib.Path:
+    """Write ``fig`` as PNG to ``path`` atomically (temporary name, then os.replace)."""
+    path = pathlib.Path(path)
+    part = path.with_name(path.name + ".part")
+    try:
+        fig.savefig(part, format="png")
+        os.replace(part, path)
+    except BaseException:
+        part.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _scale(extent_m: float) -> tuple[float, str]:
+    """(divisor, unit) so that axes read in km for sections wider than 2 km."""
+    return (1000.0, "km") if extent_m > 2000.0 else (1.0, "m")
+
+
+def xz_slice(values: np.ndarray, origin, spacing: float, y: float | None = None):
+    """(2D array (nz, nx), index of the slice or None) of a 2D array or a 3D (z, y, x) volume
+    sliced at the node nearest to world ``y`` (m; default the middle)."""
+    values = np.asarray(values)
+    if values.ndim == 2:
+        return values, None
+    ny = values.shape[1]
+    j = ny // 2 if y is None else int(np.clip(round((y - origin[1]) / spacing), 0, ny - 1))
+    return values[:, j, :], j
+
+
+def plot_model(path, velocity, spacing: float, origin, sources=None, receivers=None,
+               title: str = "") -> pathlib.Path:
+    """Velocity (m/s) on a grid of ``spacing`` m with node 0 at world ``origin`` (z,[y,]x);
+    sources (n, ndim) as red stars and receivers (m, ndim) as triangles, world metres.
+    In 3D the x-z slice through the first source is shown (points within one cell of it)."""
+    velocity = np.asarray(velocity)
+    ndim = velocity.ndim
+    src = None if sources is None else np.asarray(sources, float).reshape(-1, ndim)
+    rec = None if receivers is None else np.asarray(receivers, float).reshape(-1, ndim)
+    y0 = src[0, 1] if (ndim == 3 and src is not None and len(src)) else None
+    v2, j = xz_slice(velocity, origin, spacing, y0)
+    oz, ox = origin[0], origin[-1]
+    nz, nx = v2.shape
+    width_m, depth_m = (nx - 1) * spacing, (nz - 1) * spacing
+    k, unit = _scale(max(width_m, depth_m))
+    aspect = depth_m / max(width_m, 1e-9)
+    fig = _figure(9.0, float(np.clip(9.0 * aspect, 2.5, 9.0)) + 1.0)
+    ax = fig.add_subplot()
+    half = 0.5 * spacing
+    extent = ((ox - half) / k, (ox + width_m + half) / k, (oz + depth_m + half) / k, (oz - half) / k)
+    im = ax.imshow(v2, extent=extent, cmap="viridis", aspect="equal", interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="velocity (m/s)", shrink=float(np.clip(1.2 * aspect, 0.5, 0.9)))
+
+    def sel(p):  # 3D: points near the slice
+        if p is None or ndim == 2:
+            return p
+        return p[np.abs(p[:, 1] - (origin[1] + j * spacing)) <= spacing]
+
+    r, s = sel(rec), sel(src)
+    if r is not None and len(r):
+        ax.scatter(r[:, -1] / k, r[:, 0] / k, marker="v", s=18 if len(r) <= 200 else 6, c="white", edgecolors="black",
+                   linewidths=0.5, label=f"receivers ({len(rec)})", zorder=3)
+    if s is not None and len(s):
+        ax.scatter(s[:, -1] / k, s[:, 0] / k, marker="*", s=120, c="red", edgecolors="black",
+                   linewidths=0.5, label=f"sources ({len(src)})", zorder=4)
+    if (r is not None and len(r)) or (s is not None and len(s)):
+        ax.legend(loc="lower right", fontsize=8, framealpha=0.8)
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    ax.set_xlabel(f"x ({unit})")
+    ax.set_ylabel(f"depth z ({unit})")
+    where = f", x-z slice at y = {origin[1] + j * spacing:g} m" if j is not None else ""
+    ax.set_title((title or "velocity model") + f" (dx = {spacing:g} m{where})")
+    return save_figure(fig, path)
+
+
+def _clip(a: np.ndarray, pct: float = 99.0) -> float:
+    c = float(np.percentile(np.abs(a), pct)) if a.size else 0.0
+    if c <= 0:
+        c = float(np.abs(a).max()) if a.size else 0.0
+    return c if c > 0 else 1.0
+
+
+def plot_gather(path, data, dt: float, receiver_x=None, title: str = "",
+                percentile: float = 99.0) -> pathlib.Path:
+    """One shot gather (n_receivers, nt): time (s, down) against receiver x (world m), seismic
+    colormap clipped symmetrically at the ``percentile`` of |data|. If receiver x is not evenly
+    spaced and increasing (e.g. a vertical spread), the horizontal axis is the receiver index."""
+    data = np.asarray(data, dtype=float)
+    n_rec, nt = data.shape
+    clip = _clip(data, percentile)
+    fig = _figure(8.0, 6.0)
+    ax = fig.add_subplot()
+    x = None if receiver_x is None else np.asarray(receiver_x, float)
+    even = (x is not None and n_rec > 1 and np.all(np.diff(x) > 0)
+            and np.allclose(np.diff(x), np.diff(x).mean(), rtol=1e-3))
+    t_end = (nt - 1) * dt
+    if even:
+        k, unit = _scale(x[-1] - x[0])
+        h = 0.5 * (x[1] - x[0])
+        extent = ((x[0] - h) / k, (x[-1] + h) / k, t_end + 0.5 * dt, -0.5 * dt)
+        ax.set_xlabel(f"receiver x ({unit})")
+    else:
+        extent = (-0.5, n_rec - 0.5, t_end + 0.5 * dt, -0.5 * dt)
+        ax.set_xlabel("receiver index")
+    im = ax.imshow(data.T, extent=extent, aspect="auto", cmap="seismic", vmin=-clip, vmax=clip,
+                   interpolation="bilinear")
+    fig.colorbar(im, ax=ax, label=f"amplitude (clipped at the {percentile:g}th percentile)")
+    ax.set_ylabel("time (s)")
+    ax.set_title(title or "shot gather")
+    return save_figure(fig, path)
+
+
+def plot_snapshots(path, snapshots, times, spacing: float, origin, sources=None,
+                   max_panels: int = 12, title: str = "") -> pathlib.Path:
+    """A grid of wavefield snapshots of one shot: snapshots (n_snap, nz, [ny,] nx) at ``times``
+    (s) on the grid of ``spacing`` m with node 0 at world ``origin``; at most ``max_panels``
+    evenly chosen frames, each clipped at its own 99.5th percentile of |u| (seismic colormap).
+    3D: the x-z slice through the first source. sources (n, ndim) world m are drawn as stars."""
+    snaps = np.asarray(snapshots)
+    times = np.asarray(times, float)
+    n = len(snaps)
+    ndim = snaps.ndim - 1
+    src = None if sources is None else np.asarray(sources, float).reshape(-1, ndim)
+    y0 = src[0, 1] if (ndim == 3 and src is not None and len(src)) else None
+    pick = np.unique(np.linspace(0, n - 1, min(n, max_panels)).round().astype(int)) if n else []
+    cols = int(min(4, max(len(pick), 1)))
+    rows = int(np.ceil(len(pick) / cols)) if len(pick) else 1
+    frame0, _ = xz_slice(snaps[0], origin, spacing, y0) if n else (np.zeros((2, 2)), None)
+    nz, nx = frame0.shape
+    k, unit = _scale(max(nx, nz) * spacing)
+    oz, ox = origin[0], origin[-1]
+    extent = (ox / k, (ox + (nx - 1) * spacing) / k, (oz + (nz - 1) * spacing) / k, oz / k)
+    panel_w = 3.2
+    fig = _figure(panel_w * cols, rows * float(np.clip(panel_w * nz / nx, 1.2, 4.0)) + 0.8)
+    for i, f in enumerate(pick):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        frame, _ = xz_slice(snaps[f], origin, spacing, y0)
+        c = _clip(frame, 99.5)
+        ax.imshow(frame, extent=extent, cmap="seismic", vmin=-c, vmax=c, aspect="equal",
+                  interpolation="bilinear")
+        if src is not None and len(src):
+            ax.scatter(src[:1, -1] / k, src[:1, 0] / k, marker="*", s=40, c="gold",
+                       edgecolors="black", linewidths=0.4)
+            ax.set_xlim(extent[0], extent[1])
+            ax.set_ylim(extent[2], extent[3])
+        ax.set_title(f"t = {times[f]:.3g} s", fontsize=9)
+        ax.tick_params(labelsize=7)
+        if i % cols == 0:
+            ax.set_ylabel(f"z ({unit})", fontsize=8)
+        if i >= len(pick) - cols:
+            ax.set_xlabel(f"x ({unit})", fontsize=8)
+    fig.suptitle(title or "wavefield snapshots")
+    return save_figure(fig, path)
