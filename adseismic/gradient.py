@@ -75,13 +75,6 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
     return int(segment_length), int(total(int(segment_length)))
 
 
-def _clone_state(state, requires_grad):
-    from adseismic.kernels.acoustic import State
-
-    a = [wp.clone(x, requires_grad=requires_grad) for x in state.arrays()]
-    return State(a[0], a[1], a[2:5], a[5:8])
-
-
 def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
              misfit="l2", wrt=("velocity",), parameterization=None, order=4, pml_width=None, pml_reflection=None,
              pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu", precision="float32",
@@ -129,7 +122,8 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
         data = zeros_data(nt)
         tape = wp.Tape()
         with tape:
-            run_steps(su, prop.new_state(requires_grad=True), model_on_tape(), data, range(nt), taped=True)
+            run_steps(su, prop.new_state(requires_grad=True), model_on_tape(), data, range(nt),
+                      next_state=lambda: prop.new_state(requires_grad=True, with_prev=False))  # fmt: skip
         synthetic = data.numpy().astype(float)
         loss, adj = loss_fn(synthetic)
         tape.backward(grads={data: wp.array(adj, dtype=prop.dtype, device=prop.device)})
@@ -140,26 +134,37 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
 
         def keep(st, n):
             if n % seg == 0:
-                checkpoints.append(_clone_state(st, requires_grad=False))
+                checkpoints.append([wp.clone(a) for a in st.arrays()])
 
         run_steps(su, prop.new_state(), model_on_tape(), data, range(nt), callback=keep)
         synthetic = data.numpy().astype(float)
         loss, adj = loss_fn(synthetic)
+        # One segment's level arrays, allocated once and reused (fresh allocations cost page faults),
+        # and two start states used in turn so the carried adjoint survives the next zeroing.
+        levels = [prop.new_state(requires_grad=True, with_prev=False) for _ in range(seg)]
+        starts = [prop.new_state(requires_grad=True) for _ in range(2)]
         carry = None
-        for k in tqdm(reversed(range(n_seg)), total=n_seg, desc="adjoint segments", disable=not progress, leave=False):
+        for i, k in enumerate(tqdm(reversed(range(n_seg)), total=n_seg, desc="adjoint segments", disable=not progress, leave=False)):
             n0, n1 = k * seg, min((k + 1) * seg, nt)
-            st0 = _clone_state(checkpoints[k], requires_grad=True)
+            st0 = starts[i % 2]
+            for dst, src in zip(st0.arrays(), checkpoints[k]):
+                wp.copy(dst, src)
+                dst.grad.zero_()
             checkpoints[k] = None
+            for lvl in levels:
+                for a in lvl.arrays():
+                    a.grad.zero_()
             data_seg = zeros_data(n1 - n0)
+            pool = iter(levels)
             tape = wp.Tape()
             with tape:
-                st = run_steps(su, st0, model_on_tape(), data_seg, range(n0, n1), taped=True)
+                st = run_steps(su, st0, model_on_tape(), data_seg, range(n0, n1), next_state=lambda: next(pool))
             seeds = {data_seg: wp.array(np.ascontiguousarray(adj[:, :, n0:n1]), dtype=prop.dtype, device=prop.device)}
             if carry is not None:
                 seeds.update(zip(st.arrays(), carry))
             tape.backward(grads=seeds)
             carry = [a.grad for a in st0.arrays()]
-            del tape, st, st0
+            del tape
     shape = np.shape(velocity)
 
     def grad_of(arr):

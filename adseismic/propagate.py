@@ -197,10 +197,11 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
                  put(to_zyx(source_locations, ndim), "source_locations"), put(to_zyx(receiver_locations, ndim), "receiver_locations"))  # fmt: skip
 
 
-def run_steps(su: Setup, st, vpad, data, steps: range, taped=False, callback=None):
+def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback=None):
     """Record u[n] into data[:, :, n - steps.start] and advance one step, for n in steps; returns the
-    state at steps.stop (or at nt - 1). taped: every level gets fresh arrays (for wp.Tape); else the
-    state is updated in place. callback(state, n) runs at each level n after recording."""
+    state at steps.stop (or at nt - 1). next_state: callable returning the arrays of the next level
+    (each level needs its own under wp.Tape); None updates the state in place. callback(state, n)
+    runs at each level n after recording."""
     prop = su.prop
     for n in steps:
         prop.record(st.u, data, su.receivers, n - steps.start)
@@ -208,7 +209,7 @@ def run_steps(su: Setup, st, vpad, data, steps: range, taped=False, callback=Non
             callback(st, n)
         if n == su.nt - 1:
             break
-        st = prop.step(st, vpad, prop.new_state(requires_grad=True, with_prev=False) if taped else None)
+        st = prop.step(st, vpad, next_state() if next_state is not None else None)
         prop.inject(st.u, vpad, su.amplitudes, su.sources, n)
     return st
 

@@ -20,7 +20,8 @@ a taped time step close to one wavefield.
 Off-grid sources and receivers use one operator for injection and recording (so the two are exact
 adjoints): a Kaiser-windowed sinc of half-width HICKS_RADIUS cells per axis (Hicks 2002, shape
 parameter HICKS_B for wavenumbers up to pi/2, i.e. >= 4 points per wavelength), mirrored with a
-sign change across a free surface.
+sign change across a free surface. The Kaiser window has its edge value (1/I0(b), ~1%) subtracted so
+that the weights are continuously differentiable in the position (source-location gradients).
 
 All kernels write fresh outputs from inputs (or add with atomics), never read-modify their own
 input, so each time step can be differentiated by wp.Tape when given its own arrays.
@@ -57,7 +58,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     HR = HICKS_RADIUS
     W = 2 * HR
     NPTS = W**ndim
-    INV_I0B = 1.0 / _i0(HICKS_B)
+    WINDOW_NORM = 1.0 / (_i0(HICKS_B) - 1.0)
     fs = bool(free_surface)
     three = ndim == 3
     arr1 = wp.array(dtype=dtype)
@@ -194,22 +195,23 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
     @wp.func
     def hicks(d: dtype) -> dtype:
-        # Kaiser-windowed sinc weight at distance d (cells) from the point.
-        r2 = dtype(1.0) - (d * d) / dtype(wp.static(float(HR * HR)))
-        if r2 <= dtype(0.0):
+        # Kaiser-windowed sinc weight at distance d (cells). The window is the Kaiser series written in
+        # q = 1 - d^2/r^2 (no square root) minus its edge value, so the weight and its derivative vanish
+        # at |d| = r: the operator is C^1 in the position, also for positions on grid nodes.
+        q = dtype(1.0) - (d * d) / dtype(wp.static(float(HR * HR)))
+        if q <= dtype(0.0):
             return dtype(0.0)
         pd = dtype(wp.static(math.pi)) * d
         sinc = dtype(1.0) - pd * pd / dtype(6.0)
         if wp.abs(pd) > dtype(1.0e-3):
             sinc = wp.sin(pd) / pd
-        y = dtype(wp.static(HICKS_B / 2.0)) * wp.sqrt(r2)
-        y2 = y * y
+        y2 = dtype(wp.static(HICKS_B * HICKS_B / 4.0)) * q
         term = dtype(1.0)
-        total = dtype(1.0)
+        total = dtype(0.0)
         for k in range(wp.static(_I0_TERMS)):
             term = term * y2 / dtype(wp.static(float((k + 1) * (k + 1))))
             total = total + term
-        return sinc * total * dtype(wp.static(INV_I0B))
+        return sinc * total * dtype(wp.static(WINDOW_NORM))
 
     @wp.func
     def point(loc: arr3, s: int, n: int, q: int, origin: wp.vec3i, inv_dx: dtype, top: int):
@@ -353,7 +355,7 @@ class State:
         self.u_prev, self.u, self.psi, self.zeta = u_prev, u, psi, zeta
 
     def arrays(self):
-        return [self.u_prev, self.u, *self.psi, *self.zeta]
+        return [a for a in (self.u_prev, self.u, *self.psi, *self.zeta) if a is not None]
 
 
 class Acoustic:

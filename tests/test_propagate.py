@@ -5,14 +5,20 @@ headroom for platform rounding; a regression in the scheme, the CPML or the sour
 them by factors, not percent.
 """
 
+import functools
+
 import numpy as np
 import pytest
 
 import adseismic.propagate as propagate
 from adseismic.analytic import acoustic_2d, acoustic_3d
 from adseismic.numerics import cfl_limit
-from adseismic.propagate import PropagationError, forward
+from adseismic.propagate import PropagationError
 from adseismic.wavelets import ricker
+
+from .conftest import DEVICE
+
+forward = functools.partial(propagate.forward, device=DEVICE)
 
 C, F = 2000.0, 15.0  # m/s, Hz
 
