@@ -78,7 +78,7 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
 def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
              misfit="l2", wrt=("velocity",), parameterization=None, order=4, pml_width=None, pml_reflection=None,
              pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu", precision="float32",
-             memory_budget=None, segment_length=None, progress=False) -> GradientResult:  # fmt: skip
+             memory_budget=None, segment_length=None, adjoint="hand", progress=False) -> GradientResult:  # fmt: skip
     """Misfit between simulated and observed data and its gradient for a batch of shots.
 
     Arguments as in propagate.forward; observed (n_shots, n_receivers, nt). misfit: a name in
@@ -87,7 +87,11 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
     (numpy array theta) and `velocity(theta: wp.array) -> wp.array` (nz, [ny,] nx) written with Warp
     kernels; velocity is then ignored except for its shape and the gradient is returned for theta.
     memory_budget: bytes for checkpoints plus the taped segment; segment_length pins it instead.
+    adjoint: "hand" (the hand-written adjoint of the stencil kernels, faster) or "warp" (Warp's
+    generated adjoints of every kernel; the reference the hand-written one is tested against).
     """
+    if adjoint not in ("hand", "warp"):
+        raise ValueError(f"adjoint {adjoint!r} is not 'hand' or 'warp'")
     wrt = tuple(wrt)
     unknown = set(wrt) - set(WRT)
     if unknown:
@@ -116,6 +120,9 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
     def zeros_data(n):
         return wp.zeros((prop.n_shots, n_rec, n), dtype=prop.dtype, device=prop.device, requires_grad=True)
 
+    def hand(tape):
+        return tape if adjoint == "hand" else None
+
     seg, peak = plan_segments(prop, nt, memory_budget, segment_length)
     n_seg = math.ceil(nt / seg)
     if n_seg == 1:
@@ -123,7 +130,7 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
         tape = wp.Tape()
         with tape:
             run_steps(su, prop.new_state(requires_grad=True), model_on_tape(), data, range(nt),
-                      next_state=lambda: prop.new_state(requires_grad=True, with_prev=False))  # fmt: skip
+                      next_state=lambda: prop.new_state(requires_grad=True, with_prev=False), tape=hand(tape))  # fmt: skip
         synthetic = data.numpy().astype(float)
         loss, adj = loss_fn(synthetic)
         tape.backward(grads={data: wp.array(adj, dtype=prop.dtype, device=prop.device)})
@@ -158,7 +165,7 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
             pool = iter(levels)
             tape = wp.Tape()
             with tape:
-                st = run_steps(su, st0, model_on_tape(), data_seg, range(n0, n1), next_state=lambda: next(pool))
+                st = run_steps(su, st0, model_on_tape(), data_seg, range(n0, n1), next_state=lambda: next(pool), tape=hand(tape))
             seeds = {data_seg: wp.array(np.ascontiguousarray(adj[:, :, n0:n1]), dtype=prop.dtype, device=prop.device)}
             if carry is not None:
                 seeds.update(zip(st.arrays(), carry))

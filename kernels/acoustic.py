@@ -193,6 +193,153 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         vv = v[z, y, x]
         u_next[s, z, y, x] = dtype(2.0) * u[s, z, y, x] - u_prev[s, z, y, x] + vv * vv * dt2 * lap
 
+    # --- Hand-written adjoints of psi_kernel and step (scatter form). They match Warp's generated
+    # adjoints (tests/test_gradient.py) without replaying every read, and are what the taped steps use.
+
+    def make_psi_adjoint(axis: int):
+        @wp.kernel(module="unique")
+        def psi_adjoint(adj_u: arr4, adj_psi_old: arr4, adj_psi_new: arr4, ax: Axis, inv_dx: dtype):
+            s, i, j, k = wp.tid()
+            if wp.static(axis == 0):
+                p = ax.pos[i]
+            elif wp.static(axis == 1):
+                p = ax.pos[j]
+            else:
+                p = ax.pos[k]
+            a = ax.a[p]
+            lam = adj_psi_new[s, i, j, k]
+            if a == dtype(0.0) or lam == dtype(0.0):
+                return
+            wp.atomic_add(adj_psi_old, s, i, j, k, ax.b[p] * lam)
+            f = a * lam * inv_dx
+            for m in range(wp.static(R)):
+                c = dtype(wp.static(B[m])) * f
+                if wp.static(axis == 0):
+                    wp.atomic_add(adj_u, s, p + m + 1, j, k, c)
+                    wp.atomic_add(adj_u, s, p - m - 1, j, k, -c)
+                elif wp.static(axis == 1):
+                    wp.atomic_add(adj_u, s, i, p + m + 1, k, c)
+                    wp.atomic_add(adj_u, s, i, p - m - 1, k, -c)
+                else:
+                    wp.atomic_add(adj_u, s, i, j, p + m + 1, c)
+                    wp.atomic_add(adj_u, s, i, j, p - m - 1, -c)
+
+        return psi_adjoint
+
+    @wp.func
+    def add_z(adj_u: arr4, s: int, z: int, y: int, x: int, top: int, val: dtype):
+        # adjoint of at(): a read above the free surface came from the mirrored cell, sign flipped
+        if wp.static(fs):
+            if z < top:
+                wp.atomic_add(adj_u, s, 2 * top - z, y, x, -val)
+                return
+        wp.atomic_add(adj_u, s, z, y, x, val)
+
+    def make_scatter_d2(axis: int):
+        # adjoint of the second-derivative stencil along one axis: adj_u[stencil] += A_k g
+        @wp.func
+        def scatter_d2(adj_u: arr4, s: int, z: int, y: int, x: int, top: int, g: dtype):
+            wp.atomic_add(adj_u, s, z, y, x, dtype(wp.static(A[0])) * g)
+            for k in range(wp.static(R)):
+                c = dtype(wp.static(A[k + 1])) * g
+                if wp.static(axis == 0):
+                    add_z(adj_u, s, z + k + 1, y, x, top, c)
+                    add_z(adj_u, s, z - k - 1, y, x, top, c)
+                elif wp.static(axis == 1):
+                    wp.atomic_add(adj_u, s, z, y + k + 1, x, c)
+                    wp.atomic_add(adj_u, s, z, y - k - 1, x, c)
+                else:
+                    wp.atomic_add(adj_u, s, z, y, x + k + 1, c)
+                    wp.atomic_add(adj_u, s, z, y, x - k - 1, c)
+
+        return scatter_d2
+
+    def make_scatter_dpsi(axis: int):
+        # adjoint of dpsi: adj_psi[j +- m] +-= B_m g
+        @wp.func
+        def scatter_dpsi(adj_psi: arr4, s: int, i: int, j: int, k: int, g: dtype):
+            for m in range(wp.static(R)):
+                c = dtype(wp.static(B[m])) * g
+                if wp.static(axis == 0):
+                    wp.atomic_add(adj_psi, s, i + m + 1, j, k, c)
+                    wp.atomic_add(adj_psi, s, i - m - 1, j, k, -c)
+                elif wp.static(axis == 1):
+                    wp.atomic_add(adj_psi, s, i, j + m + 1, k, c)
+                    wp.atomic_add(adj_psi, s, i, j - m - 1, k, -c)
+                else:
+                    wp.atomic_add(adj_psi, s, i, j, k + m + 1, c)
+                    wp.atomic_add(adj_psi, s, i, j, k - m - 1, -c)
+
+        return scatter_dpsi
+
+    sd2_z, sd2_y, sd2_x = make_scatter_d2(0), make_scatter_d2(1), make_scatter_d2(2)
+    sdp_z, sdp_y, sdp_x = make_scatter_dpsi(0), make_scatter_dpsi(1), make_scatter_dpsi(2)
+
+    @wp.kernel(module="unique")
+    def step_adjoint(
+        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        adj_u: arr4, adj_u_prev: arr4, adj_u_next: arr4, adj_v: arr3,
+        adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
+        adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
+        adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        s, zi, yi, xi = wp.tid()
+        z = zi + wp.static(R)
+        x = xi + wp.static(R)
+        y = yi
+        if wp.static(three):
+            y = yi + wp.static(R)
+        if wp.static(fs):
+            if z == top:
+                return  # u_next = 0 there: nothing flows back
+        lam = adj_u_next[s, z, y, x]
+        vv = v[z, y, x]
+        q = vv * vv * dt2 * lam
+        inv_dx2 = inv_dx * inv_dx
+        wp.atomic_add(adj_u, s, z, y, x, dtype(2.0) * lam)
+        wp.atomic_add(adj_u_prev, s, z, y, x, -lam)
+        # z axis: T = g + zeta_new with g = d2 + dpsi and zeta_new = b zeta + a g (PML strip),
+        # else T = d2. Recompute T for the model gradient; scatter the adjoint of g.
+        t = d2z(u, s, z, y, x, top) * inv_dx2
+        g = q
+        jz = az.store[z]
+        if jz >= 0:
+            gz = t + dpsi_z(psi_z, s, jz, y, x) * inv_dx
+            t = gz + az.b[z] * zeta_z[s, jz, y, x] + az.a[z] * gz
+            adj_zn = q + adj_zeta_z_new[s, jz, y, x]
+            g = q + az.a[z] * adj_zn
+            wp.atomic_add(adj_zeta_z, s, jz, y, x, az.b[z] * adj_zn)
+            sdp_z(adj_psi_z, s, jz, y, x, g * inv_dx)
+        sd2_z(adj_u, s, z, y, x, top, g * inv_dx2)
+        total = t
+        t = d2x(u, s, z, y, x) * inv_dx2
+        g = q
+        jx = ax.store[x]
+        if jx >= 0:
+            gx = t + dpsi_x(psi_x, s, z, y, jx) * inv_dx
+            t = gx + ax.b[x] * zeta_x[s, z, y, jx] + ax.a[x] * gx
+            adj_zn = q + adj_zeta_x_new[s, z, y, jx]
+            g = q + ax.a[x] * adj_zn
+            wp.atomic_add(adj_zeta_x, s, z, y, jx, ax.b[x] * adj_zn)
+            sdp_x(adj_psi_x, s, z, y, jx, g * inv_dx)
+        sd2_x(adj_u, s, z, y, x, top, g * inv_dx2)
+        total += t
+        if wp.static(three):
+            t = d2y(u, s, z, y, x) * inv_dx2
+            g = q
+            jy = ay.store[y]
+            if jy >= 0:
+                gy = t + dpsi_y(psi_y, s, z, jy, x) * inv_dx
+                t = gy + ay.b[y] * zeta_y[s, z, jy, x] + ay.a[y] * gy
+                adj_zn = q + adj_zeta_y_new[s, z, jy, x]
+                g = q + ay.a[y] * adj_zn
+                wp.atomic_add(adj_zeta_y, s, z, jy, x, ay.b[y] * adj_zn)
+                sdp_y(adj_psi_y, s, z, jy, x, g * inv_dx)
+            sd2_y(adj_u, s, z, y, x, top, g * inv_dx2)
+            total += t
+        wp.atomic_add(adj_v, z, y, x, dtype(2.0) * vv * dt2 * lam * total)
+
     @wp.func
     def hicks(d: dtype) -> dtype:
         # Kaiser-windowed sinc weight at distance d (cells). The window is the Kaiser series written in
@@ -288,7 +435,8 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             wp.atomic_add(stats, 1, dtype(1.0))
 
     return _Kernels(
-        Axis=Axis, step=step, psi=(make_psi(0), make_psi(1), make_psi(2)), inject=inject,
+        Axis=Axis, step=step, psi=(make_psi(0), make_psi(1), make_psi(2)), inject=inject, step_adjoint=step_adjoint,
+        psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
         record=record, pad_model=pad_model, scatter=scatter, monitor=monitor, halo=R, operator_points=NPTS,
     )  # fmt: skip
 
@@ -422,22 +570,37 @@ class Acoustic:
         wp.launch(self.k.pad_model, dim=self.padded, inputs=[v, vpad, self.origin], device=self.device)
         return vpad
 
-    def step(self, st: State, vpad, out: State | None = None) -> State:
+    def step(self, st: State, vpad, out: State | None = None, tape=None) -> State:
         """Advance st (level n) to level n+1. With out=None the step is done in place (forward only);
-        with `out` (fresh arrays, e.g. under a tape) st is left unchanged and out is returned."""
+        with `out` (fresh arrays, e.g. under a tape) st is left unchanged and out is returned. With
+        `tape` (the active wp.Tape, out given) the hand-written adjoint is recorded for this step
+        instead of Warp's generated one."""
         if out is None:
             out = State(st.u, st.u_prev, st.psi, st.zeta)  # u[n+1] overwrites u[n-1]; psi, zeta in place
             u_next = st.u_prev
         else:
             out = State(st.u, out.u, out.psi, out.zeta)
             u_next = out.u
-        for a in range(3):
-            if self.strip_width[a]:
-                wp.launch(self.k.psi[a], dim=self.strip_shape(a),
-                          inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx], device=self.device)  # fmt: skip
+        record = tape is None
+        axes = [a for a in range(3) if self.strip_width[a]]
+        for a in axes:
+            wp.launch(self.k.psi[a], dim=self.strip_shape(a), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx],
+                      device=self.device, record_tape=record)  # fmt: skip
         wp.launch(self.k.step, dim=self.interior,
                   inputs=[st.u, st.u_prev, u_next, vpad, *out.psi, *st.zeta, *out.zeta, *self.axes,
-                          self.dt2, self.inv_dx, self.top], device=self.device)  # fmt: skip
+                          self.dt2, self.inv_dx, self.top], device=self.device, record_tape=record)  # fmt: skip
+        if tape is not None:
+
+            def backward():
+                wp.launch(self.k.step_adjoint, dim=self.interior,
+                          inputs=[st.u, vpad, *out.psi, *st.zeta, st.u.grad, st.u_prev.grad, u_next.grad, vpad.grad,
+                                  *(p.grad for p in out.psi), *(z.grad for z in st.zeta), *(z.grad for z in out.zeta),
+                                  *self.axes, self.dt2, self.inv_dx, self.top], device=self.device)  # fmt: skip
+                for a in axes:
+                    wp.launch(self.k.psi_adjoint[a], dim=self.strip_shape(a),
+                              inputs=[st.u.grad, st.psi[a].grad, out.psi[a].grad, self.axes[a], self.inv_dx], device=self.device)  # fmt: skip
+
+            tape.record_func(backward, arrays=[*st.arrays(), *out.arrays(), vpad])
         return out
 
     def inject(self, u, vpad, amplitudes, locations, n: int):
