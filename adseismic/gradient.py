@@ -33,8 +33,9 @@ WRT = ("velocity", "source_amplitudes", "source_locations")
 class GradientResult:
     """Misfit and gradients. velocity: dJ/dv (nz, [ny,] nx) per m/s; source_amplitudes: dJ/ds
     (n_shots, n_src, nt); source_locations: dJ/dx_s (n_shots, n_src, ndim) per metre; parameters:
-    dJ/dtheta of a parameterization; synthetic: (n_shots, n_receivers, nt). Entries not requested
-    are None."""
+    dJ/dtheta of a parameterization; illumination: sum over time and shots of u^2 (model shape;
+    the pseudo-Hessian diagonal of Shin et al. 2001); synthetic: (n_shots, n_receivers, nt). Entries
+    not requested are None."""
 
     loss: float
     synthetic: np.ndarray
@@ -42,6 +43,7 @@ class GradientResult:
     source_amplitudes: np.ndarray | None = None
     source_locations: np.ndarray | None = None
     parameters: np.ndarray | None = None
+    illumination: np.ndarray | None = None
     segment_length: int = 0
     n_segments: int = 0
     peak_bytes_estimate: int = 0
@@ -78,7 +80,8 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
 def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
              misfit="l2", wrt=("velocity",), parameterization=None, order=4, pml_width=None, pml_reflection=None,
              pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu", precision="float32",
-             memory_budget=None, segment_length=None, adjoint="hand", progress=False) -> GradientResult:  # fmt: skip
+             memory_budget=None, segment_length=None, adjoint="hand", illumination=False,
+             progress=False) -> GradientResult:  # fmt: skip
     """Misfit between simulated and observed data and its gradient for a batch of shots.
 
     Arguments as in propagate.forward; observed (n_shots, n_receivers, nt). misfit: a name in
@@ -89,6 +92,7 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
     memory_budget: bytes for checkpoints plus the taped segment; segment_length pins it instead.
     adjoint: "hand" (the hand-written adjoint of the stencil kernels, faster) or "warp" (Warp's
     generated adjoints of every kernel; the reference the hand-written one is tested against).
+    illumination: also return sum_t sum_shots u^2 per cell.
     """
     if adjoint not in ("hand", "warp"):
         raise ValueError(f"adjoint {adjoint!r} is not 'hand' or 'warp'")
@@ -123,6 +127,12 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
     def hand(tape):
         return tape if adjoint == "hand" else None
 
+    energy = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device) if illumination else None
+
+    def accumulate(st, n):
+        if energy is not None:
+            prop.accumulate_energy(st.u, energy)
+
     seg, peak = plan_segments(prop, nt, memory_budget, segment_length)
     n_seg = math.ceil(nt / seg)
     if n_seg == 1:
@@ -130,7 +140,7 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
         tape = wp.Tape()
         with tape:
             run_steps(su, prop.new_state(requires_grad=True), model_on_tape(), data, range(nt),
-                      next_state=lambda: prop.new_state(requires_grad=True, with_prev=False), tape=hand(tape))  # fmt: skip
+                      next_state=lambda: prop.new_state(requires_grad=True, with_prev=False), callback=accumulate, tape=hand(tape))  # fmt: skip
         synthetic = data.numpy().astype(float)
         loss, adj = loss_fn(synthetic)
         tape.backward(grads={data: wp.array(adj, dtype=prop.dtype, device=prop.device)})
@@ -142,6 +152,7 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
         def keep(st, n):
             if n % seg == 0:
                 checkpoints.append([wp.clone(a) for a in st.arrays()])
+            accumulate(st, n)
 
         run_steps(su, prop.new_state(), model_on_tape(), data, range(nt), callback=keep)
         synthetic = data.numpy().astype(float)
@@ -183,6 +194,8 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
             res.parameters = grad_of(theta)
         else:
             res.velocity = grad_of(su.velocity).reshape(shape)
+    if energy is not None:
+        res.illumination = prop.physical(energy.numpy()).astype(float).reshape(shape)
     if "source_amplitudes" in wrt:
         res.source_amplitudes = grad_of(su.amplitudes)
     if "source_locations" in wrt:

@@ -171,8 +171,12 @@ def _choose_dx_dt(order, ndim, vmin, vmax, f_max, accuracy, safety, pins, extent
     return best[1:]
 
 
-def plan_scene(config) -> Plan:
-    """Plan the simulation grid, time step, record and domain for a ForwardConfig (see config.py)."""
+def plan_scene(config, velocity_range=None) -> Plan:
+    """Plan the simulation grid, time step, record and domain for a ForwardConfig (see config.py).
+
+    velocity_range: (v_min, v_max) m/s to plan for instead of the model's own range (an inversion
+    plans for its velocity bounds, so that every model it may visit is stable and resolved).
+    """
     model, geo, sim = config.model, config.geometry, config.simulation
     ndim, order = model.ndim, int(sim.order)
     src, rec = np.asarray(geo.sources, float), np.asarray(geo.receivers, float)
@@ -210,7 +214,7 @@ def plan_scene(config) -> Plan:
     i0 = np.floor((lo - org) / spc + 1e-9).astype(int)
     i1 = np.ceil((hi - org) / spc - 1e-9).astype(int) + 1
     box = model.values[tuple(slice(a, b) for a, b in zip(i0, i1))]
-    vmin, vmax = float(box.min()), float(box.max())
+    vmin, vmax = (float(box.min()), float(box.max())) if velocity_range is None else map(float, velocity_range)
 
     pml = DEFAULT_PML_WIDTH if sim.pml_width is None else int(sim.pml_width)
 
@@ -254,10 +258,11 @@ def plan_scene(config) -> Plan:
     )  # fmt: skip
 
 
-def build_scene(config, plan: Plan | None = None) -> Scene:
-    """Plan (unless given) and materialise the scene: resampled model, locations, source wavelets."""
+def build_scene(config, plan: Plan | None = None, model: Model | None = None) -> Scene:
+    """Plan (unless given) and materialise the scene: resampled model (config.model, or `model`),
+    locations, source wavelets."""
     plan = plan or plan_scene(config)
-    model = config.model.resample(plan.dx, plan.origin, plan.shape)
+    model = (model or config.model).resample(plan.dx, plan.origin, plan.shape)
     origin = np.array(plan.origin)
     src = np.asarray(config.geometry.sources, float) - origin
     rec = np.asarray(config.geometry.receivers, float) - origin

@@ -425,6 +425,13 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         du_next[s, z, y, x] = du_next[s, z, y, x] + dtype(2.0) * dv[z, y, x] / v[z, y, x] * inc
 
     @wp.kernel(module="unique")
+    def energy(u: arr4, e: arr3):
+        # e += sum over shots of u^2 (illumination, for the pseudo-Hessian preconditioner)
+        s, z, y, x = wp.tid()
+        val = u[s, z, y, x]
+        wp.atomic_add(e, z, y, x, val * val)
+
+    @wp.kernel(module="unique")
     def monitor(u: arr4, stats: arr1):
         # stats[0] = max |u|, stats[1] = number of non-finite values (blow-up detection).
         s, z, y, x = wp.tid()
@@ -437,7 +444,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     return _Kernels(
         Axis=Axis, step=step, psi=(make_psi(0), make_psi(1), make_psi(2)), inject=inject, step_adjoint=step_adjoint,
         psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
-        record=record, pad_model=pad_model, scatter=scatter, monitor=monitor, halo=R, operator_points=NPTS,
+        record=record, pad_model=pad_model, scatter=scatter, energy=energy, monitor=monitor, halo=R, operator_points=NPTS,
     )  # fmt: skip
 
 
@@ -617,6 +624,16 @@ class Acoustic:
     def scatter(self, du_next, u_next, u, u_prev, vpad, dvpad):
         """du_next += 2 dv/v (u_next - 2 u + u_prev): the Born (tangent-linear) source term."""
         wp.launch(self.k.scatter, dim=self.interior, inputs=[du_next, u_next, u, u_prev, vpad, dvpad], device=self.device)
+
+    def accumulate_energy(self, u, e):
+        """e (padded model shape) += sum over shots of u^2; never recorded on a tape."""
+        wp.launch(self.k.energy, dim=u.shape, inputs=[u, e], device=self.device, record_tape=False)
+
+    def physical(self, a):
+        """View of the physical grid (nz, ny, nx) of a padded model-shaped array."""
+        o = self.origin
+        ny = self.shape[1] if self.ndim == 3 else 1
+        return a[o[0] : o[0] + self.shape[0], o[1] : o[1] + ny, o[2] : o[2] + self.shape[-1]]
 
     def monitor(self, u, stats):
         """stats (2,) <- [max |u|, count of non-finite values]."""
