@@ -257,6 +257,56 @@ def cmd_forward(args) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------------- fwi
+
+def _register_fwi(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", type=pathlib.Path, help="YAML inversion config (forward sections + inversion)")
+    p.add_argument("-o", "--outdir", type=pathlib.Path, required=True, help="run directory")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in OUTDIR from its journals (same config required)")
+    p.add_argument("-q", "--quiet", action="store_true", help="log only warnings to stderr")
+
+
+def cmd_fwi(args) -> int:
+    from adseismic.config import load_fwi_config
+    from adseismic.fwi import run_fwi
+    from adseismic.propagate import PropagationError, resolve_device
+
+    config = load_fwi_config(args.config)
+    resolve_device(config.forward.simulation.device)
+    outdir = args.outdir
+    text = _config_text(config.forward)
+    started = outdir.is_dir() and any(outdir.glob("journal_band*.h5"))
+    if args.resume:
+        if not started:
+            raise CommandError(f"--resume: {outdir} holds no run to resume (no journal_band*.h5); drop --resume to start one")
+        old = (outdir / "config.yaml").read_text(encoding="utf-8") if (outdir / "config.yaml").exists() else None
+        if old != text:
+            raise CommandError(f"--resume: the config differs from {outdir / 'config.yaml'}; a resumed run must use the same "
+                               "config (start a new run directory for a changed one)")
+    elif started:
+        raise CommandError(f"-o: {outdir} already holds a run; add --resume to continue it or choose another directory")
+    outdir.mkdir(parents=True, exist_ok=True)
+    with _Logging(outdir / "fwi.log", args.quiet):
+        log.info("adseismic %s fwi %s -> %s%s", version(), args.config, outdir, " (resume)" if args.resume else "")
+        _write_text_atomic(outdir / "config.yaml", text)
+        try:
+            res = run_fwi(config, outdir, progress=not args.quiet)
+        except PropagationError as e:
+            raise CommandError(f"simulation failed: {e}", EXIT_UNSTABLE) from None
+    for b in res.bands:
+        print(f"band {b['band']} Hz: {b['iterations']} iterations, {b['evaluations']} evaluations, "
+              f"misfit {b['misfit']:.4g} of its start ({b['stop_reason']})")
+    if res.errors:
+        e = res.errors
+        print(f"relative model error in the anomaly: {e['start_anomaly']:.4f} -> {e['final_anomaly']:.4f} "
+              f"({100 * (1 - e['final_anomaly'] / e['start_anomaly']):.0f}% lower); below the water / masks: "
+              f"{e['start_below_water']:.4f} -> {e['final_below_water']:.4f}")
+    print(f"wrote {outdir}/: model.h5, history.h5, summary.json, model.png, gradient.png, misfit.png, fwi.log "
+          f"({res.seconds:.0f} s)")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------------- main
 
 #: name -> (help, register(parser), run(args) -> exit code)
@@ -265,6 +315,8 @@ COMMANDS = {
              _register_plan, cmd_plan),
     "forward": ("run the forward simulation of a config and write data.h5 and figures",
                 _register_forward, cmd_forward),
+    "fwi": ("full-waveform inversion: invert the start model of a config for its observed data",
+            _register_fwi, cmd_fwi),
 }
 
 

@@ -117,7 +117,7 @@ SIMULATION_KEYS = ("order", "accuracy", "free_surface", "device", "precision", "
                    "dx", "dt", "duration", "pml_width", "pml_reflection", "margin", "domain")
 OUTPUT_KEYS = ("snapshot_interval",)
 GEOMETRY_KEYS = ("sources", "receivers")
-SPREAD_FORMS = ("points", "line")
+SPREAD_FORMS = ("points", "line", "lines")
 LINE_KEYS = ("start", "end", "count")
 WAVELET_KEYS = {
     "ricker": ("kind", "peak_frequency", "delay"),
@@ -349,32 +349,44 @@ def _point(p, key: str, ndim: int) -> list[float]:
     return [_number(p[a], f"{key}.{a}", "metres") for a in axes]
 
 
+def _parse_line(raw, key: str, ndim: int) -> np.ndarray:
+    line = _mapping(raw, key, "start, end and count")
+    _check_keys(line, key, LINE_KEYS)
+    for k in LINE_KEYS:
+        if k not in line:
+            raise ConfigError(f"{key}.{k}: missing; a line needs start, end (points in "
+                              f"metres) and count (number of points, >= 1)")
+    start = _point(line["start"], f"{key}.start", ndim)
+    end = _point(line["end"], f"{key}.end", ndim)
+    count = _integer(line["count"], f"{key}.count")
+    if count < 1:
+        raise ConfigError(f"{key}.count: {line['count']!r} is not >= 1; give the number of "
+                          f"evenly spaced points from start to end")
+    return np.linspace(start, end, count).reshape(count, ndim)
+
+
 def _parse_spread(raw, key: str, ndim: int) -> np.ndarray:
-    s = _mapping(raw, key, "either 'points: [...]' or 'line: {start, end, count}'")
+    """Points from any of 'points: [...]', 'line: {start, end, count}' and 'lines: [{...}, ...]',
+    concatenated in that order."""
+    s = _mapping(raw, key, "'points: [...]', 'line: {start, end, count}' or 'lines: [...]'")
     _check_keys(s, key, SPREAD_FORMS)
-    if len(s) != 1:
-        raise ConfigError(f"{key}: {'both points and line are' if s else 'neither points nor line is'}"
-                          f" given; give exactly one of 'points: [{{x: .., z: ..}}, ...]' or "
-                          f"'line: {{start: .., end: .., count: ..}}'")
+    if not s:
+        raise ConfigError(f"{key}: empty; give 'points: [{{x: .., z: ..}}, ...]', "
+                          f"'line: {{start: .., end: .., count: ..}}' or 'lines: [...]'")
+    parts = []
     if "points" in s:
         pts = s["points"]
         if not isinstance(pts, list) or not pts:
             raise ConfigError(f"{key}.points: {pts!r} is not a non-empty list; give a list of "
                               f"points like {{x: 100, z: 10}}")
-        return np.array([_point(p, f"{key}.points[{i}]", ndim) for i, p in enumerate(pts)])
-    line = _mapping(s["line"], f"{key}.line", "start, end and count")
-    _check_keys(line, f"{key}.line", LINE_KEYS)
-    for k in LINE_KEYS:
-        if k not in line:
-            raise ConfigError(f"{key}.line.{k}: missing; a line needs start, end (points in "
-                              f"metres) and count (number of points, >= 1)")
-    start = _point(line["start"], f"{key}.line.start", ndim)
-    end = _point(line["end"], f"{key}.line.end", ndim)
-    count = _integer(line["count"], f"{key}.line.count")
-    if count < 1:
-        raise ConfigError(f"{key}.line.count: {line['count']!r} is not >= 1; give the number of "
-                          f"evenly spaced points from start to end")
-    return np.linspace(start, end, count).reshape(count, ndim)
+        parts.append(np.array([_point(p, f"{key}.points[{i}]", ndim) for i, p in enumerate(pts)]))
+    if "line" in s:
+        parts.append(_parse_line(s["line"], f"{key}.line", ndim))
+    if "lines" in s:
+        if not isinstance(s["lines"], list) or not s["lines"]:
+            raise ConfigError(f"{key}.lines: {s['lines']!r} is not a non-empty list of lines")
+        parts += [_parse_line(ln, f"{key}.lines[{i}]", ndim) for i, ln in enumerate(s["lines"])]
+    return np.concatenate(parts)
 
 
 def _check_inside(points: np.ndarray, key: str, model: Model) -> None:
@@ -404,8 +416,8 @@ def _parse_geometry(raw, model: Model, key="geometry") -> GeometryConfig:
 
 # ------------------------------------------------------------------------------ public API
 
-def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None
-                 ) -> ForwardConfig:
+def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None,
+                 extra_sections: tuple = ()) -> ForwardConfig:
     """Validate a parsed YAML config and build the :class:`ForwardConfig`.
 
     ``base_dir`` (default: current directory) resolves relative file paths (model and wavelet
@@ -418,7 +430,7 @@ def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | Non
     if not isinstance(raw, dict):
         raise ConfigError(f"config: {type(raw).__name__} {raw!r:.60} is not a mapping; a config "
                           f"file has the sections {', '.join(SECTIONS)}")
-    _check_keys(raw, "", SECTIONS)
+    _check_keys(raw, "", SECTIONS + tuple(extra_sections))
     for k in REQUIRED_SECTIONS:
         if raw.get(k) is None:
             raise ConfigError(f"{k}: missing; a config needs the sections "
@@ -435,8 +447,7 @@ def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | Non
     return ForwardConfig(model, geometry, wavelet, simulation, output, path, raw)
 
 
-def load_config(path) -> ForwardConfig:
-    """Read and validate the YAML file ``path``; relative paths inside resolve from its folder."""
+def _read_yaml(path) -> tuple[dict, Path]:
     import yaml
 
     path = pathlib.Path(path).expanduser()
@@ -446,4 +457,154 @@ def load_config(path) -> ForwardConfig:
         raw = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
         raise ConfigError(f"config: {path} is not valid YAML: {e}") from None
+    return raw, path
+
+
+def load_config(path) -> ForwardConfig:
+    """Read and validate the YAML file ``path``; relative paths inside resolve from its folder."""
+    raw, path = _read_yaml(path)
     return parse_config(raw, base_dir=path.resolve().parent, path=path)
+
+
+# ------------------------------------------------------------------------------ inversion
+
+INVERSION_KEYS = ("bands", "misfit", "optimizer", "iterations", "rel_decrease", "bounds", "water_depth",
+                  "source_radius", "smoothing", "preconditioning", "tikhonov", "tv", "wavelet_estimation",
+                  "shots_per_batch", "memory_budget_gb", "step", "lr")
+FWI_SECTIONS = ("true_model", "observed", "inversion")
+OPTIMIZERS = ("lbfgs", "gd", "adam")
+PRECONDITIONERS = ("none", "depth", "pseudo_hessian")
+
+
+@dataclass
+class InversionConfig:
+    """Full-waveform inversion settings (units: Hz, m/s, m). bands: list of (f_low or None, f_high or
+    None) pass bands, inverted in order; bounds: (v_min, v_max) m/s or None (start model range
+    +-25%); water_depth / source_radius: gradient masks (m, 0 = off); smoothing: Gaussian sigma of
+    the gradient (m); tikhonov / tv: regularisation weights (relative to the band's initial misfit)."""
+
+    bands: list = field(default_factory=lambda: [(None, None)])
+    misfit: str = "l2"
+    optimizer: str = "lbfgs"
+    iterations: int = 20
+    rel_decrease: float = 1e-4
+    bounds: tuple | None = None
+    water_depth: float = 0.0
+    source_radius: float = 0.0
+    smoothing: float = 0.0
+    preconditioning: str = "none"
+    tikhonov: float = 0.0
+    tv: float = 0.0
+    wavelet_estimation: bool = False
+    shots_per_batch: int | None = None
+    memory_budget_gb: float | None = None
+    step: float = 1.0
+    lr: float = 0.01
+
+
+@dataclass
+class FWIConfig:
+    """An inversion: `forward.model` is the START model; observed data come from `true_model`
+    (a synthetic study) or from `observed` (files: {kind: hdf5|segy|su, path: ...})."""
+
+    forward: ForwardConfig
+    inversion: InversionConfig
+    true_model: Model | None = None
+    observed: dict | None = None
+
+
+def _parse_band(b, key: str) -> tuple:
+    if b is None:  # the full band of the wavelet
+        return (None, None)
+    if isinstance(b, (int, float, str)):
+        return (None, _positive(b, key, "Hz"))
+    if isinstance(b, dict):
+        _check_keys(b, key, ("fmin", "fmax"))
+        lo = None if b.get("fmin") is None else _positive(b["fmin"], f"{key}.fmin", "Hz")
+        hi = None if b.get("fmax") is None else _positive(b["fmax"], f"{key}.fmax", "Hz")
+        if lo is not None and hi is not None and lo >= hi:
+            raise ConfigError(f"{key}: fmin {lo:g} Hz >= fmax {hi:g} Hz; give fmin < fmax")
+        return (lo, hi)
+    raise ConfigError(f"{key}: {b!r} is not a band; give fmax in Hz (e.g. 5), {{fmin: 2, fmax: 5}} or null (full band)")
+
+
+def _parse_inversion(raw, key="inversion") -> InversionConfig:
+    from adseismic.misfits import MISFITS
+
+    sec = _mapping(raw or {}, key, "inversion settings")
+    _check_keys(sec, key, INVERSION_KEYS)
+    out = InversionConfig()
+    if sec.get("bands") is not None:
+        if not isinstance(sec["bands"], list) or not sec["bands"]:
+            raise ConfigError(f"{key}.bands: {sec['bands']!r} is not a non-empty list; e.g. [3, 5, 8] (Hz, low to high)")
+        out.bands = [_parse_band(b, f"{key}.bands[{i}]") for i, b in enumerate(sec["bands"])]
+    for name, choices in (("misfit", MISFITS), ("optimizer", OPTIMIZERS), ("preconditioning", PRECONDITIONERS)):
+        if sec.get(name) is not None:
+            setattr(out, name, _choice(sec[name], f"{key}.{name}", choices))
+    if sec.get("iterations") is not None:
+        out.iterations = _integer(sec["iterations"], f"{key}.iterations")
+        if out.iterations < 1:
+            raise ConfigError(f"{key}.iterations: {out.iterations} < 1; give at least 1 iteration per band")
+    for name in ("rel_decrease", "step", "lr"):
+        if sec.get(name) is not None:
+            setattr(out, name, _positive(sec[name], f"{key}.{name}"))
+    for name, unit in (("water_depth", "m"), ("source_radius", "m"), ("smoothing", "m"), ("tikhonov", ""), ("tv", "")):
+        if sec.get(name) is not None:
+            val = _number(sec[name], f"{key}.{name}", unit)
+            if val < 0:
+                raise ConfigError(f"{key}.{name}: {val:g} is negative; give 0 (off) or a positive value")
+            setattr(out, name, val)
+    if sec.get("bounds") is not None:
+        b = sec["bounds"]
+        if not isinstance(b, list) or len(b) != 2:
+            raise ConfigError(f"{key}.bounds: {b!r} is not [v_min, v_max] in m/s")
+        lo, hi = _positive(b[0], f"{key}.bounds[0]", "m/s"), _positive(b[1], f"{key}.bounds[1]", "m/s")
+        if lo >= hi:
+            raise ConfigError(f"{key}.bounds: v_min {lo:g} >= v_max {hi:g} m/s; give v_min < v_max")
+        out.bounds = (lo, hi)
+    if sec.get("wavelet_estimation") is not None:
+        out.wavelet_estimation = _boolean(sec["wavelet_estimation"], f"{key}.wavelet_estimation")
+    if sec.get("shots_per_batch") is not None:
+        out.shots_per_batch = _integer(sec["shots_per_batch"], f"{key}.shots_per_batch")
+        if out.shots_per_batch < 1:
+            raise ConfigError(f"{key}.shots_per_batch: {out.shots_per_batch} < 1")
+    if sec.get("memory_budget_gb") is not None:
+        out.memory_budget_gb = _positive(sec["memory_budget_gb"], f"{key}.memory_budget_gb", "GB")
+    return out
+
+
+def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None) -> FWIConfig:
+    """Validate an inversion config: the forward sections (model = start model) plus `inversion`
+    and exactly one of `true_model` (synthetic study) or `observed` (data files)."""
+    base_dir = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
+    forward = parse_config(raw, base_dir, path, extra_sections=FWI_SECTIONS)
+    inversion = _parse_inversion(raw.get("inversion"))
+    has_true, has_obs = raw.get("true_model") is not None, raw.get("observed") is not None
+    if has_true == has_obs:
+        raise ConfigError("true_model/observed: give exactly one: true_model (a model spec, for a synthetic study) "
+                          "or observed (data files: {kind: hdf5|segy|su, path: ...})")
+    true_model = None
+    if has_true:
+        try:
+            true_model = load_model(raw["true_model"], base_dir=base_dir)
+        except ModelError as e:
+            raise ConfigError(f"true_{e}" if str(e).startswith("model") else f"true_model.{e}") from e
+        if true_model.ndim != forward.model.ndim:
+            raise ConfigError(f"true_model: {true_model.ndim}D but the start model is {forward.model.ndim}D")
+    observed = None
+    if has_obs:
+        observed = dict(_mapping(raw["observed"], "observed", "observed-data settings"))
+        _check_keys(observed, "observed", ("kind", "path", "coordinate_scale"))
+        observed["kind"] = _choice(observed.get("kind"), "observed.kind", ("hdf5", "segy", "su"))
+        if observed.get("path") is None:
+            raise ConfigError("observed.path: missing; give the data file (relative to the config)")
+        observed["path"] = (base_dir / str(observed["path"])).resolve()
+        if not observed["path"].exists():
+            raise ConfigError(f"observed.path: {str(observed['path'])!r} does not exist")
+    return FWIConfig(forward, inversion, true_model, observed)
+
+
+def load_fwi_config(path) -> FWIConfig:
+    """Read and validate an inversion YAML file."""
+    raw, path = _read_yaml(path)
+    return parse_fwi_config(raw, base_dir=path.resolve().parent, path=path)

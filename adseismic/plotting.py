@@ -12,7 +12,7 @@ import pathlib
 
 import numpy as np
 
-__all__ = ["plot_model", "plot_gather", "plot_snapshots", "save_figure", "xz_slice"]
+__all__ = ["plot_model", "plot_gather", "plot_snapshots", "plot_misfit", "save_figure", "xz_slice"]
 
 
 def _figure(width: float, height: float):
@@ -54,10 +54,13 @@ def xz_slice(values: np.ndarray, origin, spacing: float, y: float | None = None)
 
 
 def plot_model(path, velocity, spacing: float, origin, sources=None, receivers=None,
-               title: str = "") -> pathlib.Path:
+               title: str = "", label: str = "velocity (m/s)", cmap: str = "viridis",
+               symmetric: bool = False) -> pathlib.Path:
     """Velocity (m/s) on a grid of ``spacing`` m with node 0 at world ``origin`` (z,[y,]x);
     sources (n, ndim) as red stars and receivers (m, ndim) as triangles, world metres.
-    In 3D the x-z slice through the first source is shown (points within one cell of it)."""
+    In 3D the x-z slice through the first source is shown (points within one cell of it).
+    Other fields (a gradient): ``label``, ``cmap`` and ``symmetric`` (colour limits +-99th
+    percentile of |value|)."""
     velocity = np.asarray(velocity)
     ndim = velocity.ndim
     src = None if sources is None else np.asarray(sources, float).reshape(-1, ndim)
@@ -73,8 +76,9 @@ def plot_model(path, velocity, spacing: float, origin, sources=None, receivers=N
     ax = fig.add_subplot()
     half = 0.5 * spacing
     extent = ((ox - half) / k, (ox + width_m + half) / k, (oz + depth_m + half) / k, (oz - half) / k)
-    im = ax.imshow(v2, extent=extent, cmap="viridis", aspect="equal", interpolation="nearest")
-    fig.colorbar(im, ax=ax, label="velocity (m/s)", shrink=float(np.clip(1.2 * aspect, 0.5, 0.9)))
+    lim = {"vmin": -_clip(v2), "vmax": _clip(v2)} if symmetric else {}
+    im = ax.imshow(v2, extent=extent, cmap=cmap, aspect="equal", interpolation="nearest", **lim)
+    fig.colorbar(im, ax=ax, label=label, shrink=float(np.clip(1.2 * aspect, 0.5, 0.9)))
 
     def sel(p):  # 3D: points near the slice
         if p is None or ndim == 2:
@@ -96,6 +100,21 @@ def plot_model(path, velocity, spacing: float, origin, sources=None, receivers=N
     ax.set_ylabel(f"depth z ({unit})")
     where = f", x-z slice at y = {origin[1] + j * spacing:g} m" if j is not None else ""
     ax.set_title((title or "velocity model") + f" (dx = {spacing:g} m{where})")
+    return save_figure(fig, path)
+
+
+def plot_misfit(path, rows, title: str = "") -> pathlib.Path:
+    """Misfit (normalised by each band's start value) against iteration; rows: (band, iteration, misfit)."""
+    fig = _figure(7.0, 4.5)
+    ax = fig.add_subplot()
+    for b in sorted({r[0] for r in rows}):
+        it = [(i, j) for bb, i, j in rows if bb == b]
+        ax.semilogy([i for i, _ in it], [j for _, j in it], "o-", ms=3, label=f"band {b}")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("misfit / misfit at the band's start")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    ax.set_title(title or "misfit")
     return save_figure(fig, path)
 
 

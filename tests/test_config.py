@@ -144,8 +144,8 @@ def test_load_config_resolves_relative_paths(tmp_path):
     ({"geometry.receivers.line.count": 2.5}, "geometry.receivers.line.count", "integer"),
     ({"geometry.receivers.line.end": ...}, "geometry.receivers.line.end", "missing"),
     ({"geometry.receivers.line.start.x": "left"}, "geometry.receivers.line.start.x", "number"),
-    ({"geometry.sources.line": {"start": {"x": 0, "z": 0}, "end": {"x": 1, "z": 0}, "count": 1}},
-     "geometry.sources", "exactly one"),
+    ({"geometry.sources": {}}, "geometry.sources", "empty"),
+    ({"geometry.receivers": {"lines": []}}, "geometry.receivers.lines", "non-empty"),
     ({"geometry.sources": {"points": []}}, "geometry.sources.points", "non-empty"),
     ({"geometry.sources": {"points": [{"x": 9000, "z": 20}]}}, "geometry.sources",
      "outside the model"),
@@ -191,3 +191,11 @@ def test_not_a_mapping_and_bad_yaml(tmp_path):
 
 def test_config_error_is_value_error():
     assert issubclass(ConfigError, ValueError)
+
+
+def test_spread_forms_concatenate():
+    from adseismic.config import _parse_spread
+
+    pts = _parse_spread({"points": [{"x": 5.0, "z": 1.0}], "line": {"start": {"x": 0, "z": 0}, "end": {"x": 10, "z": 0}, "count": 3},
+                         "lines": [{"start": {"x": 0, "z": 9}, "end": {"x": 10, "z": 9}, "count": 2}]}, "geometry.receivers", 2)  # fmt: skip
+    np.testing.assert_allclose(pts, [[1, 5], [0, 0], [0, 5], [0, 10], [9, 0], [9, 10]])
