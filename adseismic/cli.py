@@ -269,11 +269,12 @@ def _register_fwi(p: argparse.ArgumentParser) -> None:
 
 def cmd_fwi(args) -> int:
     from adseismic.config import load_fwi_config
-    from adseismic.fwi import run_fwi
+    from adseismic.fwi import prepare_fwi, run_fwi
     from adseismic.propagate import PropagationError, resolve_device
 
     config = load_fwi_config(args.config)
     resolve_device(config.forward.simulation.device)
+    prepared = prepare_fwi(config)  # plans and reads/checks observed files before OUTDIR is touched
     outdir = args.outdir
     text = _config_text(config.forward)
     started = outdir.is_dir() and any(outdir.glob("journal_band*.h5"))
@@ -291,7 +292,7 @@ def cmd_fwi(args) -> int:
         log.info("adseismic %s fwi %s -> %s%s", version(), args.config, outdir, " (resume)" if args.resume else "")
         _write_text_atomic(outdir / "config.yaml", text)
         try:
-            res = run_fwi(config, outdir, progress=not args.quiet)
+            res = run_fwi(config, outdir, progress=not args.quiet, prepared=prepared)
         except PropagationError as e:
             raise CommandError(f"simulation failed: {e}", EXIT_UNSTABLE) from None
     for b in res.bands:

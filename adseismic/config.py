@@ -468,7 +468,7 @@ def load_config(path) -> ForwardConfig:
 
 # ------------------------------------------------------------------------------ inversion
 
-INVERSION_KEYS = ("bands", "misfit", "optimizer", "iterations", "rel_decrease", "bounds", "water_depth",
+INVERSION_KEYS = ("bands", "misfit", "optimizer", "iterations", "evaluations", "rel_decrease", "bounds", "water_depth",
                   "source_radius", "smoothing", "preconditioning", "tikhonov", "tv", "wavelet_estimation",
                   "shots_per_batch", "memory_budget_gb", "step", "lr")
 FWI_SECTIONS = ("true_model", "observed", "inversion")
@@ -479,14 +479,16 @@ PRECONDITIONERS = ("none", "depth", "pseudo_hessian")
 @dataclass
 class InversionConfig:
     """Full-waveform inversion settings (units: Hz, m/s, m). bands: list of (f_low or None, f_high or
-    None) pass bands, inverted in order; bounds: (v_min, v_max) m/s or None (start model range
+    None) pass bands, inverted in order; iterations / evaluations: limits per band (an evaluation is
+    one misfit + gradient over all shots); bounds: (v_min, v_max) m/s or None (start model range
     +-25%); water_depth / source_radius: gradient masks (m, 0 = off); smoothing: Gaussian sigma of
     the gradient (m); tikhonov / tv: regularisation weights (relative to the band's initial misfit)."""
 
     bands: list = field(default_factory=lambda: [(None, None)])
     misfit: str = "l2"
     optimizer: str = "lbfgs"
-    iterations: int = 20
+    iterations: int | list = 20
+    evaluations: int | None = None
     rel_decrease: float = 1e-4
     bounds: tuple | None = None
     water_depth: float = 0.0
@@ -542,9 +544,17 @@ def _parse_inversion(raw, key="inversion") -> InversionConfig:
         if sec.get(name) is not None:
             setattr(out, name, _choice(sec[name], f"{key}.{name}", choices))
     if sec.get("iterations") is not None:
-        out.iterations = _integer(sec["iterations"], f"{key}.iterations")
-        if out.iterations < 1:
-            raise ConfigError(f"{key}.iterations: {out.iterations} < 1; give at least 1 iteration per band")
+        its = sec["iterations"]
+        its = [_integer(n, f"{key}.iterations[{i}]") for i, n in enumerate(its)] if isinstance(its, list) else _integer(its, f"{key}.iterations")
+        if isinstance(its, list) and len(its) != len(out.bands):
+            raise ConfigError(f"{key}.iterations: {len(its)} values for {len(out.bands)} bands; give one per band or a single number")
+        if min(its if isinstance(its, list) else [its]) < 1:
+            raise ConfigError(f"{key}.iterations: {its} has a value < 1; give at least 1 iteration per band")
+        out.iterations = its
+    if sec.get("evaluations") is not None:
+        out.evaluations = _integer(sec["evaluations"], f"{key}.evaluations")
+        if out.evaluations < 1:
+            raise ConfigError(f"{key}.evaluations: {out.evaluations} < 1; give at least 1 gradient evaluation per band")
     for name in ("rel_decrease", "step", "lr"):
         if sec.get(name) is not None:
             setattr(out, name, _positive(sec[name], f"{key}.{name}"))

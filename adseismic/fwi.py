@@ -118,62 +118,94 @@ class _History:
         return [(b, i, j) for b, i, _, _, j in self.rows]
 
 
-def _observed(cfg, scene, rundir: Path, progress):
+@dataclass
+class Prepared:
+    """What an inversion needs before it writes anything: the plan and scene (start model on the
+    simulation grid), the velocity bounds (m/s) and observed data read from files (or None)."""
+
+    plan: object
+    scene: object
+    bounds: tuple
+    observed: np.ndarray | None
+
+
+def prepare_fwi(cfg) -> Prepared:
+    """Plan for the velocity bounds and read/check observed data files; raises ValueError (bad input)
+    before any output exists."""
+    inv, fwd = cfg.inversion, cfg.forward
+    bounds = inv.bounds or (0.75 * fwd.model.vmin, 1.25 * fwd.model.vmax)
+    if not (bounds[0] <= fwd.model.vmin and fwd.model.vmax <= bounds[1]):
+        raise ValueError(f"inversion.bounds: [{bounds[0]:g}, {bounds[1]:g}] m/s do not contain the start model's range "
+                         f"[{fwd.model.vmin:g}, {fwd.model.vmax:g}] m/s; widen them")  # fmt: skip
+    plan = plan_scene(fwd, velocity_range=bounds)
+    scene = build_scene(fwd, plan)
+    nyq = 0.5 / plan.dt
+    for i, (lo, hi) in enumerate(inv.bands):
+        if hi is not None and hi >= 0.9 * nyq:
+            raise ValueError(f"inversion.bands[{i}]: f_high {hi:g} Hz is too close to the Nyquist frequency {nyq:.3g} Hz of dt = {plan.dt:.4g} s")
+    observed = read_observed(cfg.observed, scene, fwd.geometry) if cfg.observed is not None else None
+    return Prepared(plan, scene, bounds, observed)
+
+
+def _observed(cfg, prep: Prepared, rundir: Path, progress):
     path = rundir / "observed.h5"
     if path.exists():
         with h5py.File(path, "r") as f:
             return f["data"][...]
-    p = scene.plan
-    if cfg.true_model is not None:
+    scene, p = prep.scene, prep.plan
+    if prep.observed is not None:
+        data = prep.observed
+    else:
         v_true = cfg.true_model.resample(p.dx, p.origin, p.shape).values
         log.info("simulating observed data from the true model (%d shots)", len(scene.source_amplitudes))
         data = forward(v_true, p.dx, p.dt, scene.source_amplitudes, scene.source_locations, scene.receiver_locations,
                        order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface,
                        device=p.device, precision=p.precision, progress=progress).receiver_amplitudes  # fmt: skip
-    else:
-        data = read_observed(cfg.observed, scene)
     _write_h5_atomic(path, lambda f: f.create_dataset("data", data=data))
     return data
 
 
-def read_observed(spec, scene):
-    """Observed data (n_shots, n_receivers, nt) on the scene's time axis, from our HDF5 or SEG-Y/SU files."""
+def read_observed(spec, scene, geometry):
+    """Observed data (n_shots, n_receivers, nt) on the scene's time axis, from our HDF5 or SEG-Y/SU
+    files; the file's shot/receiver counts and coordinates must match the config's geometry."""
     p = scene.plan
     if spec["kind"] == "hdf5":
         from adseismic.io import read_forward
 
         d = read_forward(spec["path"])
-        data, dt_in = d.receiver_data, d.dt
+        data, dt_in, t0 = d.receiver_data, d.dt, 0.0
+        src, rec = d.source_coordinates, np.broadcast_to(d.receiver_coordinates, (len(d.source_coordinates), *d.receiver_coordinates.shape))
     else:
         from adseismic import traces
 
         g = traces.read_shot_gathers([spec["path"]], fmt=spec["kind"].upper(), coordinate_scale=spec.get("coordinate_scale"), ndim=scene.model.ndim)
-        data, dt_in = g.data, g.dt
+        data, dt_in, t0, src, rec = g.data, g.dt, g.t0, g.sources, g.receivers
     n_shots, n_rec = scene.receiver_locations.shape[:2]
     if data.shape[:2] != (n_shots, n_rec):
         raise ValueError(f"observed.path: the data hold {data.shape[0]} shots x {data.shape[1]} receivers but the geometry "
                          f"has {n_shots} x {n_rec}; make geometry.sources/receivers match the file")  # fmt: skip
-    if abs(dt_in - p.dt) > 1e-9 * p.dt or data.shape[2] != p.nt:
+    for name, file_pts, cfg_pts in (("sources", src, geometry.sources), ("receivers", rec, np.broadcast_to(geometry.receivers, rec.shape))):
+        off = np.abs(np.asarray(file_pts) - cfg_pts).max()
+        if off > 0.5 * p.dx:
+            raise ValueError(f"observed.path: the file's {name} coordinates differ from geometry.{name} by up to {off:.3g} m "
+                             f"(more than half a cell, {0.5 * p.dx:g} m); make the config's geometry match the file")  # fmt: skip
+    if abs(dt_in - p.dt) > 1e-9 * p.dt or data.shape[2] != p.nt or t0 != 0.0:
         from adseismic.traces import preprocess
 
-        data = preprocess(data, dt_in, dt=p.dt, nt=p.nt, detrend=False, taper=0.0)
+        data = preprocess(data, dt_in, dt=p.dt, nt=p.nt, t_shift=-t0, detrend=False, taper=0.0, fmax_required=p.f_max)
     return data
 
 
-def run_fwi(cfg, rundir, progress=True) -> FWIResult:
+def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWIResult:
     """Run (or resume, when RUNDIR holds journals) the inversion described by an FWIConfig."""
     t_start = time.perf_counter()
+    prep = prepared or prepare_fwi(cfg)
     rundir = Path(rundir)
     rundir.mkdir(parents=True, exist_ok=True)
     inv, fwd = cfg.inversion, cfg.forward
-    v_start = fwd.model
-    bounds = inv.bounds or (0.75 * v_start.vmin, 1.25 * v_start.vmax)
-    plan = plan_scene(fwd, velocity_range=bounds)
-    # the grid must resolve the highest band, not only the wavelet: plan for min(f_max, band edges)
-    scene = build_scene(fwd, plan)
-    log.info("plan:\n%s", plan.describe())
-    obs = _observed(cfg, scene, rundir, progress)
-    p = scene.plan
+    scene, bounds, p = prep.scene, prep.bounds, prep.plan
+    log.info("plan:\n%s", p.describe())
+    obs = _observed(cfg, prep, rundir, progress)
     shape = scene.model.values.shape
     region_mask = conditioning.mask(shape, p.dx, p.origin, inv.water_depth, fwd.geometry.sources, inv.source_radius)
     depth = (p.origin[0] + p.dx * np.arange(shape[0])).reshape((-1,) + (1,) * (len(shape) - 1)) * np.ones(shape) + p.dx
@@ -194,9 +226,12 @@ def run_fwi(cfg, rundir, progress=True) -> FWIResult:
             syn = forward(x.reshape(shape) * V_REF, p.dx, p.dt, amp, scene.source_locations, scene.receiver_locations, **{k: v for k, v in kw.items() if k != "memory_budget"}).receiver_amplitudes
             wavelet = estimate_wavelet(wavelet, syn, obs_b)
             amp = np.broadcast_to(wavelet, amp.shape).copy()
-        scale = {}
+        # The misfit is normalised by its value at the band's start model; that value is kept on disk
+        # because a resumed run replays the first evaluations from the journal without calling us.
+        scale_path = rundir / f"band{b}_scale.json"
+        scale = json.loads(scale_path.read_text()) if scale_path.exists() else {}
 
-        def objective(xv, amp=amp, obs_b=obs_b, scale=scale):
+        def objective(xv, amp=amp, obs_b=obs_b, scale=scale, scale_path=scale_path):
             v = xv.reshape(shape) * V_REF
             loss, grad, illum = 0.0, np.zeros(shape), np.zeros(shape) if inv.preconditioning == "pseudo_hessian" else None
             for s0 in range(0, len(amp), batch):
@@ -207,7 +242,11 @@ def run_fwi(cfg, rundir, progress=True) -> FWIResult:
                 grad += r.velocity
                 if illum is not None:
                     illum += r.illumination
-            scale.setdefault("misfit", loss if loss > 0 else 1.0)
+            if "misfit" not in scale:
+                scale["misfit"] = loss if loss > 0 else 1.0
+                part = atomic_path(scale_path)
+                part.write_text(json.dumps(scale))
+                part.replace(scale_path)
             g = conditioning.precondition(conditioning.smooth(grad * region_mask, p.dx, inv.smoothing) * region_mask,
                                           inv.preconditioning, illum, depth)  # fmt: skip
             f = loss / scale["misfit"]
@@ -224,7 +263,7 @@ def run_fwi(cfg, rundir, progress=True) -> FWIResult:
             log.info("band %d (%s Hz) iteration %d: misfit %.4g", b, band, iteration, f)
 
         res = minimize(objective, x, method=inv.optimizer, bounds=(bounds[0] / V_REF, bounds[1] / V_REF),
-                       max_iterations=inv.iterations, rel_decrease=inv.rel_decrease, grad_tol=0.0,
+                       max_iterations=inv.iterations[b] if isinstance(inv.iterations, list) else inv.iterations, max_evaluations=inv.evaluations, rel_decrease=inv.rel_decrease, grad_tol=0.0,
                        journal_path=rundir / f"journal_band{b}.h5", callback=callback,
                        options={"gd": {"step": inv.step}, "adam": {"lr": inv.lr}}.get(inv.optimizer))  # fmt: skip
         log.info("band %d done: %s after %d iterations, %d evaluations", b, res.stop_reason, res.iterations, res.evaluations)

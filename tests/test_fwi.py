@@ -1,0 +1,132 @@
+"""Full-waveform inversion workflow: a tiny inversion end to end, kill -9 and --resume reproducing an
+uninterrupted run, bad input refused before anything is written, band-pass and wavelet estimation."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+from adseismic.cli import main
+from adseismic.fwi import band_pass, estimate_wavelet
+from adseismic.optimize import Journal
+from adseismic.wavelets import ricker
+
+TINY = {
+    "model": {"kind": "constant", "shape": [31, 41], "spacing": 20.0, "velocity": 2000.0},
+    "true_model": {"kind": "gaussian_anomaly", "shape": [31, 41], "spacing": 20.0, "background": 2000.0,
+                   "perturbation": 200.0, "center": [300.0, 400.0], "radius": 80.0},
+    "geometry": {"sources": {"line": {"start": {"x": 100, "z": 20}, "end": {"x": 700, "z": 20}, "count": 3}},
+                 "receivers": {"lines": [{"start": {"x": 0, "z": 10}, "end": {"x": 800, "z": 10}, "count": 21},
+                                         {"start": {"x": 0, "z": 590}, "end": {"x": 800, "z": 590}, "count": 21}]}},
+    "wavelet": {"kind": "ricker", "peak_frequency": 6.0},
+    "simulation": {"order": 4, "pml_width": 8, "precision": "float64"},
+    "inversion": {"bands": [4.0, None], "iterations": 3, "bounds": [1700, 2400]},
+}  # fmt: skip
+
+
+def write(tmp_path, cfg=TINY, name="fwi.yaml"):
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def test_tiny_inversion_end_to_end(tmp_path):
+    cfg = write(tmp_path)
+    out = tmp_path / "run"
+    assert main(["fwi", str(cfg), "-o", str(out), "-q"]) == 0
+    for name in ("model.h5", "history.h5", "summary.json", "model.png", "gradient.png", "misfit.png", "fwi.log", "config.yaml", "observed.h5"):
+        assert (out / name).exists(), name
+    assert not list(out.glob("*.part"))
+    summary = json.loads((out / "summary.json").read_text())
+    assert [b["iterations"] for b in summary["bands"]] == [3, 3]
+    assert all(b["misfit"] < 1.0 for b in summary["bands"])  # normalised by each band's start
+    assert summary["errors"]["final_anomaly"] < summary["errors"]["start_anomaly"]
+    with h5py.File(out / "history.h5") as f, h5py.File(out / "model.h5") as m:
+        assert sorted(f) == ["band0", "band1"] and len(f["band1"]) == 3
+        assert f["band0/iter0001/model"].shape == m["model"].shape  # the planner's grid
+
+
+def test_kill_9_then_resume_equals_uninterrupted_run(tmp_path):
+    cfg = write(tmp_path)
+    whole, broken = tmp_path / "whole", tmp_path / "broken"
+    assert main(["fwi", str(cfg), "-o", str(whole), "-q"]) == 0
+    proc = subprocess.Popen([sys.executable, "-m", "adseismic.cli", "fwi", str(cfg), "-o", str(broken), "-q"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    journal = broken / "journal_band1.h5"
+    deadline = time.time() + 300
+    while time.time() < deadline:  # kill during band 1, after its second evaluation
+        if journal.exists() and len(Journal.load(journal)) >= 2:
+            break
+        assert proc.poll() is None, "the run finished before it could be killed; make the test problem bigger"
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (broken / "model.h5").exists()
+    for h5 in broken.glob("*.h5"):  # nothing corrupted by the kill
+        with h5py.File(h5) as f:
+            list(f)
+    assert main(["fwi", str(cfg), "-o", str(broken), "--resume", "-q"]) == 0
+    with h5py.File(whole / "model.h5") as a, h5py.File(broken / "model.h5") as b:
+        np.testing.assert_array_equal(a["model"][...], b["model"][...])  # float64 on a CPU: bitwise
+    with h5py.File(whole / "history.h5") as a, h5py.File(broken / "history.h5") as b:
+        assert sorted(a["band1"]) == sorted(b["band1"])
+
+
+def test_resume_guards(tmp_path, capsys):
+    cfg = write(tmp_path)
+    out = tmp_path / "run"
+    assert main(["fwi", str(cfg), "-o", str(out), "--resume", "-q"]) == 2
+    assert "no run to resume" in capsys.readouterr().err
+    assert main(["fwi", str(cfg), "-o", str(out), "-q"]) == 0
+    assert main(["fwi", str(cfg), "-o", str(out), "-q"]) == 2
+    assert "already holds a run" in capsys.readouterr().err
+    changed = dict(TINY, inversion=dict(TINY["inversion"], iterations=5))
+    assert main(["fwi", str(write(tmp_path, changed, "changed.yaml")), "-o", str(out), "--resume", "-q"]) == 2
+    assert "config differs" in capsys.readouterr().err
+
+
+def test_observed_file_with_wrong_shot_count_writes_nothing(tmp_path, capsys):
+    # observed data from our own forward run with 2 shots, while the inversion's geometry has 3
+    fwd = {k: TINY[k] for k in ("model", "wavelet", "simulation")}
+    fwd["geometry"] = {"sources": {"line": {"start": {"x": 100, "z": 20}, "end": {"x": 700, "z": 20}, "count": 2}},
+                       "receivers": TINY["geometry"]["receivers"]}  # fmt: skip
+    assert main(["forward", str(write(tmp_path, fwd, "fwd.yaml")), "-o", str(tmp_path / "obs"), "-q"]) == 0
+    cfg = {k: v for k, v in TINY.items() if k != "true_model"}
+    cfg["observed"] = {"kind": "hdf5", "path": str(tmp_path / "obs" / "data.h5")}
+    out = tmp_path / "run"
+    assert main(["fwi", str(write(tmp_path, cfg)), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "observed.path" in err and "2 shots" in err and "3" in err
+    assert not out.exists()
+
+
+def test_band_pass_has_the_butterworth_response():
+    dt = 1e-3
+    t = np.arange(4000) * dt
+    y = band_pass(np.sin(2 * np.pi * 3 * t) + np.sin(2 * np.pi * 20 * t), dt, (None, 6.0))[500:-500]
+    tt = t[500:-500]  # away from the edge transients
+    # least-squares amplitudes of both tones, fitted jointly (they are not orthogonal over 3 s)
+    basis = np.stack([fn(2 * np.pi * f * tt) for f in (3.0, 20.0) for fn in (np.sin, np.cos)], axis=1)
+    c = np.linalg.lstsq(basis, y, rcond=None)[0]
+    # 4th-order Butterworth, forward and backward: |H(f)|^2 = 1 / (1 + (f / 6 Hz)^8)
+    assert np.linalg.norm(c[:2]) == pytest.approx(1 / (1 + 0.5**8), rel=1e-3)
+    assert np.linalg.norm(c[2:]) == pytest.approx(1 / (1 + (20 / 6) ** 8), rel=0.05)
+
+
+def test_wavelet_estimation_recovers_scale_and_shift():
+    dt, nt = 1e-3, 600
+    w0 = ricker(10.0, nt, dt)
+    w_true = 2.5 * ricker(10.0, nt, dt, delay=0.17)
+    green = np.zeros((4, nt))
+    for i, k in enumerate((40, 90, 130, 200)):
+        green[i, k] = 1.0 / (i + 1)
+    conv = lambda w: np.array([np.convolve(g, w)[:nt] for g in green])  # noqa: E731
+    est = estimate_wavelet(w0, conv(w0), conv(w_true), damping=1e-6)
+    assert np.linalg.norm(est - w_true) < 1e-3 * np.linalg.norm(w_true)
