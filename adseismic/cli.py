@@ -303,7 +303,7 @@ def cmd_fwi(args) -> int:
         print(f"relative model error in the anomaly: {e['start_anomaly']:.4f} -> {e['final_anomaly']:.4f} "
               f"({100 * (1 - e['final_anomaly'] / e['start_anomaly']):.0f}% lower); below the water / masks: "
               f"{e['start_below_water']:.4f} -> {e['final_below_water']:.4f}")
-    print(f"wrote {outdir}/: model.h5, history.h5, summary.json, model.png, gradient.png, misfit.png, fwi.log "
+    print(f"wrote {outdir}/: model.h5, history.h5, summary.json, model.png, gradient.png, residual.png, misfit.png, fwi.log "
           f"({res.seconds:.0f} s)")
     return EXIT_OK
 

@@ -137,7 +137,10 @@ def prepare_fwi(cfg) -> Prepared:
     if not (bounds[0] <= fwd.model.vmin and fwd.model.vmax <= bounds[1]):
         raise ValueError(f"inversion.bounds: [{bounds[0]:g}, {bounds[1]:g}] m/s do not contain the start model's range "
                          f"[{fwd.model.vmin:g}, {fwd.model.vmax:g}] m/s; widen them")  # fmt: skip
-    plan = plan_scene(fwd, velocity_range=bounds)
+    highs = [hi for _, hi in inv.bands]
+    # a low-passed last band needs no grid for the wavelet's full band (Butterworth: -20 dB at 1.33 f_high)
+    f_max = None if None in highs else 1.33 * max(highs)
+    plan = plan_scene(fwd, velocity_range=bounds, f_max=f_max)
     scene = build_scene(fwd, plan)
     nyq = 0.5 / plan.dt
     for i, (lo, hi) in enumerate(inv.bands):
@@ -217,6 +220,7 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
 
     x = scene.model.values.ravel() / V_REF
     results = []
+    last = {}  # the latest gradient (accepted iterate) and data residual of shot 0, for the figures
     for b, band in enumerate(inv.bands):
         wavelet = band_pass(scene.wavelet, p.dt, band)
         obs_b = band_pass(obs, p.dt, band)
@@ -238,6 +242,8 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
                 sl = slice(s0, s0 + batch)
                 r = gradient(v, p.dx, p.dt, amp[sl], scene.source_locations[sl], scene.receiver_locations[sl], obs_b[sl],
                              misfit=inv.misfit, illumination=illum is not None, **kw)  # fmt: skip
+                if s0 == 0:
+                    last["residual"] = obs_b[0] - r.synthetic[0]
                 loss += r.loss
                 grad += r.velocity
                 if illum is not None:
@@ -259,7 +265,7 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
 
         def callback(iteration, xv, f, g, b=b):
             history.add(b, iteration, xv.reshape(shape) * V_REF, g.reshape(shape), f)
-            _figures(rundir, history, xv.reshape(shape) * V_REF, g.reshape(shape), p, fwd)
+            last["gradient"] = g.reshape(shape)
             log.info("band %d (%s Hz) iteration %d: misfit %.4g", b, band, iteration, f)
 
         res = minimize(objective, x, method=inv.optimizer, bounds=(bounds[0] / V_REF, bounds[1] / V_REF),
@@ -267,6 +273,8 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
                        journal_path=rundir / f"journal_band{b}.h5", callback=callback,
                        options={"gd": {"step": inv.step}, "adam": {"lr": inv.lr}}.get(inv.optimizer))  # fmt: skip
         log.info("band %d done: %s after %d iterations, %d evaluations", b, res.stop_reason, res.iterations, res.evaluations)
+        if "gradient" in last and "residual" in last:  # (a run resumed after its last band has no residual)
+            _figures(rundir, history, res.x.reshape(shape) * V_REF, last, p, fwd, band)
         results.append({"band": list(band), "iterations": res.iterations, "evaluations": res.evaluations,
                         "misfit": res.f, "stop_reason": res.stop_reason})  # fmt: skip
         x = res.x
@@ -298,13 +306,15 @@ def _write_result(rundir: Path, res: FWIResult, fwd):
     summary.replace(rundir / "summary.json")
 
 
-def _figures(rundir: Path, history: _History, model, grad, plan, fwd):
+def _figures(rundir: Path, history: _History, model, last, plan, fwd, band):
+    """model.png, gradient.png, residual.png (shot 0, observed - synthetic) and misfit.png."""
     from adseismic import plotting
 
-    extent_model = model if model.ndim == 2 else model[:, model.shape[1] // 2]
-    plotting.plot_model(rundir / "model.png", extent_model, plan.dx, (plan.origin[0], plan.origin[-1]),
-                        sources=fwd.geometry.sources, receivers=fwd.geometry.receivers, title="current model")  # fmt: skip
-    g2 = grad if grad.ndim == 2 else grad[:, grad.shape[1] // 2]
-    plotting.plot_model(rundir / "gradient.png", g2, plan.dx, (plan.origin[0], plan.origin[-1]), title="gradient (conditioned)",
-                        label="d misfit / d v (normalised)", cmap="seismic", symmetric=True)  # fmt: skip
+    origin2 = (plan.origin[0], plan.origin[-1])
+    mid = (lambda a: a) if model.ndim == 2 else (lambda a: a[:, a.shape[1] // 2])
+    plotting.plot_model(rundir / "model.png", mid(model), plan.dx, origin2, sources=fwd.geometry.sources,
+                        receivers=fwd.geometry.receivers, title=f"model after band {band} Hz")  # fmt: skip
+    plotting.plot_model(rundir / "gradient.png", mid(last["gradient"]), plan.dx, origin2, title=f"last gradient, band {band} Hz",
+                        label="d misfit / d v (conditioned)", cmap="seismic", symmetric=True)  # fmt: skip
+    plotting.plot_gather(rundir / "residual.png", last["residual"], plan.dt, title=f"shot 0 residual (observed - synthetic), band {band} Hz")
     plotting.plot_misfit(rundir / "misfit.png", history.misfits())

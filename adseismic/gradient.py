@@ -218,13 +218,13 @@ def born(velocity, dvelocity, dx, dt, source_amplitudes, source_locations, recei
     st, dst = prop.new_state(), prop.new_state()
     u_prev = wp.zeros_like(st.u)
     for n in range(nt):
-        prop.record(st.u, data, su.receivers, n)
-        prop.record(dst.u, ddata, su.receivers, n)
+        prop.record(st.u, data, su.receiver_op, n)
+        prop.record(dst.u, ddata, su.receiver_op, n)
         if n == nt - 1:
             break
         wp.copy(u_prev, st.u_prev)
         st = prop.step(st, vpad)
-        prop.inject(st.u, vpad, su.amplitudes, su.sources, n)
+        prop.inject(st.u, vpad, su.amplitudes, su.source_op, n)
         dst = prop.step(dst, vpad)
         prop.scatter(dst.u, st.u, st.u_prev, u_prev, vpad, dvpad)
     return ddata.numpy().astype(float)

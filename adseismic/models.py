@@ -171,7 +171,7 @@ _FILE_KEYS = {
     "hdf5": {"dataset", "spacing_dataset"},
     "segy": set(),
 }
-_COMMON_KEYS = {"kind", "name", "origin"}
+_COMMON_KEYS = {"kind", "name", "origin", "crop", "smoothing"}
 
 
 def load_model(spec: dict, base_dir: pathlib.Path | None = None) -> Model:
@@ -205,7 +205,46 @@ def load_model(spec: dict, base_dir: pathlib.Path | None = None) -> Model:
         model = _generate(kind, spec)
     else:
         model = _load_file(kind, spec, pathlib.Path.cwd() if base_dir is None else base_dir)
+    if spec.get("crop") is not None:
+        model = _crop(model, spec["crop"])
+    if spec.get("smoothing") is not None:
+        model = _smooth(model, spec["smoothing"])
     return replace(model, name=str(spec["name"])) if "name" in spec else model
+
+
+def _crop(model: Model, crop) -> Model:
+    """Nodes whose world coordinates lie in crop = {x: [min, max], z: [min, max], (y: ...)} (m)."""
+    names = ("z", "x") if model.ndim == 2 else ("z", "y", "x")
+    if not isinstance(crop, dict) or set(crop) - set(names):
+        raise ModelError(f"model.crop: {crop!r} is not a mapping of axes {names} to [min, max] in metres")
+    index = []
+    for a, name in enumerate(names):
+        lo, hi = model.extent[a]
+        rng = crop.get(name, [lo, hi])
+        if not (isinstance(rng, list) and len(rng) == 2 and rng[0] < rng[1]):
+            raise ModelError(f"model.crop.{name}: {rng!r} is not [min, max] with min < max (metres)")
+        i0 = int(np.ceil((rng[0] - model.origin[a]) / model.spacing[a] - 1e-9))
+        i1 = int(np.floor((rng[1] - model.origin[a]) / model.spacing[a] + 1e-9))
+        i0, i1 = max(i0, 0), min(i1, model.shape[a] - 1)
+        if i1 <= i0:
+            raise ModelError(f"model.crop.{name}: {rng} m does not overlap the model's extent [{lo:g}, {hi:g}] m")
+        index.append(slice(i0, i1 + 1))
+    origin = tuple(o + sl.start * h for o, sl, h in zip(model.origin, index, model.spacing))
+    return replace(model, values=model.values[tuple(index)], origin=origin)
+
+
+def _smooth(model: Model, sigma) -> Model:
+    """Gaussian smoothing of the slowness with standard deviation sigma (m) along every axis."""
+    from scipy.ndimage import gaussian_filter
+
+    try:
+        sigma = float(sigma)
+    except (TypeError, ValueError):
+        sigma = -1.0
+    if not (math.isfinite(sigma) and sigma >= 0):
+        raise ModelError(f"model.smoothing: {sigma!r} is not a length >= 0 in metres (Gaussian standard deviation)")
+    slow = gaussian_filter(1.0 / model.values, [sigma / h for h in model.spacing], mode="nearest")
+    return replace(model, values=1.0 / slow)
 
 
 def _require(spec: dict, key: str, what: str):

@@ -168,7 +168,8 @@ class BlowupGuard:
 class Setup:
     """Device-side inputs of one simulation: the launch helper and the Warp arrays it reads.
 
-    amplitudes (S, n_src, nt); sources, receivers (S, n, 3) metres as (z, y, x); velocity (nz, ny, nx) m/s.
+    amplitudes (S, n_src, nt); sources, receivers (S, n, 3) metres as (z, y, x); velocity (nz, ny, nx) m/s;
+    source_op, receiver_op: the operators at those points (Acoustic.operator).
     """
 
     prop: Acoustic
@@ -178,6 +179,8 @@ class Setup:
     amplitudes: wp.array
     sources: wp.array
     receivers: wp.array
+    source_op: object = None
+    receiver_op: object = None
 
 
 def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4, pml_width=None,
@@ -193,8 +196,11 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
     def put(x, name):
         return wp.array(x, dtype=prop.dtype, device=prop.device, requires_grad=name in requires_grad)
 
-    return Setup(prop, ndim, amp.shape[2], put(velocity_3d(velocity), "velocity"), put(amp, "source_amplitudes"),
-                 put(to_zyx(source_locations, ndim), "source_locations"), put(to_zyx(receiver_locations, ndim), "receiver_locations"))  # fmt: skip
+    su = Setup(prop, ndim, amp.shape[2], put(velocity_3d(velocity), "velocity"), put(amp, "source_amplitudes"),
+               put(to_zyx(source_locations, ndim), "source_locations"), put(to_zyx(receiver_locations, ndim), "receiver_locations"))  # fmt: skip
+    su.source_op = prop.operator(su.sources, differentiable="source_locations" in requires_grad)
+    su.receiver_op = prop.operator(su.receivers)
+    return su
 
 
 def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback=None, tape=None):
@@ -205,13 +211,13 @@ def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback
     adjoint of the time step (else Warp differentiates the step kernels itself)."""
     prop = su.prop
     for n in steps:
-        prop.record(st.u, data, su.receivers, n - steps.start)
+        prop.record(st.u, data, su.receiver_op, n - steps.start)
         if callback is not None:
             callback(st, n)
         if n == su.nt - 1:
             break
         st = prop.step(st, vpad, next_state() if next_state is not None else None, tape=tape)
-        prop.inject(st.u, vpad, su.amplitudes, su.sources, n)
+        prop.inject(st.u, vpad, su.amplitudes, su.source_op, n)
     return st
 
 

@@ -171,11 +171,13 @@ def _choose_dx_dt(order, ndim, vmin, vmax, f_max, accuracy, safety, pins, extent
     return best[1:]
 
 
-def plan_scene(config, velocity_range=None) -> Plan:
+def plan_scene(config, velocity_range=None, f_max=None) -> Plan:
     """Plan the simulation grid, time step, record and domain for a ForwardConfig (see config.py).
 
     velocity_range: (v_min, v_max) m/s to plan for instead of the model's own range (an inversion
     plans for its velocity bounds, so that every model it may visit is stable and resolved).
+    f_max: highest frequency (Hz) the simulation must resolve, when below the wavelet's -20 dB edge
+    (an inversion whose highest band is low-passed).
     """
     model, geo, sim = config.model, config.geometry, config.simulation
     ndim, order = model.ndim, int(sim.order)
@@ -186,7 +188,8 @@ def plan_scene(config, velocity_range=None) -> Plan:
             i = int(np.argmin(inside))
             raise ValueError(f"{name}[{i}] = {pts[i].tolist()} m lies outside the model {[list(e) for e in model.extent]} m; move it inside or extend the model")
     warnings = []
-    f_max, w_len = wavelet_band(config.wavelet.kind, config.wavelet.params)
+    f_wavelet, w_len = wavelet_band(config.wavelet.kind, config.wavelet.params)
+    f_max = f_wavelet if f_max is None else min(float(f_max), f_wavelet)
 
     t_direct = float(straight_ray_times(model, src, rec).max())
     if sim.duration is not None:

@@ -402,6 +402,32 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         if w != dtype(0.0):
             wp.atomic_add(data, s, rec, n, w * u[s, idx[0], idx[1], idx[2]])
 
+    # Precomputed operator (positions that are not differentiated, e.g. receivers): the node index and
+    # weight of every stencil point, computed once per run instead of at every time step.
+    @wp.kernel(module="unique")
+    def weights(loc: arr3, origin: wp.vec3i, inv_dx: dtype, top: int, idx: wp.array3d(dtype=wp.vec3i), w: arr3):
+        s, n, q = wp.tid()
+        i, wq = point(loc, s, n, q, origin, inv_dx, top)
+        idx[s, n, q] = i
+        w[s, n, q] = wq
+
+    @wp.kernel(module="unique")
+    def inject_fixed(u_next: arr4, v: arr3, amp: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, scale: dtype):
+        s, src, q = wp.tid()
+        wq = w[s, src, q]
+        if wq != dtype(0.0):
+            i = idx[s, src, q]
+            vv = v[i[0], i[1], i[2]]
+            wp.atomic_add(u_next, s, i[0], i[1], i[2], scale * vv * vv * wq * amp[s, src, n])
+
+    @wp.kernel(module="unique")
+    def record_fixed(u: arr4, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int):
+        s, rec, q = wp.tid()
+        wq = w[s, rec, q]
+        if wq != dtype(0.0):
+            i = idx[s, rec, q]
+            wp.atomic_add(data, s, rec, n, wq * u[s, i[0], i[1], i[2]])
+
     @wp.kernel(module="unique")
     def pad_model(v: arr3, vpad: arr3, origin: wp.vec3i):
         # Padded model from the physical one, extended by edge replication into PML and halo.
@@ -444,7 +470,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     return _Kernels(
         Axis=Axis, step=step, psi=(make_psi(0), make_psi(1), make_psi(2)), inject=inject, step_adjoint=step_adjoint,
         psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
-        record=record, pad_model=pad_model, scatter=scatter, energy=energy, monitor=monitor, halo=R, operator_points=NPTS,
+        record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=record_fixed, pad_model=pad_model, scatter=scatter, energy=energy, monitor=monitor, halo=R, operator_points=NPTS,
     )  # fmt: skip
 
 
@@ -610,16 +636,33 @@ class Acoustic:
             tape.record_func(backward, arrays=[*st.arrays(), *out.arrays(), vpad])
         return out
 
-    def inject(self, u, vpad, amplitudes, locations, n: int):
-        """Add source samples n (amplitudes (S, n_src, nt)) at locations (S, n_src, 3) metres into u."""
-        wp.launch(self.k.inject, dim=(self.n_shots, locations.shape[1], self.k.operator_points),
-                  inputs=[u, vpad, amplitudes, locations, n, self.origin, self.src_scale, self.inv_dx, self.top],
-                  device=self.device)  # fmt: skip
+    def operator(self, locations, differentiable=False):
+        """The source/receiver operator at locations (wp.array (S, n, 3), metres): the locations
+        themselves when they are to be differentiated (weights recomputed every step), else the
+        precomputed node indices and weights (S, n, points)."""
+        if differentiable:
+            return locations
+        shape = (self.n_shots, locations.shape[1], self.k.operator_points)
+        idx = wp.zeros(shape, dtype=wp.vec3i, device=self.device)
+        w = wp.zeros(shape, dtype=self.dtype, device=self.device)
+        wp.launch(self.k.weights, dim=shape, inputs=[locations, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
+        return (idx, w)
 
-    def record(self, u, data, locations, n: int):
-        """data[:, :, n] += receiver samples of u at locations (S, n_rec, 3) metres."""
-        wp.launch(self.k.record, dim=(self.n_shots, locations.shape[1], self.k.operator_points),
-                  inputs=[u, data, locations, n, self.origin, self.inv_dx, self.top], device=self.device)  # fmt: skip
+    def inject(self, u, vpad, amplitudes, op, n: int):
+        """Add source samples n (amplitudes (S, n_src, nt)) through the operator op into u."""
+        if isinstance(op, tuple):
+            wp.launch(self.k.inject_fixed, dim=op[1].shape, inputs=[u, vpad, amplitudes, op[0], op[1], n, self.src_scale], device=self.device)
+        else:
+            wp.launch(self.k.inject, dim=(self.n_shots, op.shape[1], self.k.operator_points),
+                      inputs=[u, vpad, amplitudes, op, n, self.origin, self.src_scale, self.inv_dx, self.top], device=self.device)  # fmt: skip
+
+    def record(self, u, data, op, n: int):
+        """data[:, :, n] += receiver samples of u through the operator op."""
+        if isinstance(op, tuple):
+            wp.launch(self.k.record_fixed, dim=op[1].shape, inputs=[u, data, op[0], op[1], n], device=self.device)
+        else:
+            wp.launch(self.k.record, dim=(self.n_shots, op.shape[1], self.k.operator_points),
+                      inputs=[u, data, op, n, self.origin, self.inv_dx, self.top], device=self.device)  # fmt: skip
 
     def scatter(self, du_next, u_next, u, u_prev, vpad, dvpad):
         """du_next += 2 dv/v (u_next - 2 u + u_prev): the Born (tangent-linear) source term."""

@@ -41,7 +41,7 @@ def test_tiny_inversion_end_to_end(tmp_path):
     cfg = write(tmp_path)
     out = tmp_path / "run"
     assert main(["fwi", str(cfg), "-o", str(out), "-q"]) == 0
-    for name in ("model.h5", "history.h5", "summary.json", "model.png", "gradient.png", "misfit.png", "fwi.log", "config.yaml", "observed.h5"):
+    for name in ("model.h5", "history.h5", "summary.json", "model.png", "gradient.png", "residual.png", "misfit.png", "fwi.log", "config.yaml", "observed.h5"):
         assert (out / name).exists(), name
     assert not list(out.glob("*.part"))
     summary = json.loads((out / "summary.json").read_text())
