@@ -1,7 +1,7 @@
 """FWI studies for docs/fwi.md (CPU-sized; each prints a Markdown table).
 
-    python benchmarks/fwi_studies.py cycle-skipping -o out/studies      # ~10 min on 2 cores
-    python benchmarks/fwi_studies.py optimizers -o out/studies          # ~10 min on 2 cores
+    python benchmarks/fwi_studies.py cycle-skipping -o out/studies [--device cuda:0]
+    python benchmarks/fwi_studies.py optimizers -o out/studies [--device cuda:0]
 
 cycle-skipping: a two-layer-plus-anomaly model started from a model 10% too slow; a single
 high-frequency band (the full 8 Hz Ricker) against the multiscale schedule 2 -> 4 Hz -> full, at
@@ -33,8 +33,12 @@ BASE = {
 }  # fmt: skip
 
 
+DEVICE = "cpu"
+
+
 def run(cfg_dict, outdir):
     cfg = parse_fwi_config(copy.deepcopy(cfg_dict))
+    cfg.forward.simulation.device = DEVICE
     res = run_fwi(cfg, outdir, progress=False, prepared=prepare_fwi(cfg))
     evals = sum(b["evaluations"] for b in res.bands)
     return res.errors, evals, res.seconds
@@ -61,6 +65,7 @@ def optimizers(out: Path, evaluations=16):
     for method, extra in (("gd", {"step": 0.05}), ("adam", {"lr": 0.01}), ("lbfgs", {})):
         cfg = load_fwi_config(Path(__file__).resolve().parents[1] / "configs" / "fwi_demo.yaml")
         cfg.inversion.optimizer = method
+        cfg.forward.simulation.device = DEVICE
         cfg.inversion.bands = [(None, None)]
         cfg.inversion.iterations = 1000
         cfg.inversion.evaluations = evaluations
@@ -80,7 +85,10 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("study", choices=["cycle-skipping", "optimizers"])
     ap.add_argument("-o", "--outdir", type=Path, default=Path("out/studies"))
+    ap.add_argument("--device", default="cpu")
     a = ap.parse_args()
+    global DEVICE
+    DEVICE = a.device
     (cycle_skipping if a.study == "cycle-skipping" else optimizers)(a.outdir / a.study)
 
 

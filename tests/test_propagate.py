@@ -137,7 +137,8 @@ def test_shots_in_one_call_equal_separate_calls():
     both = forward(v, dx, dt, amp, src, rec, precision="float64").receiver_amplitudes
     for k in range(2):
         one = forward(v, dx, dt, amp[k : k + 1], src[k : k + 1], rec[k : k + 1], precision="float64").receiver_amplitudes
-        np.testing.assert_array_equal(both[k], one[0])
+        # bitwise on a CPU; CUDA's atomics sum the receiver operator's points in a varying order
+        np.testing.assert_allclose(both[k], one[0], rtol=0, atol=1e-13 * np.abs(one).max())
 
 
 def test_snapshots_shape_and_times():
