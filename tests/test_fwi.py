@@ -2,6 +2,7 @@
 uninterrupted run, bad input refused before anything is written, band-pass and wavelet estimation."""
 
 import json
+import re
 import os
 import signal
 import subprocess
@@ -130,3 +131,19 @@ def test_wavelet_estimation_recovers_scale_and_shift():
     conv = lambda w: np.array([np.convolve(g, w)[:nt] for g in green])  # noqa: E731
     est = estimate_wavelet(w0, conv(w0), conv(w_true), damping=1e-6)
     assert np.linalg.norm(est - w_true) < 1e-3 * np.linalg.norm(w_true)
+
+
+@pytest.mark.parametrize(
+    "inversion, message",
+    [
+        ({"bounds": [2100, 2400]}, r"inversion\.bounds.*do not contain the start model"),
+        ({"bands": [200.0]}, r"inversion\.bands\[0\].*Nyquist"),
+        ({"iterations": [3, 3, 3]}, r"inversion\.iterations: 3 values for 2 bands"),
+    ],
+)
+def test_bad_inversion_settings_write_nothing(tmp_path, capsys, inversion, message):
+    cfg = dict(TINY, inversion=dict(TINY["inversion"], **inversion))
+    out = tmp_path / "run"
+    assert main(["fwi", str(write(tmp_path, cfg)), "-o", str(out), "-q"]) == 2
+    assert re.search(message, capsys.readouterr().err)
+    assert not out.exists()
