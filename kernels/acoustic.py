@@ -80,29 +80,76 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                 return -u[s, 2 * top - z, y, x]
         return u[s, z, y, x]
 
-    @wp.func
-    def d2z(u: arr4, s: int, z: int, y: int, x: int, top: int) -> dtype:
-        acc = dtype(wp.static(A[0])) * u[s, z, y, x]
-        for k in range(wp.static(R)):
-            acc += dtype(wp.static(A[k + 1])) * (at(u, s, z + k + 1, y, x, top) + at(u, s, z - k - 1, y, x, top))
-        return acc
+    def shift(axis: int):
+        # read of the field at offset m along `axis` from (i, j, k); along z the free-surface image
+        @wp.func
+        def read(u: arr4, s: int, i: int, j: int, k: int, m: int, top: int) -> dtype:
+            if wp.static(axis == 0):
+                return at(u, s, i + m, j, k, top)
+            elif wp.static(axis == 1):
+                return u[s, i, j + m, k]
+            else:
+                return u[s, i, j, k + m]
 
-    @wp.func
-    def d2y(u: arr4, s: int, z: int, y: int, x: int) -> dtype:
-        acc = dtype(wp.static(A[0])) * u[s, z, y, x]
-        for k in range(wp.static(R)):
-            acc += dtype(wp.static(A[k + 1])) * (u[s, z, y + k + 1, x] + u[s, z, y - k - 1, x])
-        return acc
+        return read
 
-    @wp.func
-    def d2x(u: arr4, s: int, z: int, y: int, x: int) -> dtype:
-        acc = dtype(wp.static(A[0])) * u[s, z, y, x]
-        for k in range(wp.static(R)):
-            acc += dtype(wp.static(A[k + 1])) * (u[s, z, y, x + k + 1] + u[s, z, y, x - k - 1])
-        return acc
+    def make_d2(axis: int):
+        read = shift(axis)
+
+        @wp.func
+        def d2(u: arr4, s: int, i: int, j: int, k: int, top: int) -> dtype:
+            # second derivative along `axis` (times dx^2)
+            acc = dtype(wp.static(A[0])) * u[s, i, j, k]
+            for m in range(wp.static(R)):
+                acc += dtype(wp.static(A[m + 1])) * (read(u, s, i, j, k, m + 1, top) + read(u, s, i, j, k, -m - 1, top))
+            return acc
+
+        return d2
+
+    def make_d1(axis: int):
+        # central first derivative along `axis` (times dx) of a field or a psi strip (no image:
+        # psi and zeta never reach above a free surface)
+        @wp.func
+        def d1(a: arr4, s: int, i: int, j: int, k: int) -> dtype:
+            acc = dtype(0.0)
+            for m in range(wp.static(R)):
+                if wp.static(axis == 0):
+                    acc += dtype(wp.static(B[m])) * (a[s, i + m + 1, j, k] - a[s, i - m - 1, j, k])
+                elif wp.static(axis == 1):
+                    acc += dtype(wp.static(B[m])) * (a[s, i, j + m + 1, k] - a[s, i, j - m - 1, k])
+                else:
+                    acc += dtype(wp.static(B[m])) * (a[s, i, j, k + m + 1] - a[s, i, j, k - m - 1])
+            return acc
+
+        return d1
+
+    def make_d1_transpose(axis: int):
+        # adjoint of d1: adj[(i, j, k) +- m along axis] +-= B_m g
+        @wp.func
+        def d1t(adj: arr4, s: int, i: int, j: int, k: int, g: dtype):
+            for m in range(wp.static(R)):
+                c = dtype(wp.static(B[m])) * g
+                if wp.static(axis == 0):
+                    wp.atomic_add(adj, s, i + m + 1, j, k, c)
+                    wp.atomic_add(adj, s, i - m - 1, j, k, -c)
+                elif wp.static(axis == 1):
+                    wp.atomic_add(adj, s, i, j + m + 1, k, c)
+                    wp.atomic_add(adj, s, i, j - m - 1, k, -c)
+                else:
+                    wp.atomic_add(adj, s, i, j, k + m + 1, c)
+                    wp.atomic_add(adj, s, i, j, k - m - 1, -c)
+
+        return d1t
+
+    d2z, d2y, d2x = make_d2(0), make_d2(1), make_d2(2)
+    d1 = (make_d1(0), make_d1(1), make_d1(2))
+    d1t = (make_d1_transpose(0), make_d1_transpose(1), make_d1_transpose(2))
+    dpsi_z, dpsi_y, dpsi_x = d1  # d(psi)/dx inside the strips
+    sdp_z, sdp_y, sdp_x = d1t
 
     def make_psi(axis: int):
         # psi along one axis (0: z, 1: y, 2: x) for every cell of that axis' strip.
+        deriv = d1[axis]
         @wp.kernel(module="unique")
         def psi_kernel(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype):
             s, i, j, k = wp.tid()
@@ -115,36 +162,17 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             a = ax.a[p]
             val = dtype(0.0)
             if a != dtype(0.0):
-                du = dtype(0.0)
-                for m in range(wp.static(R)):
-                    if wp.static(axis == 0):
-                        du += dtype(wp.static(B[m])) * (u[s, p + m + 1, j, k] - u[s, p - m - 1, j, k])
-                    elif wp.static(axis == 1):
-                        du += dtype(wp.static(B[m])) * (u[s, i, p + m + 1, k] - u[s, i, p - m - 1, k])
-                    else:
-                        du += dtype(wp.static(B[m])) * (u[s, i, j, p + m + 1] - u[s, i, j, p - m - 1])
+                if wp.static(axis == 0):
+                    du = deriv(u, s, p, j, k)
+                elif wp.static(axis == 1):
+                    du = deriv(u, s, i, p, k)
+                else:
+                    du = deriv(u, s, i, j, p)
                 val = ax.b[p] * psi_old[s, i, j, k] + a * du * inv_dx
             psi_new[s, i, j, k] = val
 
         return psi_kernel
 
-    def make_dpsi(axis: int):
-        # First derivative of a psi strip along its own axis at strip cell (i, j, k).
-        @wp.func
-        def dpsi(psi: arr4, s: int, i: int, j: int, k: int) -> dtype:
-            acc = dtype(0.0)
-            for m in range(wp.static(R)):
-                if wp.static(axis == 0):
-                    acc += dtype(wp.static(B[m])) * (psi[s, i + m + 1, j, k] - psi[s, i - m - 1, j, k])
-                elif wp.static(axis == 1):
-                    acc += dtype(wp.static(B[m])) * (psi[s, i, j + m + 1, k] - psi[s, i, j - m - 1, k])
-                else:
-                    acc += dtype(wp.static(B[m])) * (psi[s, i, j, k + m + 1] - psi[s, i, j, k - m - 1])
-            return acc
-
-        return dpsi
-
-    dpsi_z, dpsi_y, dpsi_x = make_dpsi(0), make_dpsi(1), make_dpsi(2)
 
     @wp.kernel(module="unique")
     def step(
@@ -173,7 +201,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             zn = az.b[z] * zeta_z[s, jz, y, x] + az.a[z] * g
             zeta_z_new[s, jz, y, x] = zn
             uzz = g + zn
-        uxx = d2x(u, s, z, y, x) * inv_dx2
+        uxx = d2x(u, s, z, y, x, top) * inv_dx2
         jx = ax.store[x]
         if jx >= 0:
             g = uxx + dpsi_x(psi_x, s, z, y, jx) * inv_dx
@@ -182,7 +210,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             uxx = g + zn
         lap = uzz + uxx
         if wp.static(three):
-            uyy = d2y(u, s, z, y, x) * inv_dx2
+            uyy = d2y(u, s, z, y, x, top) * inv_dx2
             jy = ay.store[y]
             if jy >= 0:
                 g = uyy + dpsi_y(psi_y, s, z, jy, x) * inv_dx
@@ -197,6 +225,8 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     # adjoints (tests/test_gradient.py) without replaying every read, and are what the taped steps use.
 
     def make_psi_adjoint(axis: int):
+        deriv_t = d1t[axis]
+
         @wp.kernel(module="unique")
         def psi_adjoint(adj_u: arr4, adj_psi_old: arr4, adj_psi_new: arr4, ax: Axis, inv_dx: dtype):
             s, i, j, k = wp.tid()
@@ -212,17 +242,12 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                 return
             wp.atomic_add(adj_psi_old, s, i, j, k, ax.b[p] * lam)
             f = a * lam * inv_dx
-            for m in range(wp.static(R)):
-                c = dtype(wp.static(B[m])) * f
-                if wp.static(axis == 0):
-                    wp.atomic_add(adj_u, s, p + m + 1, j, k, c)
-                    wp.atomic_add(adj_u, s, p - m - 1, j, k, -c)
-                elif wp.static(axis == 1):
-                    wp.atomic_add(adj_u, s, i, p + m + 1, k, c)
-                    wp.atomic_add(adj_u, s, i, p - m - 1, k, -c)
-                else:
-                    wp.atomic_add(adj_u, s, i, j, p + m + 1, c)
-                    wp.atomic_add(adj_u, s, i, j, p - m - 1, -c)
+            if wp.static(axis == 0):
+                deriv_t(adj_u, s, p, j, k, f)
+            elif wp.static(axis == 1):
+                deriv_t(adj_u, s, i, p, k, f)
+            else:
+                deriv_t(adj_u, s, i, j, p, f)
 
         return psi_adjoint
 
@@ -254,26 +279,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
         return scatter_d2
 
-    def make_scatter_dpsi(axis: int):
-        # adjoint of dpsi: adj_psi[j +- m] +-= B_m g
-        @wp.func
-        def scatter_dpsi(adj_psi: arr4, s: int, i: int, j: int, k: int, g: dtype):
-            for m in range(wp.static(R)):
-                c = dtype(wp.static(B[m])) * g
-                if wp.static(axis == 0):
-                    wp.atomic_add(adj_psi, s, i + m + 1, j, k, c)
-                    wp.atomic_add(adj_psi, s, i - m - 1, j, k, -c)
-                elif wp.static(axis == 1):
-                    wp.atomic_add(adj_psi, s, i, j + m + 1, k, c)
-                    wp.atomic_add(adj_psi, s, i, j - m - 1, k, -c)
-                else:
-                    wp.atomic_add(adj_psi, s, i, j, k + m + 1, c)
-                    wp.atomic_add(adj_psi, s, i, j, k - m - 1, -c)
-
-        return scatter_dpsi
-
     sd2_z, sd2_y, sd2_x = make_scatter_d2(0), make_scatter_d2(1), make_scatter_d2(2)
-    sdp_z, sdp_y, sdp_x = make_scatter_dpsi(0), make_scatter_dpsi(1), make_scatter_dpsi(2)
 
     @wp.kernel(module="unique")
     def step_adjoint(
@@ -313,7 +319,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             sdp_z(adj_psi_z, s, jz, y, x, g * inv_dx)
         sd2_z(adj_u, s, z, y, x, top, g * inv_dx2)
         total = t
-        t = d2x(u, s, z, y, x) * inv_dx2
+        t = d2x(u, s, z, y, x, top) * inv_dx2
         g = q
         jx = ax.store[x]
         if jx >= 0:
@@ -326,7 +332,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         sd2_x(adj_u, s, z, y, x, top, g * inv_dx2)
         total += t
         if wp.static(three):
-            t = d2y(u, s, z, y, x) * inv_dx2
+            t = d2y(u, s, z, y, x, top) * inv_dx2
             g = q
             jy = ay.store[y]
             if jy >= 0:
