@@ -468,7 +468,7 @@ def load_config(path) -> ForwardConfig:
 
 # ------------------------------------------------------------------------------ inversion
 
-INVERSION_KEYS = ("bands", "misfit", "optimizer", "iterations", "evaluations", "rel_decrease", "bounds", "water_depth",
+INVERSION_KEYS = ("bands", "misfit", "optimizer", "iterations", "evaluations", "rel_decrease", "offsets", "time_window", "bounds", "water_depth",
                   "source_radius", "smoothing", "preconditioning", "tikhonov", "tv", "wavelet_estimation",
                   "shots_per_batch", "memory_budget_gb", "step", "lr")
 FWI_SECTIONS = ("true_model", "observed", "inversion")
@@ -482,7 +482,9 @@ class InversionConfig:
     None) pass bands, inverted in order; iterations / evaluations: limits per band (an evaluation is
     one misfit + gradient over all shots); bounds: (v_min, v_max) m/s or None (start model range
     +-25%); water_depth / source_radius: gradient masks (m, 0 = off); smoothing: Gaussian sigma of
-    the gradient (m); tikhonov / tv: regularisation weights (relative to the band's initial misfit)."""
+    the gradient (m); tikhonov / tv: regularisation weights (relative to the band's initial misfit);
+    offsets: (min, max) source-receiver distance (m) of the traces used (others muted); time_window:
+    (start, end) s of the samples used (cosine taper over 10% of the window at each end)."""
 
     bands: list = field(default_factory=lambda: [(None, None)])
     misfit: str = "l2"
@@ -502,6 +504,8 @@ class InversionConfig:
     memory_budget_gb: float | None = None
     step: float = 1.0
     lr: float = 0.01
+    offsets: tuple | None = None
+    time_window: tuple | None = None
 
 
 @dataclass
@@ -572,6 +576,15 @@ def _parse_inversion(raw, key="inversion") -> InversionConfig:
         if lo >= hi:
             raise ConfigError(f"{key}.bounds: v_min {lo:g} >= v_max {hi:g} m/s; give v_min < v_max")
         out.bounds = (lo, hi)
+    for name, unit in (("offsets", "m"), ("time_window", "s")):
+        if sec.get(name) is not None:
+            r = sec[name]
+            if not isinstance(r, list) or len(r) != 2:
+                raise ConfigError(f"{key}.{name}: {r!r} is not [min, max] in {unit}")
+            lo, hi = _number(r[0], f"{key}.{name}[0]", unit), _number(r[1], f"{key}.{name}[1]", unit)
+            if not 0 <= lo < hi:
+                raise ConfigError(f"{key}.{name}: [{lo:g}, {hi:g}] {unit} is not 0 <= min < max")
+            setattr(out, name, (lo, hi))
     if sec.get("wavelet_estimation") is not None:
         out.wavelet_estimation = _boolean(sec["wavelet_estimation"], f"{key}.wavelet_estimation")
     if sec.get("shots_per_batch") is not None:
@@ -604,13 +617,23 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
     observed = None
     if has_obs:
         observed = dict(_mapping(raw["observed"], "observed", "observed-data settings"))
-        _check_keys(observed, "observed", ("kind", "path", "coordinate_scale"))
-        observed["kind"] = _choice(observed.get("kind"), "observed.kind", ("hdf5", "segy", "su"))
-        if observed.get("path") is None:
-            raise ConfigError("observed.path: missing; give the data file (relative to the config)")
-        observed["path"] = (base_dir / str(observed["path"])).resolve()
-        if not observed["path"].exists():
-            raise ConfigError(f"observed.path: {str(observed['path'])!r} does not exist")
+        _check_keys(observed, "observed", ("kind", "path", "paths", "coordinate_scale", "inventory", "reference", "component", "shot_times"))
+        observed["kind"] = _choice(observed.get("kind"), "observed.kind", ("hdf5", "segy", "su", "mseed", "sac"))
+        if observed["kind"] in ("mseed", "sac"):  # station traces: one file (or glob) per shot, in geometry order
+            paths = observed.get("paths")
+            if not isinstance(paths, list) or len(paths) != forward.n_shots:
+                raise ConfigError(f"observed.paths: {paths!r} is not a list of {forward.n_shots} files (one per shot of geometry.sources, in order)")
+            observed["paths"] = [str((base_dir / str(p)).resolve()) for p in paths]
+            if observed.get("inventory") is not None:
+                observed["inventory"] = str((base_dir / str(observed["inventory"])).resolve())
+            if observed.get("shot_times") is not None and len(observed["shot_times"]) != forward.n_shots:
+                raise ConfigError(f"observed.shot_times: {len(observed['shot_times'])} times for {forward.n_shots} shots")
+        else:
+            if observed.get("path") is None:
+                raise ConfigError("observed.path: missing; give the data file (relative to the config)")
+            observed["path"] = (base_dir / str(observed["path"])).resolve()
+            if not observed["path"].exists():
+                raise ConfigError(f"observed.path: {str(observed['path'])!r} does not exist")
     return FWIConfig(forward, inversion, true_model, observed)
 
 

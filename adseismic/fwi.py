@@ -30,6 +30,7 @@ from scipy.signal import butter, sosfiltfilt
 from adseismic import conditioning
 from adseismic.gradient import gradient
 from adseismic.io import atomic_path
+from adseismic.misfits import misfit as named_misfit
 from adseismic.optimize import minimize
 from adseismic.propagate import forward
 from adseismic.scene import build_scene, plan_scene
@@ -172,6 +173,8 @@ def read_observed(spec, scene, geometry):
     """Observed data (n_shots, n_receivers, nt) on the scene's time axis, from our HDF5 or SEG-Y/SU
     files; the file's shot/receiver counts and coordinates must match the config's geometry."""
     p = scene.plan
+    if spec["kind"] in ("mseed", "sac"):
+        return _read_station_shots(spec, scene, geometry)
     if spec["kind"] == "hdf5":
         from adseismic.io import read_forward
 
@@ -199,6 +202,47 @@ def read_observed(spec, scene, geometry):
     return data
 
 
+def _read_station_shots(spec, scene, geometry):
+    """One MiniSEED/SAC file (or glob) per shot, receivers = stations (coordinates from StationXML or
+    SAC headers, projected about spec["reference"]); time zero = spec["shot_times"][i] or the first sample."""
+    from obspy import UTCDateTime
+
+    from adseismic import traces
+
+    p = scene.plan
+    out = []
+    for i, path in enumerate(spec["paths"]):
+        st = traces.read_station_traces(path, inventory=spec.get("inventory"), reference=spec.get("reference"),
+                                        ndim=scene.model.ndim, component=spec.get("component"))  # fmt: skip
+        if len(st.names) != len(geometry.receivers):
+            raise ValueError(f"observed.paths[{i}]: {len(st.names)} traces but geometry.receivers has {len(geometry.receivers)}")
+        off = np.abs(st.positions - geometry.receivers).max()
+        if off > 0.5 * p.dx:
+            raise ValueError(f"observed.paths[{i}]: station coordinates differ from geometry.receivers by up to {off:.3g} m "
+                             f"(more than half a cell, {0.5 * p.dx:g} m); order the receivers as the traces ({', '.join(st.names[:3])}, ...)")  # fmt: skip
+        shift = 0.0 if spec.get("shot_times") is None else float(UTCDateTime(spec["shot_times"][i]) - st.starttime)
+        traces.check_samples(st.data, st.names)
+        out.append(traces.preprocess(st.data, st.dt, dt=p.dt, nt=p.nt, t_shift=shift, detrend=False, taper=0.0, fmax_required=p.f_max))
+    return np.stack(out)
+
+
+def data_weights(scene, inv, geometry):
+    """Per-sample weights (n_shots, n_receivers, nt) of the offset mute and the time window (1 = used)."""
+    p = scene.plan
+    w = np.ones((len(geometry.sources), len(geometry.receivers), p.nt))
+    if inv.offsets is not None:
+        off = np.linalg.norm(geometry.receivers[None, :, :] - geometry.sources[:, None, :], axis=-1)
+        w *= ((off >= inv.offsets[0]) & (off <= inv.offsets[1]))[..., None]
+    if inv.time_window is not None:
+        t = np.arange(p.nt) * p.dt
+        t0, t1 = inv.time_window
+        ramp = 0.1 * (t1 - t0)
+        up = np.clip((t - t0) / ramp, 0.0, 1.0)
+        down = np.clip((t1 - t) / ramp, 0.0, 1.0)
+        w *= (0.5 - 0.5 * np.cos(np.pi * up)) * (0.5 - 0.5 * np.cos(np.pi * down))
+    return w
+
+
 def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWIResult:
     """Run (or resume, when RUNDIR holds journals) the inversion described by an FWIConfig."""
     t_start = time.perf_counter()
@@ -221,6 +265,7 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
     x = scene.model.values.ravel() / V_REF
     results = []
     last = {}  # the latest gradient (accepted iterate) and data residual of shot 0, for the figures
+    weights = data_weights(scene, inv, fwd.geometry)
     for b, band in enumerate(inv.bands):
         wavelet = band_pass(scene.wavelet, p.dt, band)
         obs_b = band_pass(obs, p.dt, band)
@@ -240,10 +285,16 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
             loss, grad, illum = 0.0, np.zeros(shape), np.zeros(shape) if inv.preconditioning == "pseudo_hessian" else None
             for s0 in range(0, len(amp), batch):
                 sl = slice(s0, s0 + batch)
-                r = gradient(v, p.dx, p.dt, amp[sl], scene.source_locations[sl], scene.receiver_locations[sl], obs_b[sl],
-                             misfit=inv.misfit, illumination=illum is not None, **kw)  # fmt: skip
+                w_sl, o_sl = weights[sl], weights[sl] * obs_b[sl]
+
+                def weighted(syn, w_sl=w_sl, o_sl=o_sl):  # misfit of the muted, windowed data
+                    j, adj = named_misfit(inv.misfit, w_sl * syn, o_sl, p.dt)
+                    return j, w_sl * adj
+
+                r = gradient(v, p.dx, p.dt, amp[sl], scene.source_locations[sl], scene.receiver_locations[sl],
+                             misfit=weighted, illumination=illum is not None, **kw)  # fmt: skip
                 if s0 == 0:
-                    last["residual"] = obs_b[0] - r.synthetic[0]
+                    last["residual"] = weights[0] * (obs_b[0] - r.synthetic[0])
                 loss += r.loss
                 grad += r.velocity
                 if illum is not None:

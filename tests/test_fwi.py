@@ -147,3 +147,45 @@ def test_bad_inversion_settings_write_nothing(tmp_path, capsys, inversion, messa
     assert main(["fwi", str(write(tmp_path, cfg)), "-o", str(out), "-q"]) == 2
     assert re.search(message, capsys.readouterr().err)
     assert not out.exists()
+
+
+def test_observed_miniseed_with_stationxml_matches_our_hdf5(tmp_path):
+    # the same synthetic shots through both readers: our data.h5, and one MiniSEED + StationXML file
+    # per shot with the receivers' latitude/longitude (projected back about the reference point)
+    from adseismic import traces
+    from adseismic.config import parse_fwi_config
+    from adseismic.fwi import prepare_fwi
+    from adseismic.io import read_forward
+
+    fwd = {k: TINY[k] for k in ("model", "wavelet", "simulation", "geometry")}
+    assert main(["forward", str(write(tmp_path, fwd, "fwd.yaml")), "-o", str(tmp_path / "obs"), "-q"]) == 0
+    d = read_forward(tmp_path / "obs" / "data.h5")
+    ref = traces.Reference(46.0, 7.0)
+    rec = d.receiver_coordinates
+    paths = []
+    for i in range(d.receiver_data.shape[0]):
+        st = traces.StationTraces(data=d.receiver_data[i].astype(float), dt=d.dt, starttime=1.7e9, positions=rec,
+                                  names=[f"XX.R{k:03d}..HHZ" for k in range(len(rec))], reference=ref)  # fmt: skip
+        mseed, _ = traces.write_station_traces(tmp_path / f"shot{i}", st, reference=ref, stem=f"shot{i}")
+        paths.append(str(mseed))
+    base = {k: v for k, v in TINY.items() if k != "true_model"}
+    via_h5 = prepare_fwi(parse_fwi_config(dict(base, observed={"kind": "hdf5", "path": str(tmp_path / "obs" / "data.h5")})))
+    inventory = str(next((tmp_path / "shot0").glob("*.xml")))
+    via_mseed = prepare_fwi(parse_fwi_config(dict(base, observed={"kind": "mseed", "paths": paths, "inventory": inventory,
+                                                                     "reference": [46.0, 7.0]})))  # fmt: skip
+    np.testing.assert_allclose(via_mseed.observed, via_h5.observed, rtol=0, atol=1e-6 * np.abs(via_h5.observed).max())
+
+
+def test_offset_mute_and_time_window_weights():
+    from adseismic.config import parse_fwi_config
+    from adseismic.fwi import data_weights, prepare_fwi
+
+    cfg = parse_fwi_config(dict(TINY, inversion=dict(TINY["inversion"], offsets=[0, 300], time_window=[0.1, 0.5])))
+    scene = prepare_fwi(cfg).scene
+    w = data_weights(scene, cfg.inversion, cfg.forward.geometry)
+    g = cfg.forward.geometry
+    off = np.linalg.norm(g.receivers[None] - g.sources[:, None], axis=-1)
+    t = np.arange(scene.plan.nt) * scene.plan.dt
+    assert np.all(w[off > 300] == 0) and np.all(w[..., t < 0.1] == 0) and np.all(w[..., t > 0.5] == 0)
+    inside = (off <= 300)[..., None] & ((t > 0.14) & (t < 0.46))[None, None]
+    assert np.all(w[inside] == 1.0)
