@@ -142,11 +142,15 @@ def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_windo
     per axis) world metres (default: the model less 2 cells); start: dict(position, origin_time) to skip
     the back-projection. method: "lbfgs" (L-BFGS-B), "gauss-newton", "gd", "adam"; scaled=False works
     in raw units (m, s, Hz), which plain gradient descent cannot handle (the optimiser study)."""
+    from adseismic.traces import check_inside, check_samples
+
     dx = float(model.spacing[0])
     rec = np.asarray(receivers, float)
     obs = np.asarray(observed, float)
     n_rec, nt = obs.shape
     ndim = model.ndim
+    check_inside(rec, model, "receiver")
+    check_samples(obs, [f"trace {i}" for i in range(n_rec)])  # NaN/inf refused, clipped traces warned about
     if bounds is None:
         bounds = [(lo + 2 * dx, hi - 2 * dx) for lo, hi in model.extent]
     if noise_std is None:
