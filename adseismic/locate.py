@@ -136,12 +136,14 @@ class _Problem:
 
 def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_window=None, bounds=None,
            start=None, peak_frequency=None, method="lbfgs", scaled=True, max_iterations=60, max_evaluations=None,
-           order=4, pml_width=None, device="cpu", precision="float64", journal_path=None, options=None) -> LocationResult:  # fmt: skip
+           order=4, pml_width=None, device="cpu", precision="float64", journal_path=None, options=None,
+           callback=None) -> LocationResult:  # fmt: skip
     """Locate one event. model: the velocity Model on the simulation grid (uniform spacing dx, node 0
     at model.origin); receivers (n, ndim) world metres; observed (n, nt) at t = k dt. bounds: ((lo, hi)
     per axis) world metres (default: the model less 2 cells); start: dict(position, origin_time) to skip
     the back-projection. method: "lbfgs" (L-BFGS-B), "gauss-newton", "gd", "adam"; scaled=False works
-    in raw units (m, s, Hz), which plain gradient descent cannot handle (the optimiser study)."""
+    in raw units (m, s, Hz), which plain gradient descent cannot handle (the optimiser study).
+    callback(iteration, evaluations, position, origin_time) after every iteration."""
     from adseismic.traces import check_inside, check_samples
 
     dx = float(model.spacing[0])
@@ -189,12 +191,24 @@ def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_windo
         grad = np.concatenate([g.source_locations[0, 0], ds @ g.source_amplitudes[0, 0]])
         return g.loss, grad * scale
 
+    count = {"evaluations": 0}
+
+    def counted(x):
+        count["evaluations"] += 1
+        return objective(x)
+
+    def report(iteration, x, *rest):
+        # rest: (f, g) from minimize, or (forward runs,) from Gauss-Newton
+        if callback is not None:
+            p = x * scale
+            callback(iteration, rest[0] if len(rest) == 1 else count["evaluations"], p[:ndim], float(p[ndim]))
+
     if method == "gauss-newton":
-        x, it, ev, reason, hist = _gauss_newton(prob, phys0 / scale, scale, lo, hi, obs, sigma, max_iterations)
+        x, it, ev, reason, hist = _gauss_newton(prob, phys0 / scale, scale, lo, hi, obs, sigma, max_iterations, report=report)
     else:
-        res = minimize(objective, phys0 / scale, method=method, bounds=(lo, hi), max_iterations=max_iterations,
+        res = minimize(counted, phys0 / scale, method=method, bounds=(lo, hi), max_iterations=max_iterations,
                        max_evaluations=max_evaluations, rel_decrease=1e-12, grad_tol=1e-9, journal_path=journal_path,
-                       options=options)  # fmt: skip
+                       callback=report, options=options)  # fmt: skip
         x, it, ev, reason, hist = res.x, res.iterations, res.evaluations, res.stop_reason, res.history
     p = x * scale
     jr = (prob.jacobian(p) / sigma[None, :, None]).reshape(len(p), -1)
@@ -205,8 +219,9 @@ def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_windo
                           stop_reason=reason, synthetic=syn, start=start, history=hist)  # fmt: skip
 
 
-def _gauss_newton(prob: _Problem, x, scale, lo, hi, obs, sigma, max_iterations, tol=1e-6):
-    """Levenberg-Marquardt on the whitened residuals in scaled parameters; returns like minimize."""
+def _gauss_newton(prob: _Problem, x, scale, lo, hi, obs, sigma, max_iterations, tol=1e-6, report=None):
+    """Levenberg-Marquardt on the whitened residuals in scaled parameters; returns like minimize.
+    Evaluations count forward simulations (a Jacobian costs 2 ndim + 3 of them)."""
     lam, hist, evals = 1e-3, [], 0
     r = ((prob.simulate(x * scale) - obs) / sigma[:, None]).ravel()
     f = 0.5 * float(r @ r)
@@ -226,6 +241,8 @@ def _gauss_newton(prob: _Problem, x, scale, lo, hi, obs, sigma, max_iterations, 
         done = f - f_new < tol * f
         x, r, f, lam = x_new, r_new, f_new, max(lam / 10.0, 1e-7)
         hist.append({"iteration": it, "f": f, "step": float(np.abs(step).max()), "evaluations": evals})
+        if report is not None:
+            report(it, x, evals)
         if done:
             return x, it, evals, "rel_decrease", hist
     return x, max_iterations, evals, "max_iterations", hist
