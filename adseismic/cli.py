@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import datetime
 import logging
-import os
 import pathlib
 import sys
 import time
@@ -23,6 +22,7 @@ import time
 import numpy as np
 
 from adseismic.config import ConfigError, ForwardConfig, load_config
+from adseismic.io import write_text_atomic
 from adseismic.models import ModelError
 
 log = logging.getLogger("adseismic")
@@ -115,12 +115,6 @@ class _Logging:
         return False
 
 
-def _write_text_atomic(path: pathlib.Path, text: str) -> None:
-    part = path.with_name(path.name + ".part")
-    part.write_text(text, encoding="utf-8")
-    os.replace(part, path)
-
-
 def _config_text(config: ForwardConfig) -> str:
     if config.path is not None:
         return pathlib.Path(config.path).read_text(encoding="utf-8")
@@ -191,7 +185,7 @@ def cmd_forward(args) -> int:
             for p in stale:
                 p.unlink()
         text = _config_text(config)
-        _write_text_atomic(outdir / "config.yaml", text)
+        write_text_atomic(outdir / "config.yaml", text)
 
         n_shots = config.n_shots
         log.info("running %d shot(s), %d steps of %.6g s on %s (%s)", n_shots, plan.nt, plan.dt,
@@ -290,7 +284,7 @@ def cmd_fwi(args) -> int:
     outdir.mkdir(parents=True, exist_ok=True)
     with _Logging(outdir / "fwi.log", args.quiet):
         log.info("adseismic %s fwi %s -> %s%s", version(), args.config, outdir, " (resume)" if args.resume else "")
-        _write_text_atomic(outdir / "config.yaml", text)
+        write_text_atomic(outdir / "config.yaml", text)
         try:
             res = run_fwi(config, outdir, progress=not args.quiet, prepared=prepared)
         except PropagationError as e:

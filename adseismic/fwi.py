@@ -29,7 +29,7 @@ from scipy.signal import butter, sosfiltfilt
 
 from adseismic import conditioning
 from adseismic.gradient import gradient
-from adseismic.io import atomic_path
+from adseismic.io import write_h5_atomic, write_text_atomic
 from adseismic.misfits import misfit as named_misfit
 from adseismic.optimize import minimize
 from adseismic.propagate import forward
@@ -87,13 +87,6 @@ def relative_error(v, v_true, region):
     return float(np.linalg.norm((v - v_true)[region]) / np.linalg.norm(v_true[region]))
 
 
-def _write_h5_atomic(path: Path, fill):
-    part = atomic_path(path)
-    with h5py.File(part, "w") as f:
-        fill(f)
-    part.replace(path)
-
-
 class _History:
     """history.h5: per band and iteration the model (m/s), gradient and misfit; rewritten atomically."""
 
@@ -113,7 +106,7 @@ class _History:
                 grp.create_dataset("gradient", data=g, compression="gzip")
                 grp.attrs["misfit"] = j
 
-        _write_h5_atomic(self.path, fill)
+        write_h5_atomic(self.path, fill)
 
     def misfits(self):
         return [(b, i, j) for b, i, _, _, j in self.rows]
@@ -165,7 +158,7 @@ def _observed(cfg, prep: Prepared, rundir: Path, progress):
         data = forward(v_true, p.dx, p.dt, scene.source_amplitudes, scene.source_locations, scene.receiver_locations,
                        order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface,
                        device=p.device, precision=p.precision, progress=progress).receiver_amplitudes  # fmt: skip
-    _write_h5_atomic(path, lambda f: f.create_dataset("data", data=data))
+    write_h5_atomic(path, lambda f: f.create_dataset("data", data=data))
     return data
 
 
@@ -301,9 +294,7 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
                     illum += r.illumination
             if "misfit" not in scale:
                 scale["misfit"] = loss if loss > 0 else 1.0
-                part = atomic_path(scale_path)
-                part.write_text(json.dumps(scale))
-                part.replace(scale_path)
+                write_text_atomic(scale_path, json.dumps(scale))
             g = conditioning.precondition(conditioning.smooth(grad * region_mask, p.dx, inv.smoothing) * region_mask,
                                           inv.preconditioning, illum, depth)  # fmt: skip
             f = loss / scale["misfit"]
@@ -351,10 +342,8 @@ def _write_result(rundir: Path, res: FWIResult, fwd):
         f.attrs["dx"], f.attrs["origin"], f.attrs["units"] = res.dx, res.origin, "m/s"
         f.attrs["summary"] = json.dumps({"bands": res.bands, "errors": res.errors})
 
-    _write_h5_atomic(rundir / "model.h5", fill)
-    summary = atomic_path(rundir / "summary.json")
-    summary.write_text(json.dumps({"bands": res.bands, "errors": res.errors, "seconds": res.seconds}, indent=2))
-    summary.replace(rundir / "summary.json")
+    write_h5_atomic(rundir / "model.h5", fill)
+    write_text_atomic(rundir / "summary.json", json.dumps({"bands": res.bands, "errors": res.errors, "seconds": res.seconds}, indent=2))
 
 
 def _figures(rundir: Path, history: _History, model, last, plan, fwd, band):

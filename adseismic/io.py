@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["write_forward", "read_forward", "ForwardData", "atomic_path", "AXES"]
+__all__ = ["write_forward", "read_forward", "ForwardData", "atomic_path", "write_text_atomic", "write_h5_atomic", "AXES"]
 
 AXES = {2: "z,x", 3: "z,y,x"}
 
@@ -35,6 +35,33 @@ def atomic_path(path) -> pathlib.Path:
     """The temporary name a file is written under before it is renamed to ``path``."""
     path = pathlib.Path(path)
     return path.with_name(path.name + ".part")  # data.h5 -> data.h5.part (= with_suffix(".h5.part"))
+
+
+def write_text_atomic(path, text: str) -> None:
+    """Write ``text`` to ``path`` via its .part name; nothing is left behind on error."""
+    path = pathlib.Path(path)
+    part = atomic_path(path)
+    try:
+        part.write_text(text, encoding="utf-8")
+        os.replace(part, path)
+    except BaseException:
+        part.unlink(missing_ok=True)
+        raise
+
+
+def write_h5_atomic(path, fill) -> None:
+    """Create an HDF5 file at ``path`` with ``fill(h5py.File)`` via its .part name (atomic)."""
+    import h5py
+
+    path = pathlib.Path(path)
+    part = atomic_path(path)
+    try:
+        with h5py.File(part, "w") as f:
+            fill(f)
+        os.replace(part, path)
+    except BaseException:
+        part.unlink(missing_ok=True)
+        raise
 
 
 @dataclass
@@ -87,7 +114,6 @@ def write_forward(path, *, receiver_data, source_wavelet, dt, source_coordinates
     snapshots (n_snapshots, n_shots, *grid) with snapshot_times (s), both or neither.
     Shapes are checked before anything is written (ValueError).
     """
-    import h5py
 
     path = pathlib.Path(path)
     data = np.asarray(receiver_data)
@@ -118,37 +144,34 @@ def write_forward(path, *, receiver_data, source_wavelet, dt, source_coordinates
                              f"{', '.join(map(str, vel.shape))})")
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    part = atomic_path(path)
     axes = AXES[ndim]
-    try:
-        with h5py.File(part, "w") as f:
-            d = f.create_dataset("receiver_data", data=data)
-            d.attrs.update(units=units, axes="shot,receiver,time",
-                           description="wavefield u at the receivers, sampled at `time`")
-            d = f.create_dataset("source_wavelet", data=wavelet)
-            d.attrs.update(axes="time", description="source time function s(t), every shot")
-            for name, arr in (("source_coordinates", src), ("receiver_coordinates", rec)):
-                d = f.create_dataset(name, data=arr)
-                d.attrs.update(units="m", axes=axes, frame="world (the config's model frame)")
-            d = f.create_dataset("time", data=np.arange(nt) * float(dt))
+
+    def fill(f):
+        d = f.create_dataset("receiver_data", data=data)
+        d.attrs.update(units=units, axes="shot,receiver,time",
+                       description="wavefield u at the receivers, sampled at `time`")
+        d = f.create_dataset("source_wavelet", data=wavelet)
+        d.attrs.update(axes="time", description="source time function s(t), every shot")
+        for name, arr in (("source_coordinates", src), ("receiver_coordinates", rec)):
+            d = f.create_dataset(name, data=arr)
+            d.attrs.update(units="m", axes=axes, frame="world (the config's model frame)")
+        d = f.create_dataset("time", data=np.arange(nt) * float(dt))
+        d.attrs.update(units="s")
+        d = f.create_dataset("velocity", data=vel)
+        d.attrs.update(units="m/s", axes=axes, spacing=float(spacing),
+                       origin=np.asarray(origin, dtype=np.float64))
+        if snapshots is not None:
+            chunks = (1, 1, *vel.shape) if snapshots.size else None
+            d = f.create_dataset("snapshots", data=snapshots, chunks=chunks)
+            d.attrs.update(units=units, axes="snapshot,shot," + axes)
+            d = f.create_dataset("snapshot_times", data=snapshot_times)
             d.attrs.update(units="s")
-            d = f.create_dataset("velocity", data=vel)
-            d.attrs.update(units="m/s", axes=axes, spacing=float(spacing),
-                           origin=np.asarray(origin, dtype=np.float64))
-            if snapshots is not None:
-                chunks = (1, 1, *vel.shape) if snapshots.size else None
-                d = f.create_dataset("snapshots", data=snapshots, chunks=chunks)
-                d.attrs.update(units=units, axes="snapshot,shot," + axes)
-                d = f.create_dataset("snapshot_times", data=snapshot_times)
-                d.attrs.update(units="s")
-            f.attrs["dt"] = float(dt)
-            f.attrs["nt"] = int(nt)
-            for k, v in (attrs or {}).items():
-                f.attrs[k] = _attr(v)
-        os.replace(part, path)
-    except BaseException:
-        part.unlink(missing_ok=True)
-        raise
+        f.attrs["dt"] = float(dt)
+        f.attrs["nt"] = int(nt)
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = _attr(v)
+
+    write_h5_atomic(path, fill)
     return path
 
 

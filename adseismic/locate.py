@@ -28,7 +28,6 @@ from adseismic.models import Model
 from adseismic.optimize import minimize
 from adseismic.propagate import dominant_frequency, forward
 from adseismic.scene import straight_ray_times
-from adseismic.wavelets import ricker
 
 log = logging.getLogger(__name__)
 N_PHYS = 3  # T, f, A after the position

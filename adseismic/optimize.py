@@ -53,6 +53,8 @@ from typing import Callable
 
 import numpy as np
 
+from adseismic.io import atomic_path
+
 __all__ = ["JournalMismatch", "Journal", "OptimizeResult", "minimize", "equal_cost_comparison",
            "hash_x", "projected_gradient_norm", "METHODS", "STOP_REASONS"]
 
@@ -82,10 +84,6 @@ class _BudgetExhausted(Exception):
 def hash_x(x) -> bytes:
     """sha256 digest (32 bytes) of x as a C-contiguous float64 array's bytes."""
     return hashlib.sha256(np.ascontiguousarray(x, dtype=np.float64).tobytes()).digest()
-
-
-def _atomic_part(path: pathlib.Path) -> pathlib.Path:
-    return path.with_name(path.name + ".part")
 
 
 def _shuffle(raw: bytes, itemsize: int = 8) -> bytes:
@@ -186,7 +184,7 @@ class Journal:
 
         path = pathlib.Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        part = _atomic_part(path)
+        part = atomic_path(path)
         N, n = len(self), (self._n or 0)
         try:
             with h5py.File(part, "w") as h:

@@ -12,6 +12,8 @@ import pathlib
 
 import numpy as np
 
+from adseismic.io import atomic_path
+
 __all__ = ["plot_model", "plot_gather", "plot_snapshots", "plot_misfit", "save_figure", "xz_slice"]
 
 
@@ -27,7 +29,7 @@ def _figure(width: float, height: float):
 def save_figure(fig, path) -> pathlib.Path:
     """Write ``fig`` as PNG to ``path`` atomically (temporary name, then os.replace)."""
     path = pathlib.Path(path)
-    part = path.with_name(path.name + ".part")
+    part = atomic_path(path)
     try:
         fig.savefig(part, format="png")
         os.replace(part, path)

@@ -16,8 +16,6 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from adseismic.config import parse_fwi_config
 from adseismic.fwi import prepare_fwi, run_fwi
 
@@ -75,7 +73,7 @@ def optimizers(out: Path, evaluations=16):
             setattr(cfg.inversion, k, v)
         res = run_fwi(cfg, out / method, progress=False, prepared=prepare_fwi(cfg))
         rows.append((method, extra, res))
-    print(f"| optimiser | settings | misfit / start | anomaly error start -> final | evaluations | iterations |")
+    print("| optimiser | settings | misfit / start | anomaly error start -> final | evaluations | iterations |")
     print("|---|---|---|---|---|---|")
     for method, extra, r in rows:
         b = r.bands[0]
