@@ -35,7 +35,7 @@ from scipy.fft import irfft, next_fast_len, rfft, rfftfreq
 from scipy.signal import fftconvolve
 from scipy.special import hankel2
 
-__all__ = ["acoustic_1d", "acoustic_2d", "acoustic_2d_time_domain", "acoustic_3d"]
+__all__ = ["acoustic_1d", "acoustic_2d", "acoustic_2d_time_domain", "acoustic_3d", "elastic_2d_force", "elastic_2d_force_spectrum", "lamb_2d"]
 
 
 def _prepare(source, dt, distance, velocity):
@@ -167,3 +167,135 @@ def acoustic_1d(source, dt: float, distance, velocity: float, pad: float = 2.0) 
     u[:, 1:] = np.cumsum(0.5 * (sd[:, 1:] + sd[:, :-1]), axis=1) * dt
     u *= 0.5 * c
     return u[0] if scalar else u
+
+
+# --- Elastic 2D (plane strain) -------------------------------------------------------------------
+#
+# rho d2u/dt2 = div(sigma) + F(t) delta(x - x_s) with a line force F (N per metre of line). In the
+# frequency domain (numpy sign) the displacement is U_i = G_ij F_j with (derived from the Navier
+# equation; cf. Aki & Richards 2002 eq. 4.23 for 3D)
+#
+#     G_ij = delta_ij g_S / mu + d_i d_j (g_S - g_P) / (rho w^2),   g_c = (-i/4) H0^(2)(w r / c),
+#
+# g_c the scalar Green's function of laplacian(g) + (w/c)^2 g = -delta (as in acoustic_2d). With
+# g(r): d_i d_j g = g'' n_i n_j + (g'/r)(delta_ij - n_i n_j), n = (x - x_s)/r. Evaluated at complex
+# frequency w - i eps as acoustic_2d (exact for the causal problem). Velocity = i w U.
+
+
+def _damped_spectrum(s, dt, n, wrap_db):
+    eps = -np.log(10.0) * float(wrap_db) / 20.0 / (n * dt)
+    t = np.arange(n) * dt
+    w = 2.0 * np.pi * rfftfreq(n, dt) - 1j * eps
+    return rfft(s * np.exp(-eps * t[: s.size]), n), w, eps, t
+
+
+def elastic_2d_force_spectrum(w, offset, vp: float, vs: float, rho: float, direction=(1.0, 0.0)):
+    """Displacement spectrum (U_z, U_x) (m per unit force spectrum) of a 2D full space for a line force
+    along ``direction`` (f_z, f_x) at the origin, at (complex) angular frequencies ``w`` (nw,) (numpy
+    FFT sign) and offsets ``offset`` (n, 2) metres (z, x). Returns (2, n, nw)."""
+    w = np.asarray(w, dtype=complex)
+    off = np.atleast_2d(np.asarray(offset, dtype=np.float64))
+    r = np.linalg.norm(off, axis=1)
+    if np.any(r <= 0):
+        raise ValueError("offset must be non-zero")
+    mu = rho * vs * vs
+    f = np.asarray(direction, dtype=np.float64)
+    out = np.zeros((2, len(r), w.size), dtype=complex)
+    for i, (ri, nvec) in enumerate(zip(r, off / r[:, None])):
+        h = {}
+        for c in (vp, vs):
+            k = w / c
+            h0, h1 = hankel2(0, k * ri), hankel2(1, k * ri)
+            h[c] = (-0.25j * h0, 0.25j * k * h1, 0.25j * k * k * (h0 - h1 / (k * ri)))  # g, g', g''
+        d_g = [h[vs][j] - h[vp][j] for j in range(3)]
+        for a in range(2):
+            for b in range(2):
+                cross = (a == b) - nvec[a] * nvec[b]
+                gij = (a == b) * h[vs][0] / mu + (d_g[2] * nvec[a] * nvec[b] + d_g[1] / ri * cross) / (rho * w * w)
+                out[a, i] += gij * f[b]
+    return out
+
+
+def elastic_2d_force(source, dt: float, offset, vp: float, vs: float, rho: float, direction=(1.0, 0.0),
+                     pad: float = 4.0, wrap_db: float = -200.0):  # fmt: skip
+    """Particle velocity (v_z, v_x) (m/s) of a homogeneous 2D full space for a line force
+    F(t) = source(t) * direction (N/m; direction (f_z, f_x)) at the origin, at receiver offsets
+    ``offset`` (n, 2) metres (z, x) or one (2,). ``source`` (nt,) sampled at t_k = k dt; vp, vs (m/s),
+    rho (kg/m^3). Returns two arrays (nt,) or (n, nt)."""
+    s = np.asarray(source, dtype=np.float64).ravel()
+    r = np.linalg.norm(np.atleast_2d(np.asarray(offset, dtype=np.float64)), axis=1)
+    nt = s.size
+    n = _fft_len(nt, r.max() / vs, dt, pad)
+    spec, w, eps, t = _damped_spectrum(s, dt, n, wrap_db)
+    V = 1j * w * elastic_2d_force_spectrum(w, offset, vp, vs, rho, direction) * spec
+    if n % 2 == 0:
+        V[..., -1] = V[..., -1].real
+    vz, vx = irfft(V, n)[..., :nt] * np.exp(eps * t[:nt])
+    return (vz[0], vx[0]) if np.ndim(offset) == 1 else (vz, vx)
+
+
+def lamb_2d(source, dt: float, x, vp: float, vs: float, rho: float, depth: float = 0.0, pad: float = 2.0,
+            wrap_db: float = -60.0, k_max_factor: float = 12.0, dk_factor: float = 0.1):  # fmt: skip
+    """Lamb's problem: particle velocity (v_z, v_x) (m/s) of a homogeneous half-space z >= 0 with a free
+    surface, for a vertical line force F(t) = source(t) (N/m, +z down) on the surface at x = 0, at
+    horizontal offsets ``x`` (n,) metres and depth ``depth`` (m).
+
+    Wavenumber integration at complex frequency w - i eps (the Rayleigh pole leaves the real k axis by
+    ~eps / c_R; eps from wrap_db as in acoustic_2d). Potentials phi = A exp(-nu_P z + i k x),
+    psi = B exp(-nu_S z + i k x) (u_x = phi_x - psi_z, u_z = phi_z + psi_x), sigma_zz(z=0) = -F delta(x),
+    sigma_xz(z=0) = 0 give, with R(k) = (2k^2 - k_S^2)^2 - 4 k^2 nu_P nu_S,
+
+        A = -F (2k^2 - k_S^2) / (mu R),  B = 2 i k nu_P F / (mu R).
+
+    The k integral runs over [0, k_max_factor * w_max / vs] with step dk_factor * eps / c_R (trapezoid);
+    on the surface the 1/k tail beyond it is added in closed form (sine/cosine integrals); below it the
+    integrand decays as exp(-k depth) and the range is extended to 40 / depth if needed.
+    """
+    from scipy.special import sici
+
+    from adseismic.numerics import rayleigh_speed
+
+    s = np.asarray(source, dtype=np.float64).ravel()
+    xs = np.atleast_1d(np.asarray(x, dtype=np.float64))
+    nt = s.size
+    n = _fft_len(nt, np.abs(xs).max() / (0.8 * vs), dt, pad)
+    spec, w, eps, t = _damped_spectrum(s, dt, n, wrap_db)
+    mu = rho * vs * vs
+    cr = rayleigh_speed(vp, vs)
+    amp = np.abs(spec)
+    keep = np.nonzero(amp > 1e-9 * amp.max())[0]
+    wmax = float(w[keep[-1]].real)
+    k_top = max(k_max_factor * wmax / vs, 40.0 / depth if depth > 0 else 0.0)
+    dk = dk_factor * eps / cr
+    k = np.arange(0.0, k_top + dk, dk)
+    wt = np.full(k.size, dk)
+    wt[0] = wt[-1] = dk / 2
+    cos_kx, sin_kx = np.cos(np.outer(k, xs)), np.sin(np.outer(k, xs))
+    Vz = np.zeros((xs.size, w.size), dtype=complex)
+    Vx = np.zeros_like(Vz)
+    for j in keep:
+        wj = w[j]
+        ka2, kb2 = (wj / vp) ** 2, (wj / vs) ** 2
+        nua, nub = np.sqrt(k * k - ka2), np.sqrt(k * k - kb2)
+        two = 2 * k * k - kb2
+        R = two * two - 4 * k * k * nua * nub
+        A = -two / (mu * R)
+        B = 2j * k * nua / (mu * R)
+        ea, eb = np.exp(-nua * depth), np.exp(-nub * depth)
+        uz = -nua * A * ea + 1j * k * B * eb  # even in k
+        ux_odd = (1j * k * A * ea + nub * B * eb) / 1j  # u_x(k) = i * (odd real-ish part)
+        # u(x) = (1/2pi) int U(k) e^{ikx} dk = (1/pi) int_0^inf [Uz cos kx] and -(1/pi) int_0^inf [ux_odd sin kx]
+        Iz = (wt * uz) @ cos_kx / np.pi
+        Ix = -(wt * ux_odd) @ sin_kx / np.pi
+        if depth == 0.0:  # 1/k tails beyond k_top (frequency independent coefficients)
+            si, ci = sici(k[-1] * np.abs(xs))
+            Iz += vp * vp / (2 * mu * (vp * vp - vs * vs)) * (-ci) / np.pi
+            Ix += -(vs * vs) / (2 * mu * (vp * vp - vs * vs)) * np.sign(xs) * (np.pi / 2 - si) / np.pi
+        Vz[:, j] = 1j * wj * Iz * spec[j]
+        Vx[:, j] = 1j * wj * Ix * spec[j]
+    out = []
+    for V in (Vz, Vx):
+        if n % 2 == 0:
+            V[:, -1] = V[:, -1].real
+        out.append(irfft(V, n)[:, :nt] * np.exp(eps * t[:nt]))
+    return (out[0][0], out[1][0]) if np.ndim(x) == 0 else tuple(out)

@@ -2,6 +2,9 @@
 
     adseismic plan CONFIG                      validate a config, print the planner's decisions
     adseismic forward CONFIG -o OUTDIR         plan, simulate every shot, write data.h5 + PNGs
+    adseismic fwi CONFIG -o OUTDIR             full-waveform inversion (adseismic/fwi.py)
+    adseismic locate CONFIG -o OUTDIR          locate an event from its traces (adseismic/locate_run.py)
+    adseismic bench [--device cpu cuda:0] -o DIR   speed/memory on the standard scenes (adseismic/bench.py)
 
 Exit codes: 0 success; 2 invalid input (config, model, refused plan: the message says which key
 and how to fix it, no traceback); 3 the simulation blew up (PropagationError; no data.h5 is
@@ -13,6 +16,7 @@ Each subcommand is a (register, run) pair in :data:`COMMANDS`; adding one (``fwi
 from __future__ import annotations
 
 import argparse
+import json
 import datetime
 import logging
 import pathlib
@@ -302,6 +306,90 @@ def cmd_fwi(args) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------------------------- bench
+
+def _register_bench(p: argparse.ArgumentParser) -> None:
+    from adseismic.bench import register
+
+    register(p)
+
+
+def cmd_bench(args) -> int:
+    from adseismic.bench import cmd_bench as run
+
+    return run(args)
+
+
+# --------------------------------------------------------------------------------- locate
+
+def _register_locate(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", type=pathlib.Path, help="YAML location config (model, traces, preprocess, source, search)")
+    p.add_argument("-o", "--outdir", type=pathlib.Path, required=True, help="run directory")
+    p.add_argument("--compare-optimizers", action="store_true",
+                   help="also run the optimiser study (GD, Adam, L-BFGS-B, Gauss-Newton; scaled and raw units) on this event")
+    p.add_argument("--study-evaluations", type=int, default=30, metavar="N",
+                   help="evaluations per optimiser in --compare-optimizers (default 30)")
+    p.add_argument("--misfit-map", type=int, default=11, metavar="N",
+                   help="positions per axis of the misfit map around the event (one batched simulation; default 11)")
+    p.add_argument("-q", "--quiet", action="store_true", help="log only warnings to stderr")
+
+
+def cmd_locate(args) -> int:
+    from adseismic.config import load_locate_config
+    from adseismic.locate import compare_optimizers, optimizer_table
+    from adseismic.locate_run import event_misfit_map, locate_event, prepare_locate, simulation_options, write_outputs
+    from adseismic.propagate import PropagationError, resolve_device
+
+    if args.study_evaluations < 1:
+        raise CommandError(f"--study-evaluations: {args.study_evaluations} < 1; give at least 1")
+    if args.misfit_map < 3:
+        raise CommandError(f"--misfit-map: {args.misfit_map} < 3; give at least 3 positions per axis")
+    config = load_locate_config(args.config)
+    resolve_device(config.simulation.device)
+    outdir = args.outdir
+    if (outdir / "summary.json").exists():
+        raise CommandError(f"-o: {outdir} already holds a location (summary.json); choose another directory")
+    with _Logging(None, args.quiet):
+        prep = prepare_locate(config)  # reads and checks every input before OUTDIR is touched
+    outdir.mkdir(parents=True, exist_ok=True)
+    with _Logging(outdir / "locate.log", args.quiet):
+        log.info("adseismic %s locate %s -> %s", version(), args.config, outdir)
+        for line in prep.plan.describe().splitlines():
+            log.info("plan: %s", line)
+        write_text_atomic(outdir / "config.yaml", _config_text(config))
+        t0 = time.perf_counter()
+
+        def progress(iteration, evaluations, position, origin_time):
+            log.info("iteration %d (%d evaluations): position %s m, origin time %.5f s", iteration, evaluations,
+                     np.round(position, 2).tolist(), prep.t_shift + origin_time)  # fmt: skip
+
+        try:
+            res = locate_event(prep, callback=progress)
+            mmap = event_misfit_map(prep, res, n=args.misfit_map)
+            study = None
+            if args.compare_optimizers:
+                log.info("optimiser study: 8 runs of at most %d evaluations each", args.study_evaluations)
+                study = compare_optimizers(prep.model, prep.stations, prep.observed, prep.plan.dt, prep.noise_std, res.start,
+                                           {"position": res.position, "origin_time": res.origin_time}, peak_frequency=prep.f0,
+                                           max_evaluations=args.study_evaluations, bounds=prep.bounds,
+                                           progress=lambda r: log.info("study: %s", r), **simulation_options(prep))  # fmt: skip
+        except PropagationError as e:
+            raise CommandError(f"simulation failed: {e}", EXIT_UNSTABLE) from None
+        paths = write_outputs(outdir, prep, res, mmap, study)
+        log.info("located in %.0f s", time.perf_counter() - t0)
+    s = json.loads((outdir / "summary.json").read_text())
+    pos = ", ".join(f"{k} = {v:.2f} +- {s['position_error_m_1sigma'][k]:.2f}" for k, v in s["position_m"].items())
+    print(f"event at {pos} m (1 sigma); origin time {s['origin_time_utc']} +- {s['origin_time_error_s_1sigma']:.4f} s")
+    if "latitude" in s:
+        print(f"latitude {s['latitude']:.5f}, longitude {s['longitude']:.5f}, depth {s['depth_m']:.0f} m")
+    if "truth_position_error_m" in s:
+        print(f"distance to the true position: {s['truth_position_error_m']:.2f} m")
+    if study is not None:
+        print(optimizer_table(study))
+    print(f"wrote {outdir}/: {', '.join(p.name for p in paths)}, config.yaml, locate.log")
+    return EXIT_OK
+
+
 # --------------------------------------------------------------------------------- main
 
 #: name -> (help, register(parser), run(args) -> exit code)
@@ -312,6 +400,10 @@ COMMANDS = {
                 _register_forward, cmd_forward),
     "fwi": ("full-waveform inversion: invert the start model of a config for its observed data",
             _register_fwi, cmd_fwi),
+    "locate": ("locate an earthquake from its traces: position, origin time, source-time function, uncertainty",
+               _register_locate, cmd_locate),
+    "bench": ("speed, memory and accuracy benchmarks on the standard scenes, beside Deepwave",
+              _register_bench, cmd_bench),
 }
 
 

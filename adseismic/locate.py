@@ -1,18 +1,30 @@
 """Earthquake location by waveform inversion through the differentiable simulator.
 
-Unknowns: source position (m, axis order (z,[y,]x), relative to grid node 0), origin time T (s, the
-peak of the source-time function), its peak frequency f (Hz) and amplitude A: the source-time
-function is s(t) = A ricker(t - T; f). Misfit: J = 1/2 sum_i sum_t ((d_i(t) - o_i(t)) / sigma_i)^2,
-sigma_i the noise standard deviation of trace i (from a pre-event window), so that at the solution
-the Gauss-Newton matrix J_r^T J_r (J_r the Jacobian of the whitened residuals) is the inverse
-covariance of the estimate (white noise; coloured noise makes it optimistic).
+Unknowns: source position (m, axis order (z,[y,]x), world coordinates of the model), origin time T
+(s, the peak of the source-time function, on the data's time axis) and the source-time function
+(STF) s(t), either parametric, s(t) = A ricker(t - T; f) with unknown peak frequency f (Hz) and
+amplitude A, or free: one value per time sample with a smoothness penalty. Misfit:
+J = 1/2 sum_i sum_t ((d_i(t) - o_i(t)) / sigma_i)^2, sigma_i the noise standard deviation of trace i
+(from a pre-event window), so that at the solution the Gauss-Newton matrix J_r^T J_r (J_r the
+Jacobian of the whitened residuals) is the inverse covariance of the estimate (white noise;
+coloured noise, e.g. band-passed data, makes it optimistic).
 
-Steps: (1) start: back-projection of the data envelopes with straight-ray travel times through the
-model over a grid of candidate positions (no picks needed), origin time from the stack's peak;
-(2) amplitude by linear least squares; (3) L-BFGS-B (default), Gauss-Newton (Levenberg-Marquardt
-steps, Jacobian by central differences in position and exact derivatives of the wavelet), GD or
-Adam, in non-dimensional parameters (position / dx, time / dt, f / f0, log A) or, for the optimiser
-study, in raw units (m, s, Hz); (4) covariance C = (J_r^T J_r)^-1 at the solution.
+Steps:
+1. start: back-projection of the data envelopes with straight-ray travel times through the model
+   over a grid of candidate positions (no picks needed); the origin time from the stack's peak;
+   with multi_start > 1 the best well-separated stack maxima are all tried (local minima: cycle
+   skipping between wavelet periods);
+2. amplitude by linear least squares (the data are linear in the STF);
+3. L-BFGS-B (default), Gauss-Newton (Levenberg-Marquardt steps, Jacobian by central differences in
+   position and exact derivatives of the wavelet), GD or Adam on (position, T, f, A), in
+   non-dimensional parameters (position / dx, time / dt, f / f0, A / A0) or, for the optimiser
+   study, in raw units (m, s, Hz);
+4. stf="free": from the Ricker solution, variable projection: for a position the data are a
+   convolution of the STF with the impulse response h(x) (one simulation with a one-sample
+   source), so the best STF is a regularised linear least-squares solution; the position is
+   refined by Gauss-Newton steps on the projected problem; the origin time is the STF's peak;
+5. covariance C = (J_r^T J_r + R)^-1 at the solution (R: the smoothness penalty's Hessian for a
+   free STF, else 0).
 """
 
 from __future__ import annotations
@@ -31,20 +43,29 @@ from adseismic.scene import straight_ray_times
 
 log = logging.getLogger(__name__)
 N_PHYS = 3  # T, f, A after the position
+METHODS = ("lbfgs", "gauss-newton", "gd", "adam")
+STFS = ("ricker", "free")
 
 
 @dataclass
 class LocationResult:
-    """position (ndim,) m relative to grid node 0 (axis order (z,[y,]x)); origin_time s (peak of the
-    source-time function, on the data's time axis); peak_frequency Hz; amplitude; covariance
-    (ndim + 3, ndim + 3) over (position..., T, f, A) in m, s, Hz, amplitude units (1 sigma);
-    noise_std (n_receivers,); synthetic (n_receivers, nt); start: the back-projection result."""
+    """position (ndim,) world metres, axis order (z,[y,]x); origin_time s (peak of the source-time
+    function, on the data's time axis); peak_frequency Hz and amplitude of the Ricker fit;
+    covariance (ndim + 1, ndim + 1) 1-sigma over (position..., origin time) in m^2, m s, s^2;
+    parameter_covariance: over every unknown (Ricker: position, T, f, A; free STF: position, the
+    STF samples); stf (nt,) the source-time function at t = k dt; noise_std (n_receivers,);
+    synthetic (n_receivers, nt); start: the start of the best run; candidates: every start tried
+    (position, origin_time, stack, misfit, final position), best first; inflation: the factor the
+    Gauss-Newton covariance was multiplied by (noise correlation x reduced chi-square if > 1)."""
 
     position: np.ndarray
     origin_time: float
     peak_frequency: float
     amplitude: float
     covariance: np.ndarray
+    parameter_covariance: np.ndarray
+    stf: np.ndarray
+    stf_kind: str
     noise_std: np.ndarray
     misfit: float
     iterations: int
@@ -52,13 +73,9 @@ class LocationResult:
     stop_reason: str
     synthetic: np.ndarray
     start: dict = field(default_factory=dict)
+    candidates: list = field(default_factory=list)
     history: list = field(default_factory=list)
-
-    @property
-    def position_covariance(self):
-        """(ndim + 1, ndim + 1) covariance of (position..., origin time)."""
-        n = len(self.position) + 1
-        return self.covariance[:n, :n]
+    inflation: float = 1.0
 
 
 def source_wavelet(nt, dt, T, f, A):
@@ -81,10 +98,12 @@ def noise_from_window(observed, dt, window):
     return observed[:, i0:i1].std(axis=1)
 
 
-def back_projection(model: Model, receivers, observed, dt, bounds, spacing):
-    """Start position and origin time from envelope back-projection: maximise over candidate points
-    x (every `spacing` m inside bounds) and times T the stack sum_i env_i(T + tau_i(x)) / max env_i.
-    receivers (n, ndim) and bounds ((lo, hi) per axis) in the model's world metres."""
+def back_projection(model: Model, receivers, observed, dt, bounds, spacing, n_best=1, separation=None):
+    """Start candidates from envelope back-projection: the stack S(x, T) = sum_i env_i(T + tau_i(x)) /
+    max env_i over candidate points x (every `spacing` m inside bounds) and times T. receivers (n, ndim)
+    and bounds ((lo, hi) per axis) in the model's world metres. Returns up to n_best dicts
+    {position, origin_time, stack (0..1)}, best first, at least `separation` m (default 4 spacing)
+    apart; also "grid": the axes and the stack maximum over T per candidate (for the figures)."""
     env = np.abs(hilbert(observed, axis=-1))
     env /= env.max(axis=1, keepdims=True) + 1e-30
     axes = [np.arange(lo, hi + 1e-9, spacing) for lo, hi in bounds]
@@ -92,64 +111,118 @@ def back_projection(model: Model, receivers, observed, dt, bounds, spacing):
     tau = straight_ray_times(model, cand, receivers)  # (n_cand, n_rec)
     nt = observed.shape[1]
     t = np.arange(nt) * dt
-    best = (-1.0, None, None)
+    peak, when = np.empty(len(cand)), np.empty(len(cand))
     for c in range(len(cand)):
         stack = sum(np.interp(t + tau[c, i], t, env[i], right=0.0) for i in range(len(receivers)))
         k = int(np.argmax(stack))
-        if stack[k] > best[0]:
-            best = (float(stack[k]), cand[c], k * dt)
-    return {"position": best[1], "origin_time": best[2], "stack": best[0] / len(receivers)}
+        peak[c], when[c] = stack[k] / len(receivers), k * dt
+    sep = 4.0 * spacing if separation is None else float(separation)
+    picked = []
+    for c in np.argsort(-peak):
+        if len(picked) == n_best:
+            break
+        if all(np.linalg.norm(cand[c] - cand[p]) >= sep for p in picked):
+            picked.append(c)
+    out = [{"position": cand[c].copy(), "origin_time": float(when[c]), "stack": float(peak[c])} for c in picked]
+    out[0]["grid"] = {"axes": axes, "stack": peak.reshape([len(a) for a in axes])}
+    return out
 
 
 class _Problem:
     """The forward problem of one event: data at the receivers for a source at `pos` (world m)."""
 
-    def __init__(self, model: Model, receivers, nt, dt, kw):
+    def __init__(self, model: Model, receivers, nt, dt, kw, stf_filter=None):
         self.model, self.nt, self.dt, self.kw = model, nt, dt, kw
+        self.filter = stf_filter or (lambda x: x)
         self.dx = float(model.spacing[0])
         self.origin = np.asarray(model.origin, float)
         self.rec = (np.asarray(receivers, float) - self.origin)[None]
 
+    def data_many(self, positions, wavelet):
+        """(n_positions, n_rec, nt) for sources at positions (n, ndim) world m, one simulation."""
+        pos = np.asarray(positions, float)
+        n = len(pos)
+        amp = np.broadcast_to(wavelet, (n, 1, self.nt))
+        rec = np.broadcast_to(self.rec, (n, *self.rec.shape[1:]))
+        return forward(self.model.values, self.dx, self.dt, amp, (pos - self.origin)[:, None], rec, **self.kw).receiver_amplitudes
+
     def data(self, pos, wavelet):
         """(n_rec, nt) for source-time function `wavelet` (nt,)."""
-        return forward(self.model.values, self.dx, self.dt, wavelet[None, None], (pos - self.origin)[None, None], self.rec, **self.kw).receiver_amplitudes[0]
+        return self.data_many(np.asarray(pos, float)[None], wavelet)[0]
+
+    def wavelet(self, p):
+        """The (filtered) Ricker source-time function of parameters p and its derivatives, (nt,), (3, nt)."""
+        s, ds = source_wavelet(self.nt, self.dt, *p[len(p) - N_PHYS :])
+        return self.filter(s), self.filter(ds)
 
     def simulate(self, p):
-        ndim = len(p) - N_PHYS
-        return self.data(p[:ndim], source_wavelet(self.nt, self.dt, *p[ndim:])[0])
+        return self.data(p[: len(p) - N_PHYS], self.wavelet(p)[0])
+
+    def position_derivatives(self, pos, wavelet):
+        """d(data)/d(position) (ndim, n_rec, nt) by central differences (h = 0.05 dx; the source
+        operator is C^1 in the position), all 2 ndim simulations in one batched run."""
+        ndim, h = len(pos), 0.05 * self.dx
+        steps = np.concatenate([np.eye(ndim), -np.eye(ndim)]) * h
+        d = self.data_many(pos[None] + steps, wavelet)
+        return (d[:ndim] - d[ndim:]) / (2 * h)
 
     def jacobian(self, p):
-        """d(data)/d(parameters) (n_params, n_rec, nt): central differences in position (h = 0.05 dx;
-        the source operator is C^1 in the position) and exact derivatives for (T, f, A): the data are
-        linear in the source-time function, so d(data)/dT is the data of d(s)/dT."""
+        """d(data)/d(parameters) (n_params, n_rec, nt): central differences in position and exact
+        derivatives for (T, f, A): the data are linear in the source-time function, so d(data)/dT
+        is the data of d(s)/dT."""
         ndim = len(p) - N_PHYS
-        cols = []
-        for a in range(ndim):
-            e = np.zeros_like(p)
-            e[a] = 0.05 * self.dx
-            cols.append((self.simulate(p + e) - self.simulate(p - e)) / (0.1 * self.dx))
-        _, ds = source_wavelet(self.nt, self.dt, *p[ndim:])
+        s, ds = self.wavelet(p)
+        cols = list(self.position_derivatives(p[:ndim], s))
         cols += [self.data(p[:ndim], ds[k]) for k in range(N_PHYS)]
         return np.stack(cols)
 
 
-def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_window=None, bounds=None,
-           start=None, peak_frequency=None, method="lbfgs", scaled=True, max_iterations=60, max_evaluations=None,
-           order=4, pml_width=None, device="cpu", precision="float64", journal_path=None, options=None,
-           callback=None) -> LocationResult:  # fmt: skip
+def _simulation_kw(model, f0, order, pml_width, free_surface, device, precision):
+    return dict(order=order, pml_width=pml_width, device=device, precision=precision, pml_velocity=model.vmax,
+                pml_frequency=f0, free_surface=free_surface)  # fmt: skip
+
+
+def _check_options(method, stf, multi_start, frequency_range, smoothness):
+    if method not in METHODS:
+        raise ValueError(f"method: {method!r} is not one of {', '.join(METHODS)}")
+    if stf not in STFS:
+        raise ValueError(f"stf: {stf!r} is not one of {', '.join(STFS)}")
+    if int(multi_start) < 1:
+        raise ValueError(f"multi_start: {multi_start!r} < 1; give the number of starts to try (1: the best back-projection point)")
+    lo, hi = frequency_range
+    if not 0 < lo < 1 < hi:
+        raise ValueError(f"frequency_range: {frequency_range!r} must bracket 1 (factors of the start peak frequency), e.g. (0.3, 3)")
+    if smoothness < 0:
+        raise ValueError(f"smoothness: {smoothness!r} is negative; give 0 (none) or a positive weight")
+
+
+def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_window=None, bounds=None, start=None,
+           multi_start=1, peak_frequency=None, frequency_range=(0.3, 3.0), stf="ricker", smoothness=0.01,
+           method="lbfgs", scaled=True, max_iterations=60, max_evaluations=None, order=4, pml_width=None,
+           free_surface=False, device="cpu", precision="float64", stf_filter=None, noise_correlation=1.0,
+           journal_path=None, options=None, callback=None) -> LocationResult:  # fmt: skip
     """Locate one event. model: the velocity Model on the simulation grid (uniform spacing dx, node 0
     at model.origin); receivers (n, ndim) world metres; observed (n, nt) at t = k dt. bounds: ((lo, hi)
-    per axis) world metres (default: the model less 2 cells); start: dict(position, origin_time) to skip
-    the back-projection. method: "lbfgs" (L-BFGS-B), "gauss-newton", "gd", "adam"; scaled=False works
-    in raw units (m, s, Hz), which plain gradient descent cannot handle (the optimiser study).
-    callback(iteration, evaluations, position, origin_time) after every iteration."""
+    per axis) world metres (default: the model less 2 cells); start: dict(position, origin_time), or a
+    list of them, to skip the back-projection; multi_start: how many back-projection maxima to start
+    from (the lowest final misfit wins). peak_frequency: start f0 (Hz, default the data's dominant
+    frequency), bounded to frequency_range x f0. stf: "ricker" or "free" (samples with a smoothness
+    penalty of relative weight `smoothness`, see _fit_free). method: "lbfgs" (L-BFGS-B),
+    "gauss-newton", "gd", "adam"; scaled=False works in raw units (m, s, Hz), which plain gradient
+    descent cannot handle (the optimiser study). stf_filter: linear filter (callable on (..., nt)
+    arrays) applied to the Ricker STF, the data's preprocessing band-pass, so synthetics see the same
+    band. noise_correlation: the noise's integrated autocorrelation time in samples (1: white), by
+    which the covariance is inflated (band-limited noise has fewer independent samples); the
+    covariance is also inflated by the reduced chi-square of the fit when above 1 (misfit the noise
+    does not explain: model or STF error). callback(iteration, evaluations, position, origin_time)
+    after every iteration."""
     from adseismic.traces import check_inside, check_samples
 
+    _check_options(method, stf, multi_start, frequency_range, smoothness)
     dx = float(model.spacing[0])
     rec = np.asarray(receivers, float)
     obs = np.asarray(observed, float)
     n_rec, nt = obs.shape
-    ndim = model.ndim
     check_inside(rec, model, "receiver")
     check_samples(obs, [f"trace {i}" for i in range(n_rec)])  # NaN/inf refused, clipped traces warned about
     if bounds is None:
@@ -162,31 +235,57 @@ def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_windo
     if np.any(sigma <= 0):
         raise ValueError("noise_std: a trace has zero noise; give a window with noise or noise_std explicitly")
     if start is None:
-        start = back_projection(model, rec, obs, dt, bounds, max(2 * dx, 0.02 * max(hi - lo for lo, hi in bounds)))
-        log.info("back-projection start: position %s m, origin time %.4f s (stack %.2f)", start["position"], start["origin_time"], start["stack"])
+        starts = back_projection(model, rec, obs, dt, bounds, max(2 * dx, 0.02 * max(hi - lo for lo, hi in bounds)), n_best=int(multi_start))
+    else:
+        starts = [start] if isinstance(start, dict) else list(start)
     f0 = float(peak_frequency or dominant_frequency(obs[None], dt))
-    kw = dict(order=order, pml_width=pml_width, device=device, precision=precision, pml_velocity=model.vmax, pml_frequency=f0)
-    prob = _Problem(model, rec, nt, dt, kw)
-    w2 = 1.0 / sigma[:, None] ** 2
+    prob = _Problem(model, rec, nt, dt, _simulation_kw(model, f0, order, pml_width, free_surface, device, precision), stf_filter)
+    fit = dict(obs=obs, sigma=sigma, bounds=bounds, f0=f0, frequency_range=frequency_range, method=method, scaled=scaled,
+               max_iterations=max_iterations, max_evaluations=max_evaluations, journal_path=journal_path, options=options,
+               callback=callback)  # fmt: skip
+    runs = []
+    for k, st in enumerate(starts):
+        log.info("start %d/%d: position %s m, origin time %.4f s%s", k + 1, len(starts), np.round(st["position"], 2),
+                 st["origin_time"], f" (stack {st['stack']:.2f})" if "stack" in st else "")  # fmt: skip
+        runs.append(_fit_ricker(prob, st, **fit))
+        log.info("start %d/%d: misfit %.6g at %s m after %d evaluations (%s)", k + 1, len(starts), runs[-1]["misfit"],
+                 np.round(runs[-1]["p"][: model.ndim], 2), runs[-1]["evaluations"], runs[-1]["stop_reason"])  # fmt: skip
+    order_ = sorted(range(len(runs)), key=lambda i: runs[i]["misfit"])
+    best = runs[order_[0]]
+    candidates = [{**{k: v for k, v in starts[i].items() if k != "grid"}, "misfit": runs[i]["misfit"],
+                   "final_position": runs[i]["p"][: model.ndim]} for i in order_]  # fmt: skip
+    res = _ricker_result(prob, best, sigma) if stf == "ricker" else _fit_free(prob, best, obs, sigma, smoothness, bounds, max_iterations)
+    res.start, res.candidates = starts[order_[0]], candidates
+    res.inflation = float(noise_correlation) * max(1.0, 2 * res.misfit / obs.size)
+    res.covariance, res.parameter_covariance = res.covariance * res.inflation, res.parameter_covariance * res.inflation
+    return res
 
+
+def _fit_ricker(prob: _Problem, start, *, obs, sigma, bounds, f0, frequency_range, method, scaled, max_iterations,
+                max_evaluations, journal_path, options, callback) -> dict:  # fmt: skip
+    """One parametric (Ricker) fit from `start`; returns a dict with p = (position, T, f, A)."""
+    ndim, nt, dt, dx = prob.model.ndim, prob.nt, prob.dt, prob.dx
+    w2 = 1.0 / sigma[:, None] ** 2
+    pos0 = np.asarray(start["position"], float)
     # amplitude at the start by linear least squares (the data are linear in A)
-    d1 = prob.simulate(np.concatenate([start["position"], [start["origin_time"], f0, 1.0]]))
+    d1 = prob.simulate(np.concatenate([pos0, [start["origin_time"], f0, 1.0]]))
     A0 = float(np.sum(w2 * d1 * obs) / max(np.sum(w2 * d1 * d1), 1e-300))
-    phys0 = np.concatenate([start["position"], [start["origin_time"], f0, A0]])
+    phys0 = np.concatenate([pos0, [start["origin_time"], f0, A0]])
     scale = np.concatenate([np.full(ndim, dx), [dt, f0, abs(A0) or 1.0]]) if scaled else np.ones(ndim + N_PHYS)
-    lo = np.concatenate([[b[0] for b in bounds], [0.0, 0.3 * f0, -np.inf]]) / scale
-    hi = np.concatenate([[b[1] for b in bounds], [nt * dt, 3.0 * f0, np.inf]]) / scale
+    flo, fhi = frequency_range
+    lo = np.concatenate([[b[0] for b in bounds], [0.0, flo * f0, -np.inf]]) / scale
+    hi = np.concatenate([[b[1] for b in bounds], [nt * dt, fhi * f0, np.inf]]) / scale
 
     def objective(x):
         p = x * scale
-        s, ds = source_wavelet(nt, dt, *p[ndim:])
+        s, ds = prob.wavelet(p)
 
         def misfit(syn):
             r = (syn[0] - obs) * w2
             return 0.5 * float(np.sum((syn[0] - obs) * r)), r[None]
 
-        g = gradient(model.values, dx, dt, s[None, None], (p[:ndim] - prob.origin)[None, None], prob.rec, misfit=misfit,
-                     wrt=("source_amplitudes", "source_locations"), **kw)  # fmt: skip
+        g = gradient(prob.model.values, dx, dt, s[None, None], (p[:ndim] - prob.origin)[None, None], prob.rec, misfit=misfit,
+                     wrt=("source_amplitudes", "source_locations"), **prob.kw)  # fmt: skip
         grad = np.concatenate([g.source_locations[0, 0], ds @ g.source_amplitudes[0, 0]])
         return g.loss, grad * scale
 
@@ -210,12 +309,138 @@ def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_windo
                        callback=report, options=options)  # fmt: skip
         x, it, ev, reason, hist = res.x, res.iterations, res.evaluations, res.stop_reason, res.history
     p = x * scale
-    jr = (prob.jacobian(p) / sigma[None, :, None]).reshape(len(p), -1)
     syn = prob.simulate(p)
+    return {"p": p, "iterations": it, "evaluations": ev, "stop_reason": reason, "history": hist, "synthetic": syn,
+            "misfit": 0.5 * float(np.sum(((syn - obs) / sigma[:, None]) ** 2))}  # fmt: skip
+
+
+def _ricker_result(prob: _Problem, run: dict, sigma) -> LocationResult:
+    p, ndim = run["p"], prob.model.ndim
+    jr = (prob.jacobian(p) / sigma[None, :, None]).reshape(len(p), -1)
+    cov = np.linalg.inv(jr @ jr.T)
     return LocationResult(position=p[:ndim], origin_time=float(p[ndim]), peak_frequency=float(p[ndim + 1]),
-                          amplitude=float(p[ndim + 2]), covariance=np.linalg.inv(jr @ jr.T), noise_std=sigma,
-                          misfit=0.5 * float(np.sum(((syn - obs) / sigma[:, None]) ** 2)), iterations=it, evaluations=ev,
-                          stop_reason=reason, synthetic=syn, start=start, history=hist)  # fmt: skip
+                          amplitude=float(p[ndim + 2]), covariance=cov[: ndim + 1, : ndim + 1], parameter_covariance=cov,
+                          stf=prob.wavelet(p)[0], stf_kind="ricker", noise_std=sigma,
+                          misfit=run["misfit"], iterations=run["iterations"], evaluations=run["evaluations"],
+                          stop_reason=run["stop_reason"], synthetic=run["synthetic"], history=run["history"])  # fmt: skip
+
+
+def _convolve(g, h):
+    """Data (n_rec, nt) of the source-time function g (nt,) for impulse responses h (n_rec, nt): the
+    scheme is time-invariant and starts at rest, so a source at sample k gives h delayed by k."""
+    return np.stack([np.convolve(g, hr)[: len(g)] for hr in h])
+
+
+def _correlate(y, h):
+    """Adjoint of _convolve: c[k] = sum_i sum_t y_i(t) h_i(t - k), (nt,) for y, h (n_rec, nt)."""
+    nt = y.shape[1]
+    return sum(np.correlate(yr, hr, "full")[nt - 1 :] for yr, hr in zip(y, h))
+
+
+def _normal_matrix(h):
+    """(nt, nt) matrix G^T G of _convolve: sum_i sum_t h_i(t - k) h_i(t - l), built from running sums
+    of lagged products (memory nt^2, not n_rec nt^2)."""
+    nt = h.shape[1]
+    P = np.zeros((nt, nt))
+    for m in range(nt):
+        P[m, : nt - m] = np.cumsum(np.sum(h[:, m:] * h[:, : nt - m], axis=0))
+    k, l = np.indices((nt, nt))
+    return P[np.abs(k - l), nt - 1 - np.maximum(k, l)]
+
+
+def _peak_time(g, dt):
+    """Time (s) of max |g| by parabolic interpolation, and its gradient with respect to g (nt,)."""
+    k = int(np.clip(np.argmax(np.abs(g)), 1, len(g) - 2))
+    sgn = np.sign(g[k])
+    a, b, c = g[k - 1 : k + 2] * sgn
+    den = a - 2 * b + c
+    off = 0.5 * (a - c) / den
+    grad = np.zeros_like(g)
+    grad[k - 1 : k + 2] = sgn * 0.5 * np.array([(den - (a - c)) / den**2, 2 * (a - c) / den**2, (-den - (a - c)) / den**2])
+    return (k + off) * dt, grad * dt
+
+
+def _fit_free(prob: _Problem, run: dict, obs, sigma, smoothness, bounds, max_iterations, tol=1e-6) -> LocationResult:
+    """Free source-time function by variable projection, from the Ricker solution `run`.
+
+    For a position x the data are d = G(x) g (G: the impulse response delayed per sample), so the
+    best STF solves (G^T W G + mu D^T D) g = G^T W o (W = diag 1/sigma^2, D the second difference);
+    the position takes Levenberg-Marquardt steps on the projected residual with Kaufman's Jacobian
+    (G'(x) g with its part that a change of the STF can absorb projected out). mu = smoothness x (data curvature per STF sample) / (2 pi f0
+    dt)^4: at the Ricker's peak frequency the penalty weighs `smoothness` times the data term, and
+    it grows as f^4 above it.
+    """
+    ndim, nt, dt = prob.model.ndim, prob.nt, prob.dt
+    f0 = float(run["p"][ndim + 1])
+    spike = np.zeros(nt)
+    spike[0] = 1.0
+    w = 1.0 / sigma[:, None]
+    ow = obs * w
+    DtD = np.diff(np.eye(nt), 2, axis=0)
+    DtD = DtD.T @ DtD
+    lo, hi = np.array([b[0] for b in bounds]), np.array([b[1] for b in bounds])
+
+    def project(pos):
+        hw = prob.data(pos, spike) * w  # whitened impulse responses
+        H = _normal_matrix(hw)
+        mu = smoothness * np.trace(H) / nt / (2 * np.pi * f0 * dt) ** 4
+        g = np.linalg.solve(H + mu * DtD, _correlate(ow, hw))
+        r = _convolve(g, hw) - ow
+        return {"pos": pos, "hw": hw, "H": H, "mu": mu, "g": g, "r": r, "f": 0.5 * float(np.sum(r * r) + mu * g @ DtD @ g)}
+
+    def jac_position(cur, projected=True):
+        # d(residual)/d(position) (ndim, n_rec, nt), whitened; projected: with the STF re-solved for
+        # every position (Kaufman's variable-projection Jacobian), else at a fixed STF
+        J = prob.position_derivatives(cur["pos"], cur["g"]) * w
+        if projected:
+            J = np.stack([j - _convolve(np.linalg.solve(cur["H"] + cur["mu"] * DtD, _correlate(j, cur["hw"])), cur["hw"]) for j in J])
+        return J
+
+    cur, lam, hist, evals = project(np.asarray(run["p"][:ndim], float)), 1e-3, [], 1
+    reason = "max_iterations"
+    for it in range(1, max_iterations + 1):
+        Jx = jac_position(cur).reshape(ndim, -1)
+        evals += 2 * ndim
+        Hx, gx = Jx @ Jx.T, Jx @ cur["r"].ravel()
+        new = None
+        while lam <= 1e8:
+            step = -np.linalg.solve(Hx + lam * np.diag(np.diag(Hx)), gx)
+            if np.abs(step).max() < 1e-4 * prob.dx:
+                break
+            trial = project(np.clip(cur["pos"] + step, lo, hi))
+            evals += 1
+            if trial["f"] < cur["f"]:
+                new = trial
+                break
+            lam *= 10.0
+        if new is None:  # no step of a useful size decreases the misfit
+            reason = "converged"
+            break
+        decrease = cur["f"] - new["f"]
+        cur, lam = new, max(lam / 10.0, 1e-7)
+        hist.append({"iteration": it, "f": cur["f"], "step": float(np.abs(step).max()), "evaluations": evals})
+        if decrease < tol * cur["f"]:
+            reason = "rel_decrease"
+            break
+    # covariance over (position, STF samples) with the smoothness prior, then over (position, peak time)
+    Jx = jac_position(cur, projected=False)
+    H = np.zeros((ndim + nt, ndim + nt))
+    H[:ndim, :ndim] = Jx.reshape(ndim, -1) @ Jx.reshape(ndim, -1).T
+    H[:ndim, ndim:] = [_correlate(j, cur["hw"]) for j in Jx]
+    H[ndim:, :ndim] = H[:ndim, ndim:].T
+    H[ndim:, ndim:] = cur["H"] + cur["mu"] * DtD
+    C = np.linalg.inv(H)
+    T, dT = _peak_time(cur["g"], dt)
+    M = np.zeros((ndim + 1, ndim + nt))
+    M[:ndim, :ndim] = np.eye(ndim)
+    M[ndim, ndim:] = dT
+    syn = (cur["r"] + ow) / w
+    ricker = run["p"]
+    return LocationResult(position=cur["pos"], origin_time=float(T), peak_frequency=float(ricker[ndim + 1]),
+                          amplitude=float(ricker[ndim + 2]), covariance=M @ C @ M.T, parameter_covariance=C, stf=cur["g"],
+                          stf_kind="free", noise_std=sigma, misfit=0.5 * float(np.sum(((syn - obs) / sigma[:, None]) ** 2)),
+                          iterations=run["iterations"] + len(hist), evaluations=run["evaluations"] + evals,
+                          stop_reason=reason, synthetic=syn, history=run["history"] + hist)  # fmt: skip
 
 
 def _gauss_newton(prob: _Problem, x, scale, lo, hi, obs, sigma, max_iterations, tol=1e-6, report=None):
@@ -245,3 +470,86 @@ def _gauss_newton(prob: _Problem, x, scale, lo, hi, obs, sigma, max_iterations, 
         if done:
             return x, it, evals, "rel_decrease", hist
     return x, max_iterations, evals, "max_iterations", hist
+
+
+def misfit_map(model: Model, receivers, observed, dt, result: LocationResult, *, n=15, half_width=None, order=4,
+               pml_width=None, free_surface=False, device="cpu", precision="float64") -> dict:  # fmt: skip
+    """Misfit over an n x n grid of positions in the (z, x) plane through the solution (y fixed in 3D),
+    with the source-time function fixed at the solution's: a picture of the minimum that the
+    covariance ellipse describes. half_width (m): default max(4 sigma, 3 dx). Returns dict z, x
+    (n,) world metres and misfit (n, n) indexed [z, x]; positions outside the model are NaN."""
+    ndim, dx = model.ndim, float(model.spacing[0])
+    sd = np.sqrt(np.diag(result.covariance)[:ndim])
+    hw = float(half_width or max(4 * sd.max(), 3 * dx))
+    z = result.position[0] + np.linspace(-hw, hw, n)
+    x = result.position[-1] + np.linspace(-hw, hw, n)
+    pts = np.repeat(result.position[None], n * n, axis=0)
+    pts[:, 0], pts[:, -1] = np.repeat(z, n), np.tile(x, n)
+    inside = model.contains(pts)
+    obs = np.asarray(observed, float)
+    kw = _simulation_kw(model, result.peak_frequency, order, pml_width, free_surface, device, precision)
+    prob = _Problem(model, receivers, obs.shape[1], dt, kw)
+    out = np.full(n * n, np.nan)
+    idx = np.nonzero(inside)[0]
+    for b in range(0, len(idx), 64):  # batches of shots, one simulation each
+        k = idx[b : b + 64]
+        d = prob.data_many(pts[k], result.stf)
+        out[k] = 0.5 * np.sum(((d - obs[None]) / result.noise_std[None, :, None]) ** 2, axis=(1, 2))
+    return {"z": z, "x": x, "misfit": out.reshape(n, n)}
+
+
+def compare_optimizers(model: Model, receivers, observed, dt, noise_std, start, reference, *, max_evaluations=30,
+                       peak_frequency=None, progress=None, **kw) -> dict:  # fmt: skip
+    """The optimiser study on one event: L-BFGS-B, Gauss-Newton, gradient descent (strong-Wolfe
+    line search, first step 1) and Adam (lr 0.1) from the same start, each with the parameters
+    non-dimensionalised (position / dx, time / dt, f / f0, A / A0) and in raw units (m, s, Hz,
+    amplitude), at most max_evaluations evaluations (misfit + gradient; Gauss-Newton: forward runs).
+    reference: dict(position, origin_time) the distances are measured to (the converged location,
+    or the truth of a synthetic event). Also the condition number of the Gauss-Newton matrix at
+    the reference in both unit systems. kw: locate() options (order, pml_width, device, ...).
+    Returns {"rows": [...], "condition": {"scaled": c, "raw": c}}."""
+    runs = (("lbfgs", True, None), ("lbfgs", False, None), ("gauss-newton", True, None), ("gauss-newton", False, None),
+            ("gd", True, {"step": 1.0}), ("gd", False, {"step": 1.0}), ("adam", True, {"lr": 0.1}), ("adam", False, {"lr": 0.1}))  # fmt: skip
+    ref_pos, ref_t = np.asarray(reference["position"], float), float(reference["origin_time"])
+    rows = []
+    for method, scaled, options in runs:
+        hit = {}
+
+        def watch(iteration, evaluations, position, origin_time):
+            if "at" not in hit and np.linalg.norm(position - ref_pos) <= 1.0 and abs(origin_time - ref_t) <= 1e-3:
+                hit["at"] = evaluations
+
+        r = locate(model, receivers, observed, dt, noise_std=noise_std, start=start, method=method, scaled=scaled,
+                   peak_frequency=peak_frequency, max_iterations=1000 if method != "gauss-newton" else max_evaluations,
+                   max_evaluations=max_evaluations, options=options, callback=watch, **kw)  # fmt: skip
+        row = {"method": method, "parameters": "scaled" if scaled else "raw (m, s, Hz)", "options": options or {},
+               "position_error_m": float(np.linalg.norm(r.position - ref_pos)), "origin_time_error_ms": 1e3 * abs(r.origin_time - ref_t),
+               "evaluations": int(r.evaluations), "stop_reason": r.stop_reason, "reached_at": hit.get("at")}  # fmt: skip
+        rows.append(row)
+        if progress is not None:
+            progress(row)
+    # conditioning of the Gauss-Newton matrix at the reference, raw vs scaled
+    f0 = float(peak_frequency or dominant_frequency(np.asarray(observed)[None], dt))
+    prob = _Problem(model, receivers, np.shape(observed)[1], dt, _simulation_kw(model, f0, kw.get("order", 4), kw.get("pml_width"),
+                    kw.get("free_surface", False), kw.get("device", "cpu"), kw.get("precision", "float64")), kw.get("stf_filter"))  # fmt: skip
+    p_ref = np.concatenate([ref_pos, [ref_t, f0, 1.0]])
+    J = (prob.jacobian(p_ref) / np.asarray(noise_std)[None, :, None]).reshape(len(p_ref), -1)
+    scale = np.concatenate([np.full(model.ndim, float(model.spacing[0])), [dt, f0, 1.0]])
+    cond = {"raw": float(np.linalg.cond(J @ J.T)), "scaled": float(np.linalg.cond((J * scale[:, None]) @ (J * scale[:, None]).T))}
+    return {"rows": rows, "condition": cond}
+
+
+def optimizer_table(study: dict) -> str:
+    """Markdown table of compare_optimizers' result."""
+    lines = ["| method | parameters | options | position error (m) | origin-time error (ms) | evaluations | within 1 m and 1 ms at evaluation |",
+             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for r in study["rows"]:
+        opts = ", ".join(f"{k} {v:g}" for k, v in r["options"].items())
+        lines.append(f"| {r['method']} | {r['parameters']} | {opts} | {r['position_error_m']:.3g} | {r['origin_time_error_ms']:.3g} | "
+                     f"{r['evaluations']} ({r['stop_reason']}) | {r['reached_at'] or 'never'} |")  # fmt: skip
+    c = study["condition"]
+    lines.append("")
+    lines.append(f"Condition number of the Gauss-Newton matrix at the solution: {c['raw']:.3g} in raw units (m, s, Hz), "
+                 f"{c['scaled']:.3g} non-dimensionalised.")  # fmt: skip
+    return "\n".join(lines)
+

@@ -14,7 +14,7 @@ import numpy as np
 
 from adseismic.io import atomic_path
 
-__all__ = ["plot_model", "plot_gather", "plot_snapshots", "plot_misfit", "save_figure", "xz_slice"]
+__all__ = ["plot_model", "plot_gather", "plot_snapshots", "plot_misfit", "plot_station_traces", "plot_location", "save_figure", "xz_slice"]
 
 
 def _figure(width: float, height: float):
@@ -197,4 +197,85 @@ def plot_snapshots(path, snapshots, times, spacing: float, origin, sources=None,
         if i >= len(pick) - cols:
             ax.set_xlabel(f"x ({unit})", fontsize=8)
     fig.suptitle(title or "wavefield snapshots")
+    return save_figure(fig, path)
+
+
+def plot_station_traces(path, observed, synthetic, dt: float, names, t0: float = 0.0, title: str = "") -> pathlib.Path:
+    """Observed (black) against synthetic (red) traces (n_traces, nt), one row per trace, each
+    normalised by its observed peak; time axis t0 + k dt (s)."""
+    obs, syn = np.asarray(observed, float), np.asarray(synthetic, float)
+    n, nt = obs.shape
+    t = t0 + dt * np.arange(nt)
+    fig = _figure(9.0, 1.0 + 0.45 * n)
+    ax = fig.add_subplot()
+    for i in range(n):
+        norm = 0.45 / (np.abs(obs[i]).max() or 1.0)
+        ax.plot(t, i + norm * obs[i], color="k", lw=0.8, label="observed" if i == 0 else None)
+        ax.plot(t, i + norm * syn[i], color="tab:red", lw=0.8, label="synthetic" if i == 0 else None)
+    ax.set_yticks(range(n), [str(s) for s in names], fontsize=7)
+    ax.set_ylim(n - 0.4, -0.6)
+    ax.set_xlabel("time after the record start (s)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(title or "observed and synthetic traces (each scaled by its observed peak)")
+    return save_figure(fig, path)
+
+
+def _ellipse_xy(cov_zx, center_zx, k: float, n: int = 100):
+    """Points (x, z) of the ellipse d^T C^-1 d = k^2 of a (z, x) covariance about center."""
+    w, v = np.linalg.eigh(np.asarray(cov_zx, float))
+    a = np.linspace(0, 2 * np.pi, n)
+    pts = (v @ (k * np.sqrt(np.maximum(w, 0))[:, None] * np.stack([np.cos(a), np.sin(a)]))).T + np.asarray(center_zx)
+    return pts[:, 1], pts[:, 0]
+
+
+def plot_location(path, model, stations, result_zx, cov_zx, k: float, misfit_map: dict, candidates=(), truth_zx=None,
+                  stack=None, title: str = "") -> pathlib.Path:  # fmt: skip
+    """Two panels: the model's (z, x) section (a slice through the event in 3D) with the stations,
+    the back-projection stack (contours), the start candidates and the located event with its
+    confidence ellipse (k: the ellipse scale for its confidence, adseismic.quakeml.confidence_scale);
+    and the waveform misfit over positions near the event (misfit_map: z, x, misfit) with the same
+    ellipse. Positions in world metres, (z, x)."""
+    vals, _ = xz_slice(model.values, model.origin, model.spacing[0], y=None if model.ndim == 2 else result_zx[1])
+    (z0, z1), (x0, x1) = model.extent[0], model.extent[-1]
+    kd, unit = _scale(max(z1 - z0, x1 - x0))
+    pos = np.asarray(result_zx, float)[[0, -1]]
+    ex, ez = _ellipse_xy(cov_zx, pos, k)
+    fig = _figure(13.0, 5.0)
+    ax, bx = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+    im = ax.imshow(vals, extent=(x0 / kd, x1 / kd, z1 / kd, z0 / kd), cmap="viridis", aspect="equal")
+    fig.colorbar(im, ax=ax, label="velocity (m/s)", shrink=0.8)
+    if stack is not None:
+        axes, s = stack["axes"], np.asarray(stack["stack"])
+        if s.ndim == 3:
+            s = s.max(axis=1)
+        ax.contour(np.asarray(axes[-1]) / kd, np.asarray(axes[0]) / kd, s, levels=6, colors="w", linewidths=0.6, alpha=0.8)
+    st = np.asarray(stations, float)
+    ax.plot(st[:, -1] / kd, st[:, 0] / kd, "v", color="tab:orange", ms=7, mec="k", label="stations")
+    for i, c in enumerate(candidates):
+        ax.plot(c["position"][-1] / kd, c["position"][0] / kd, "s", mfc="none", mec="w", ms=7, label="start(s)" if i == 0 else None)
+    ax.plot(pos[1] / kd, pos[0] / kd, "*", color="tab:red", ms=14, mec="k", label="located")
+    ax.plot(ex / kd, ez / kd, color="tab:red", lw=1.2)
+    if truth_zx is not None:
+        ax.plot(truth_zx[-1] / kd, truth_zx[0] / kd, "+", color="w", ms=12, mew=2, label="truth")
+    ax.set_xlabel(f"x ({unit})")
+    ax.set_ylabel(f"z ({unit})")
+    ax.legend(loc="lower left", fontsize=8)
+    ax.set_title("model, stations, back-projection stack, location")
+    m = misfit_map
+    mis = np.asarray(m["misfit"], float)
+    lev = np.nanmin(mis) + np.array([0.5, 1, 2, 4, 8, 16, 32, 64]) * max(k, 1.0) ** 2
+    bx.contourf(m["x"], m["z"], np.log10(mis - np.nanmin(mis) + 1.0), levels=20, cmap="magma_r")
+    cs = bx.contour(m["x"], m["z"], mis, levels=lev, colors="k", linewidths=0.5)
+    bx.clabel(cs, fontsize=6, fmt=lambda v: f"+{v - np.nanmin(mis):.3g}")
+    bx.plot(ex, ez, color="tab:cyan", lw=1.5, label="confidence ellipse")
+    bx.plot(pos[1], pos[0], "*", color="tab:cyan", ms=12, mec="k")
+    if truth_zx is not None:
+        bx.plot(truth_zx[-1], truth_zx[0], "+", color="tab:green", ms=12, mew=2, label="truth")
+    bx.invert_yaxis()
+    bx.set_aspect("equal")
+    bx.set_xlabel("x (m)")
+    bx.set_ylabel("z (m)")
+    bx.legend(loc="lower left", fontsize=8)
+    bx.set_title("waveform misfit near the event\n(contours: increase above the minimum)")
+    fig.suptitle(title)
     return save_figure(fig, path)

@@ -13,13 +13,14 @@ Conventions (shared by every public function of adseismic):
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 from tqdm.auto import tqdm
 
-from adseismic.kernels.acoustic import HICKS_RADIUS, Acoustic
+from adseismic.kernels.acoustic import HICKS_RADIUS, Acoustic, tick
 from adseismic.numerics import cfl_limit, check_order
 
 log = logging.getLogger(__name__)
@@ -28,6 +29,7 @@ DTYPES = {"float32": wp.float32, "float64": wp.float64}
 DEFAULT_PML_WIDTH = 20
 DEFAULT_PML_REFLECTION = {2: 1e-3, 4: 1e-3, 8: 1e-5}  # reference.md section 3
 BLOWUP_FACTOR = 1e3  # max|u| after the source ends vs. its peak during injection
+GRAPH_STEPS = 50  # time steps per captured CUDA graph in forward (rounded to a multiple of the checks)
 
 
 class PropagationError(RuntimeError):
@@ -82,13 +84,19 @@ def to_zyx(locations: np.ndarray, ndim: int) -> np.ndarray:
 
 
 def check_inputs(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order):
-    """Shape, value and stability checks shared by forward and gradient; raises ValueError."""
+    """Shape, value and stability checks shared by forward and gradient; raises ValueError. Returns ndim."""
+    return _check(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order)[0]
+
+
+def _check(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order):
+    """check_inputs, returning (ndim, max velocity in m/s)."""
     v = np.asarray(velocity)
     ndim = v.ndim
     if ndim not in (2, 3):
         raise ValueError(f"velocity must be 2D (nz, nx) or 3D (nz, ny, nx); got shape {v.shape}")
     check_order(order)
-    if not np.all(np.isfinite(v)) or v.min() <= 0:
+    vmin, vmax = float(v.min()), float(v.max())  # NaN propagates: one pass each, not isfinite + min
+    if not (math.isfinite(vmin) and math.isfinite(vmax)) or vmin <= 0:
         bad = np.argwhere(~np.isfinite(v) | (v <= 0))
         raise ValueError(f"velocity has {len(bad)} non-finite or non-positive values (first at index {tuple(bad[0])}); fix the model")
     amp = np.asarray(source_amplitudes)
@@ -106,13 +114,13 @@ def check_inputs(velocity, dx, dt, source_amplitudes, source_locations, receiver
     if sl.shape[1] != amp.shape[1]:
         raise ValueError(f"source_locations has {sl.shape[1]} sources per shot but source_amplitudes has {amp.shape[1]}")
     limit = cfl_limit(order, ndim)
-    courant = float(v.max()) * dt / dx
+    courant = vmax * dt / dx
     if courant > limit:
         raise ValueError(
             f"dt = {dt:.6g} s is unstable: Courant number v_max dt/dx = {courant:.4f} exceeds the limit "
-            f"{limit:.4f} of order {order} in {ndim}D; use dt <= {limit * dx / v.max():.6g} s"
+            f"{limit:.4f} of order {order} in {ndim}D; use dt <= {limit * dx / vmax:.6g} s"
         )
-    return ndim
+    return ndim, vmax
 
 
 def make_propagator(velocity, dx, dt, n_shots, order, pml_width, pml_reflection, pml_frequency,
@@ -150,7 +158,10 @@ class BlowupGuard:
         if n % self.every:
             return
         self.prop.monitor(u, self.stats)
-        amax, nonfinite = self.stats.numpy()
+        self.check(n, *self.stats.numpy())
+
+    def check(self, n: int, amax: float, nonfinite: float):
+        """Judge the statistics (max |u|, count of non-finite values) of level n; raises PropagationError."""
         if n <= self.source_end:
             self.peak = max(self.peak, float(amax))
         runaway = n > self.source_end and self.peak > 0 and amax > BLOWUP_FACTOR * self.peak
@@ -189,14 +200,16 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
     """Validate the inputs and move them to the device; requires_grad names the arrays to differentiate
     ("velocity", "source_amplitudes", "source_locations")."""
     amp = np.asarray(source_amplitudes, dtype=float)
-    ndim = check_inputs(velocity, dx, dt, amp, source_locations, receiver_locations, order)
+    ndim, vmax = _check(velocity, dx, dt, amp, source_locations, receiver_locations, order)
     f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
-    prop = make_propagator(velocity, dx, dt, amp.shape[0], order, pml_width, pml_reflection, f_pml, free_surface, device, precision, pml_velocity)
+    vref = vmax if pml_velocity is None else pml_velocity
+    prop = make_propagator(velocity, dx, dt, amp.shape[0], order, pml_width, pml_reflection, f_pml, free_surface, device, precision, vref)
+    vel = np.asarray(velocity, dtype=wp.dtype_to_numpy(prop.dtype))  # one conversion, straight to the device type
 
     def put(x, name):
         return wp.array(x, dtype=prop.dtype, device=prop.device, requires_grad=name in requires_grad)
 
-    su = Setup(prop, ndim, amp.shape[2], put(velocity_3d(velocity), "velocity"), put(amp, "source_amplitudes"),
+    su = Setup(prop, ndim, amp.shape[2], put(vel[:, None, :] if ndim == 2 else vel, "velocity"), put(amp, "source_amplitudes"),
                put(to_zyx(source_locations, ndim), "source_locations"), put(to_zyx(receiver_locations, ndim), "receiver_locations"))  # fmt: skip
     su.source_op = prop.operator(su.sources, differentiable="source_locations" in requires_grad)
     su.receiver_op = prop.operator(su.receivers)
@@ -219,6 +232,42 @@ def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback
         st = prop.step(st, vpad, next_state() if next_state is not None else None, tape=tape)
         prop.inject(st.u, vpad, su.amplitudes, su.source_op, n)
     return st
+
+
+def run_graphs(su: Setup, st, vpad, data, guard: BlowupGuard, progress=None):
+    """The untaped time loop of run_steps on a CUDA device as replays of one captured graph of K steps
+    (record, the guard's checks, step, inject; K even, as in-place steps swap u and u_prev, and a
+    multiple of guard.every), reading the guard's statistics after each replay. Returns the state and
+    the first level not run (for run_steps to finish), or (st, 0) if fewer than two graphs fit."""
+    prop = su.prop
+    K = math.lcm(2, guard.every)
+    K *= max(1, GRAPH_STEPS // K)
+    graphs = (su.nt - 1) // K  # levels below graphs * K are each followed by a step
+    if not prop.cuda or graphs < 2:
+        return st, 0
+    checks = K // guard.every
+    stats = wp.zeros((checks, 2), dtype=prop.dtype, device=prop.device)
+    clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
+    kernels = [prop.k.monitor, prop.k.step, prop.k.step_frame, prop.k.step_core, tick, *(prop.k.psi[a][0] for a in range(3))]
+    kernels += [prop.k.record_fixed if isinstance(su.receiver_op, tuple) else prop.k.record]
+    kernels += [prop.k.inject_fixed if isinstance(su.source_op, tuple) else prop.k.inject]
+    for k in kernels:
+        wp.load_module(k.module, device=prop.device)
+    with wp.ScopedCapture(device=prop.device, force_module_load=False) as capture:
+        for k in range(K):
+            prop.record(st.u, data, su.receiver_op, k, clock)
+            if k % guard.every == 0:
+                prop.monitor(st.u, stats[k // guard.every])
+            st = prop.step(st, vpad)
+            prop.inject(st.u, vpad, su.amplitudes, su.source_op, k, clock)
+        wp.launch(tick, dim=1, inputs=[clock, K], device=prop.device)
+    for g in range(graphs):
+        wp.capture_launch(capture.graph)
+        for j, (amax, nonfinite) in enumerate(stats.numpy()):
+            guard.check(g * K + j * guard.every, float(amax), float(nonfinite))
+        if progress is not None:
+            progress.update(K)
+    return st, graphs * K
 
 
 def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4,
@@ -256,7 +305,12 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
             snap_t.append(n * dt)
         bar.update()
 
-    run_steps(su, prop.new_state(), prop.pad_model(su.velocity), data, range(su.nt), callback=callback)
+    st, vpad = prop.new_state(), prop.pad_model(su.velocity)
+    start = 0
+    if not snapshot_every:
+        st, start = run_graphs(su, st, vpad, data, guard, bar)
+    run_data = data if start == 0 else data[:, :, start:]
+    run_steps(su, st, vpad, run_data, range(start, su.nt), callback=callback)
     bar.close()
     return ForwardResult(
         receiver_amplitudes=data.numpy().astype(float),

@@ -24,13 +24,13 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from adseismic.models import Model
-from adseismic.numerics import cfl_limit, dispersion_error, ppw_for_error
+from adseismic.numerics import cfl_limit, dispersion_error, ppw_for_error, rayleigh_speed, staggered_cfl_limit, staggered_dispersion_error
 from adseismic.propagate import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH, ForwardResult, forward
 from adseismic.wavelets import duration, make_wavelet, spectral_fmax
 
 # Padded-grid cell updates per second used for the time estimate (forward): the rates measured in
 # docs/benchmarks.md (2-core CPU VM: 30 M/s on one core; H200: 35 G/s on large grids), rounded down.
-EST_RATE = {"cpu": 2.5e7, "cuda": 3.0e10}
+EST_RATE = {"cpu": 5.0e7, "cuda": 3.0e10}
 SAFETY_STEPS = tuple(np.linspace(1.0, 0.1, 37))  # fractions of cfl_safety searched for the cheapest (dx, dt)
 
 
@@ -289,3 +289,77 @@ def run_forward(scene: Scene, snapshot_every: int = 0, progress: bool = False) -
         order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface,
         device=p.device, precision=p.precision, snapshot_every=snapshot_every, progress=progress,
     )  # fmt: skip
+
+
+# --- Elastic (velocity-stress, staggered grid) --------------------------------------------------------
+
+RAYLEIGH_PPW = 20.0  # points per Rayleigh wavelength at f_max with a free surface (Lamb's problem, order 4:
+# 21 points give <= 2.7% trace error, 10 points 9%; docs/accuracy.md; reference.md asks 15-30)
+
+
+@dataclass
+class ElasticGridPlan:
+    """dx (m) and dt (s) for the 2D elastic scheme, with the wave that set them and the reasons."""
+
+    dx: float
+    dt: float
+    courant: float
+    cfl_limit: float
+    slowest: str
+    expected_error: float
+    reasons: dict = field(default_factory=dict)
+
+
+def plan_elastic_grid(vp_range, vs_min: float, f_max: float, order: int = 4, accuracy: float = 0.01,
+                      cfl_safety: float = 0.9, free_surface: bool = False) -> ElasticGridPlan:  # fmt: skip
+    """Coarsest dx and its dt for the staggered elastic scheme (kernels/elastic.py).
+
+    vp_range (vp_min, vp_max) m/s; vs_min m/s (0 for a fluid somewhere: the slowest wave is then vp_min);
+    f_max Hz. The slowest wave is S (or P in a fluid), or with a free surface the Rayleigh wave, which
+    also needs RAYLEIGH_PPW points per wavelength (its error is set by the free-surface stencils, not by
+    the interior dispersion). dt = cfl_safety x the staggered CFL limit for vp_max; dx meets the
+    worst-direction group-velocity `accuracy` at f_max (numerics.staggered_dispersion_error) for the
+    slowest and the fastest wave.
+    """
+    vp_min, vp_max = (float(v) for v in vp_range)
+    limit = staggered_cfl_limit(order, 2)
+    c_max = cfl_safety * limit
+    if vs_min > 0:
+        slow, name = float(vs_min), "S"
+    else:
+        slow, name = vp_min, "P (fluid)"
+    need = []
+    for v, label in ((slow, name), (vp_max, "P")):
+        ppw = _staggered_ppw(order, c_max * v / vp_max, accuracy)
+        need.append((v / (f_max * ppw), f"{ppw:.1f} points per {label} wavelength ({v:.0f} m/s) for a {100 * accuracy:g}% group-velocity error"))
+    if free_surface and vs_min > 0:
+        c_r = rayleigh_speed(vp_min, vs_min)
+        need.append((c_r / (f_max * RAYLEIGH_PPW), f"{RAYLEIGH_PPW:g} points per Rayleigh wavelength (c_R {c_r:.0f} m/s) at the free surface"))
+        name = "Rayleigh"
+    dx, why = min(need, key=lambda t: t[0])
+    dx = _nice_floor(dx)
+
+    def error(dx, dt):
+        return max(staggered_dispersion_error(order, 2, v / (f_max * dx), v * dt / dx)["group"][0] for v in (slow, vp_max))
+
+    dt = _nice_floor(c_max * dx / vp_max)
+    while error(dx, dt) > accuracy:  # rounding moves the Courant number, and the error is not monotonic in it
+        dx = _nice_floor(0.98 * dx)
+        dt = _nice_floor(c_max * dx / vp_max)
+    courant, err = vp_max * dt / dx, error(dx, dt)
+    return ElasticGridPlan(dx=dx, dt=dt, courant=courant, cfl_limit=limit, slowest=name, expected_error=float(err),
+                           reasons={"dx": why, "dt": f"{cfl_safety:g} x the staggered CFL limit {limit:.4f} (order {order}) for vp_max {vp_max:.0f} m/s"})  # fmt: skip
+
+
+def _staggered_ppw(order: int, courant: float, target: float) -> float:
+    """Fewest points per wavelength with a staggered group-velocity error <= target (bisection)."""
+    lo, hi = 2.0, 400.0
+    if staggered_dispersion_error(order, 2, hi, courant)["group"][0] > target:
+        raise ValueError(f"a group-velocity error of {target:g} is unreachable at order {order} with Courant number {courant:.3f}")
+    for _ in range(60):
+        mid = math.sqrt(lo * hi)
+        if staggered_dispersion_error(order, 2, mid, courant)["group"][0] <= target:
+            hi = mid
+        else:
+            lo = mid
+    return hi

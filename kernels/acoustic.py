@@ -30,6 +30,8 @@ input, so each time step can be differentiated by wp.Tape when given its own arr
 
 import functools
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
@@ -37,6 +39,10 @@ import warp as wp
 from adseismic.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 
 HICKS_RADIUS = 4
+GPU_TILE = (32, 64)  # interior cells (z, x) per block of the 2D GPU forward step
+GPU_TILE_THREADS = 128  # threads per block of that step (128: 87 Gcell/s on S4000, 256: 78, 512: 65)
+CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over row blocks of a CPU step
+MONITOR_BLOCK = 256
 HICKS_B = 6.31
 _I0_TERMS = 20
 
@@ -50,8 +56,9 @@ def _i0(x: float) -> float:
 
 
 @functools.lru_cache(maxsize=None)
-def build(ndim: int, order: int, dtype, free_surface: bool):
-    """Kernels for one (ndim, order, dtype, free_surface) combination, compiled once per process."""
+def build(ndim: int, order: int, dtype, free_surface: bool, tile=GPU_TILE):
+    """Kernels for one (ndim, order, dtype, free_surface) combination, compiled once per process; tile:
+    (z, x) cells per block of the 2D GPU core step (default GPU_TILE)."""
     R = order // 2
     A = SECOND_DERIVATIVE[order]
     B = FIRST_DERIVATIVE[order]
@@ -62,6 +69,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     fs = bool(free_surface)
     three = ndim == 3
     arr1 = wp.array(dtype=dtype)
+    iarr1 = wp.array(dtype=wp.int32)
     arr3 = wp.array3d(dtype=dtype)
     arr4 = wp.array4d(dtype=dtype)
 
@@ -144,15 +152,23 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     d2z, d2y, d2x = make_d2(0), make_d2(1), make_d2(2)
     d1 = (make_d1(0), make_d1(1), make_d1(2))
     d1t = (make_d1_transpose(0), make_d1_transpose(1), make_d1_transpose(2))
-    dpsi_z, dpsi_y, dpsi_x = d1  # d(psi)/dx inside the strips
-    sdp_z, sdp_y, sdp_x = d1t
+    vecw = wp.types.vector(length=2 * R + 1, dtype=dtype)
 
-    def make_psi(axis: int):
-        # psi along one axis (0: z, 1: y, 2: x) for every cell of that axis' strip.
+    @wp.func
+    def d2w(w: vecw) -> dtype:
+        # second derivative (times dx^2) from a window of the 2R+1 values centred on the cell: the sum of
+        # d2z/d2x in the same order, so the line kernels reproduce the per-cell kernel bit for bit
+        acc = dtype(wp.static(A[0])) * w[wp.static(R)]
+        for m in range(wp.static(R)):
+            acc += dtype(wp.static(A[m + 1])) * (w[wp.static(R + 1) + m] + w[wp.static(R - 1) - m])
+        return acc
+
+    def make_psi_cell(axis: int):
+        # psi along one axis (0: z, 1: y, 2: x) at one cell (s, i, j, k) of that axis' strip
         deriv = d1[axis]
-        @wp.kernel(module="unique")
-        def psi_kernel(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype):
-            s, i, j, k = wp.tid()
+
+        @wp.func
+        def psi_cell(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype, s: int, i: int, j: int, k: int):
             if wp.static(axis == 0):
                 p = ax.pos[i]
             elif wp.static(axis == 1):
@@ -171,10 +187,104 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                 val = ax.b[p] * psi_old[s, i, j, k] + a * du * inv_dx
             psi_new[s, i, j, k] = val
 
-        return psi_kernel
+        return psi_cell
 
+    def make_psi(axis: int):
+        # one thread per strip cell (GPU, and Warp's generated adjoint)
+        cell = make_psi_cell(axis)
 
-    @wp.kernel(module="unique")
+        @wp.kernel(module="unique", grid_stride=False)
+        def psi_kernel(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype):
+            s, i, j, k = wp.tid()
+            cell(u, psi_old, psi_new, ax, inv_dx, s, i, j, k)
+
+        # one thread per strip row from row `first`, looping over x (CPU)
+        @wp.kernel(module="unique")
+        def psi_rows(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype, first: int):
+            s, i, j = wp.tid()
+            for k in range(psi_new.shape[3]):
+                cell(u, psi_old, psi_new, ax, inv_dx, s, first + i, j, k)
+
+        return psi_kernel, psi_rows
+
+    def make_stretch(axis: int):
+        # CPML-stretched second derivative along `axis` from t = d2u/dx2 at (s, z, y, x): in the strip
+        # t + d(psi)/dx + zeta_new (zeta_new stored), else t
+        dpsi = d1[axis]
+
+        @wp.func
+        def stretch(t: dtype, s: int, z: int, y: int, x: int, psi: arr4, zeta: arr4, zeta_new: arr4, ca: Axis, inv_dx: dtype) -> dtype:
+            p = z
+            if wp.static(axis == 1):
+                p = y
+            elif wp.static(axis == 2):
+                p = x
+            j = ca.store[p]
+            if j >= 0:
+                iz = z
+                iy = y
+                ix = x
+                if wp.static(axis == 0):
+                    iz = j
+                elif wp.static(axis == 1):
+                    iy = j
+                else:
+                    ix = j
+                g = t + dpsi(psi, s, iz, iy, ix) * inv_dx
+                zn = ca.b[p] * zeta[s, iz, iy, ix] + ca.a[p] * g
+                zeta_new[s, iz, iy, ix] = zn
+                return g + zn
+            return t
+
+        return stretch
+
+    stretch_z, stretch_y, stretch_x = make_stretch(0), make_stretch(1), make_stretch(2)
+
+    @wp.func
+    def advance(uc: dtype, up: dtype, vv: dtype, dt2: dtype, lap: dtype) -> dtype:
+        # u[n+1] from u[n] = uc, u[n-1] = up, the velocity vv and the (stretched) Laplacian lap
+        return dtype(2.0) * uc - up + vv * vv * dt2 * lap
+
+    @wp.func
+    def advance_core(uc: dtype, up: dtype, vv: dtype, dzz: dtype, dxx: dtype, dt2: dtype, inv_dx2: dtype) -> dtype:
+        # advance outside the CPML strips, from the second derivatives along z and x (times dx^2)
+        return advance(uc, up, vv, dt2, dzz * inv_dx2 + dxx * inv_dx2)
+
+    @wp.func
+    def update(
+        u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
+        psi_z: arr4, psi_y: arr4, psi_x: arr4,
+        zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
+        s: int, z: int, y: int, x: int, dzz: dtype, dxx: dtype, uc: dtype,
+    ):  # fmt: skip
+        # u_next at one cell from uc = u there and its d2u along z and x (times dx^2)
+        inv_dx2 = inv_dx * inv_dx
+        lap = stretch_z(dzz * inv_dx2, s, z, y, x, psi_z, zeta_z, zeta_z_new, az, inv_dx)
+        lap = lap + stretch_x(dxx * inv_dx2, s, z, y, x, psi_x, zeta_x, zeta_x_new, ax, inv_dx)
+        if wp.static(three):
+            lap = lap + stretch_y(d2y(u, s, z, y, x, top) * inv_dx2, s, z, y, x, psi_y, zeta_y, zeta_y_new, ay, inv_dx)
+        u_next[s, z, y, x] = advance(uc, u_prev[s, z, y, x], v[z, y, x], dt2, lap)
+
+    @wp.func
+    def cell(
+        u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
+        psi_z: arr4, psi_y: arr4, psi_x: arr4,
+        zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
+        s: int, z: int, y: int, x: int,
+    ):  # fmt: skip
+        # u_next at interior cell (s, z, y, x), read straight from the arrays (0 on a free surface)
+        if wp.static(fs):
+            if z == top:
+                u_next[s, z, y, x] = dtype(0.0)
+                return
+        update(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+               az, ay, ax, dt2, inv_dx, top, s, z, y, x, d2z(u, s, z, y, x, top), d2x(u, s, z, y, x, top), u[s, z, y, x])  # fmt: skip
+
+    @wp.kernel(module="unique", grid_stride=False)
     def step(
         u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
         psi_z: arr4, psi_y: arr4, psi_x: arr4,
@@ -183,51 +293,131 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         az: Axis, ay: Axis, ax: Axis,
         dt2: dtype, inv_dx: dtype, top: int,
     ):  # fmt: skip
+        # Reference step: one thread per interior cell (what Warp differentiates for adjoint="warp").
         s, zi, yi, xi = wp.tid()
         z = zi + wp.static(R)
         x = xi + wp.static(R)
         y = yi
         if wp.static(three):
             y = yi + wp.static(R)
-        if wp.static(fs):
-            if z == top:
-                u_next[s, z, y, x] = dtype(0.0)
-                return
-        inv_dx2 = inv_dx * inv_dx
-        uzz = d2z(u, s, z, y, x, top) * inv_dx2
-        jz = az.store[z]
-        if jz >= 0:
-            g = uzz + dpsi_z(psi_z, s, jz, y, x) * inv_dx
-            zn = az.b[z] * zeta_z[s, jz, y, x] + az.a[z] * g
-            zeta_z_new[s, jz, y, x] = zn
-            uzz = g + zn
-        uxx = d2x(u, s, z, y, x, top) * inv_dx2
-        jx = ax.store[x]
-        if jx >= 0:
-            g = uxx + dpsi_x(psi_x, s, z, y, jx) * inv_dx
-            zn = ax.b[x] * zeta_x[s, z, y, jx] + ax.a[x] * g
-            zeta_x_new[s, z, y, jx] = zn
-            uxx = g + zn
-        lap = uzz + uxx
-        if wp.static(three):
-            uyy = d2y(u, s, z, y, x, top) * inv_dx2
-            jy = ay.store[y]
-            if jy >= 0:
-                g = uyy + dpsi_y(psi_y, s, z, jy, x) * inv_dx
-                zn = ay.b[y] * zeta_y[s, z, jy, x] + ay.a[y] * g
-                zeta_y_new[s, z, jy, x] = zn
-                uyy = g + zn
-            lap = lap + uyy
-        vv = v[z, y, x]
-        u_next[s, z, y, x] = dtype(2.0) * u[s, z, y, x] - u_prev[s, z, y, x] + vv * vv * dt2 * lap
+        cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+             az, ay, ax, dt2, inv_dx, top, s, z, y, x)  # fmt: skip
 
-    # --- Hand-written adjoints of psi_kernel and step (scatter form). They match Warp's generated
-    # adjoints (tests/test_gradient.py) without replaying every read, and are what the taped steps use.
+    @wp.kernel(module="unique", grid_stride=False)
+    def step_rows(
+        u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
+        psi_z: arr4, psi_y: arr4, psi_x: arr4,
+        zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis,
+        dt2: dtype, inv_dx: dtype, top: int, first: int,
+    ):  # fmt: skip
+        # Forward-only step on the CPU: one thread per interior row (row `first` + zi), looping over x
+        # with the stencil's values along x in a sliding window.
+        s, zi, yi = wp.tid()
+        y = yi
+        if wp.static(three):
+            y = yi + wp.static(R)
+        z = first + zi
+        end = u.shape[3] - wp.static(R)
+        surface = False
+        if wp.static(fs):
+            surface = z == top
+        w = vecw()
+        for m in range(wp.static(2 * R + 1)):
+            w[m] = u[s, z, y, m]
+        for x in range(wp.static(R), end):
+            if surface:
+                u_next[s, z, y, x] = dtype(0.0)
+            else:
+                update(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                       az, ay, ax, dt2, inv_dx, top, s, z, y, x, d2z(u, s, z, y, x, top), d2w(w), w[wp.static(R)])  # fmt: skip
+            if x + 1 < end:
+                for m in range(wp.static(2 * R)):
+                    w[m] = w[m + 1]
+                w[wp.static(2 * R)] = u[s, z, y, x + wp.static(R + 1)]
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def step_frame(
+        u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
+        psi_z: arr4, psi_y: arr4, psi_x: arr4,
+        zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis,
+        dt2: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
+    ):  # fmt: skip
+        # 2D GPU step of the interior cells outside the core rows [core[0], core[1]) x columns
+        # [core[2], core[3]) (padded indices): the CPML strips and free-surface rows, as the reference
+        # step does them. Thread f of a shot: first the full rows above and below the core, then the
+        # left and right parts of the core rows.
+        s, f = wp.tid()
+        nx = u.shape[3] - wp.static(2 * R)
+        above = (core[0] - wp.static(R)) * nx
+        below = (u.shape[1] - wp.static(R) - core[1]) * nx
+        left = core[2] - wp.static(R)
+        if f < above:
+            z = wp.static(R) + f // nx
+            x = wp.static(R) + f % nx
+        elif f < above + below:
+            z = core[1] + (f - above) // nx
+            x = wp.static(R) + (f - above) % nx
+        else:
+            g = f - above - below
+            sides = left + u.shape[3] - wp.static(R) - core[3]
+            z = core[0] + g // sides
+            x = wp.static(R) + g % sides
+            if x >= core[2]:
+                x = x - core[2] + core[3]
+        cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+             az, ay, ax, dt2, inv_dx, top, s, z, 0, x)  # fmt: skip
+
+    TZ, TX = tile
+
+    @wp.kernel(module="unique")
+    def step_core(u: arr3, u_prev: arr3, u_next: arr3, v: arr3, dt2: dtype, inv_dx: dtype):
+        # 2D GPU step of the core (no CPML, no free surface), launch_tiled over (shots, z tiles, x tiles):
+        # a TZ x TX tile of u with its halo in shared memory, the stencil as sums of shifted views.
+        # Views of the core: u (S, nz + 2R, nx + 2R) with its halo; u_prev, u_next (S, nz, nx); v (1, nz, nx).
+        s, bz, bx = wp.tid()
+        z0 = bz * wp.static(TZ)
+        x0 = bx * wp.static(TX)
+        t = wp.tile_load(u, shape=(1, wp.static(TZ + 2 * R), wp.static(TX + 2 * R)), offset=(s, z0, x0), storage="shared")
+        c = wp.tile_view(t, offset=(0, wp.static(R), wp.static(R)), shape=(1, wp.static(TZ), wp.static(TX)))
+        dzz = c * dtype(wp.static(A[0]))
+        dxx = c * dtype(wp.static(A[0]))
+        for m in range(wp.static(R)):
+            zp = wp.tile_view(t, offset=(0, wp.static(R + 1) + m, wp.static(R)), shape=(1, wp.static(TZ), wp.static(TX)))
+            zm = wp.tile_view(t, offset=(0, wp.static(R - 1) - m, wp.static(R)), shape=(1, wp.static(TZ), wp.static(TX)))
+            xp = wp.tile_view(t, offset=(0, wp.static(R), wp.static(R + 1) + m), shape=(1, wp.static(TZ), wp.static(TX)))
+            xm = wp.tile_view(t, offset=(0, wp.static(R), wp.static(R - 1) - m), shape=(1, wp.static(TZ), wp.static(TX)))
+            dzz = dzz + (zp + zm) * dtype(wp.static(A[m + 1]))
+            dxx = dxx + (xp + xm) * dtype(wp.static(A[m + 1]))
+        up = wp.tile_load(u_prev, shape=(1, wp.static(TZ), wp.static(TX)), offset=(s, z0, x0))
+        vv = wp.tile_load(v, shape=(1, wp.static(TZ), wp.static(TX)), offset=(0, z0, x0))
+        wp.tile_store(u_next, wp.tile_map(advance_core, c, up, vv, dzz, dxx, dt2, inv_dx * inv_dx), offset=(s, z0, x0))
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def step_core_flat(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
+        # 2D GPU step of the core, one thread per cell on the flat arrays (u: S * Lz * Lx, v: Lz * Lx)
+        s, zi, xi = wp.tid()
+        c = (core[0] + zi) * lx + core[2] + xi
+        i = s * lz * lx + c
+        uc = u[i]
+        dzz = dtype(wp.static(A[0])) * uc
+        dxx = dtype(wp.static(A[0])) * uc
+        for m in range(wp.static(R)):
+            dzz += dtype(wp.static(A[m + 1])) * (u[i + (m + 1) * lx] + u[i - (m + 1) * lx])
+            dxx += dtype(wp.static(A[m + 1])) * (u[i + m + 1] + u[i - m - 1])
+        u_next[i] = advance_core(uc, u_prev[i], v[c], dzz, dxx, dt2, inv_dx * inv_dx)
+
+    # --- Hand-written adjoints of psi_kernel and step. They match Warp's generated adjoints
+    # (tests/test_gradient.py) and are what the taped steps use. The step's adjoint gathers: the
+    # Laplacian is symmetric, so adj_u at a cell sums the weights of the cells whose stencils read it.
 
     def make_psi_adjoint(axis: int):
         deriv_t = d1t[axis]
 
-        @wp.kernel(module="unique")
+        @wp.kernel(module="unique", grid_stride=False)
         def psi_adjoint(adj_u: arr4, adj_psi_old: arr4, adj_psi_new: arr4, ax: Axis, inv_dx: dtype):
             s, i, j, k = wp.tid()
             if wp.static(axis == 0):
@@ -251,100 +441,161 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
         return psi_adjoint
 
-    @wp.func
-    def add_z(adj_u: arr4, s: int, z: int, y: int, x: int, top: int, val: dtype):
-        # adjoint of at(): a read above the free surface came from the mirrored cell, sign flipped
-        if wp.static(fs):
-            if z < top:
-                wp.atomic_add(adj_u, s, 2 * top - z, y, x, -val)
-                return
-        wp.atomic_add(adj_u, s, z, y, x, val)
-
-    def make_scatter_d2(axis: int):
-        # adjoint of the second-derivative stencil along one axis: adj_u[stencil] += A_k g
+    def make_gather(axis: int):
         @wp.func
-        def scatter_d2(adj_u: arr4, s: int, z: int, y: int, x: int, top: int, g: dtype):
-            wp.atomic_add(adj_u, s, z, y, x, dtype(wp.static(A[0])) * g)
-            for k in range(wp.static(R)):
-                c = dtype(wp.static(A[k + 1])) * g
+        def weight(lam: arr4, v: arr3, adj_zn: arr4, ca: Axis, dt2: dtype, s: int, z: int, y: int, x: int) -> dtype:
+            # adjoint of the stretched d2u/dx2 along `axis` at an updated cell, q = v^2 dt^2 lam (q + a (q +
+            # adj zeta_new) in the strip, since stretched = (1 + a) g + b zeta there)
+            vv = v[z, y, x]
+            q = vv * vv * dt2 * lam[s, z, y, x]
+            p = z
+            if wp.static(axis == 1):
+                p = y
+            elif wp.static(axis == 2):
+                p = x
+            j = ca.store[p]
+            if j >= 0:
+                iz = z
+                iy = y
+                ix = x
                 if wp.static(axis == 0):
-                    add_z(adj_u, s, z + k + 1, y, x, top, c)
-                    add_z(adj_u, s, z - k - 1, y, x, top, c)
+                    iz = j
                 elif wp.static(axis == 1):
-                    wp.atomic_add(adj_u, s, z, y + k + 1, x, c)
-                    wp.atomic_add(adj_u, s, z, y - k - 1, x, c)
+                    iy = j
                 else:
-                    wp.atomic_add(adj_u, s, z, y, x + k + 1, c)
-                    wp.atomic_add(adj_u, s, z, y, x - k - 1, c)
+                    ix = j
+                return q + ca.a[p] * (q + adj_zn[s, iz, iy, ix])
+            return q
 
-        return scatter_d2
+        @wp.func
+        def gather(lam: arr4, v: arr3, adj_zn: arr4, ca: Axis, dt2: dtype, s: int, z: int, y: int, x: int, lo: int, hi: int, top: int) -> dtype:
+            # sum of A_|d| weight(c - d) over the updated cells c - d (lo <= index < hi along `axis`) whose
+            # stencil reads the cell c directly; along z with a free surface also the mirrored reads
+            # (row 2 top - z + k reads the cell at offset -k when that lies above the surface, sign -)
+            acc = dtype(0.0)
+            for m in range(wp.static(2 * R + 1)):
+                d = m - wp.static(R)
+                iz = z
+                iy = y
+                ix = x
+                if wp.static(axis == 0):
+                    iz = z - d
+                    p = iz
+                elif wp.static(axis == 1):
+                    iy = y - d
+                    p = iy
+                else:
+                    ix = x - d
+                    p = ix
+                if p >= lo and p < hi:
+                    acc += dtype(wp.static(A[abs(m - R)])) * weight(lam, v, adj_zn, ca, dt2, s, iz, iy, ix)
+            if wp.static(fs and axis == 0):
+                for k in range(1, wp.static(R + 1)):
+                    zp = 2 * top - z + k
+                    if z > top and k > z - top and zp < hi:
+                        acc -= dtype(wp.static(A[k])) * weight(lam, v, adj_zn, ca, dt2, s, zp, y, x)
+            return acc
 
-    sd2_z, sd2_y, sd2_x = make_scatter_d2(0), make_scatter_d2(1), make_scatter_d2(2)
+        return gather
 
-    @wp.kernel(module="unique")
-    def step_adjoint(
+    gather_z, gather_y, gather_x = make_gather(0), make_gather(1), make_gather(2)
+
+    def make_strip_adjoint(axis: int):
+        # At an updated cell: the stretched d2u/dx2 along `axis` (recomputed, for the model gradient) and,
+        # in the strip, the adjoints of zeta and psi (scattered: the strips are thin).
+        dpsi = d1[axis]
+        dpsi_t = d1t[axis]
+
+        @wp.func
+        def strip_adjoint(t: dtype, q: dtype, s: int, z: int, y: int, x: int, psi: arr4, zeta: arr4, adj_psi: arr4,
+                          adj_zeta: arr4, adj_zeta_new: arr4, ca: Axis, inv_dx: dtype) -> dtype:  # fmt: skip
+            p = z
+            if wp.static(axis == 1):
+                p = y
+            elif wp.static(axis == 2):
+                p = x
+            j = ca.store[p]
+            if j >= 0:
+                iz = z
+                iy = y
+                ix = x
+                if wp.static(axis == 0):
+                    iz = j
+                elif wp.static(axis == 1):
+                    iy = j
+                else:
+                    ix = j
+                g = t + dpsi(psi, s, iz, iy, ix) * inv_dx
+                adj_zn = q + adj_zeta_new[s, iz, iy, ix]
+                wp.atomic_add(adj_zeta, s, iz, iy, ix, ca.b[p] * adj_zn)
+                dpsi_t(adj_psi, s, iz, iy, ix, (q + ca.a[p] * adj_zn) * inv_dx)
+                return g + ca.b[p] * zeta[s, iz, iy, ix] + ca.a[p] * g
+            return t
+
+        return strip_adjoint
+
+    sadj_z, sadj_y, sadj_x = make_strip_adjoint(0), make_strip_adjoint(1), make_strip_adjoint(2)
+
+    @wp.func
+    def adjoint_cell(
         u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
         adj_u: arr4, adj_u_prev: arr4, adj_u_next: arr4, adj_v: arr3,
         adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
         adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
         adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
-        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, s: int, z: int, y: int, x: int,
     ):  # fmt: skip
-        s, zi, yi, xi = wp.tid()
-        z = zi + wp.static(R)
-        x = xi + wp.static(R)
-        y = yi
-        if wp.static(three):
-            y = yi + wp.static(R)
+        # Adjoint of the step at interior cell (s, z, y, x). Writes adj_u, adj_u_prev of this cell only.
+        lo_z = wp.static(R)
         if wp.static(fs):
-            if z == top:
-                return  # u_next = 0 there: nothing flows back
-        lam = adj_u_next[s, z, y, x]
-        vv = v[z, y, x]
-        q = vv * vv * dt2 * lam
+            lo_z = top + 1  # the surface row is set to 0, not updated
         inv_dx2 = inv_dx * inv_dx
-        wp.atomic_add(adj_u, s, z, y, x, dtype(2.0) * lam)
-        wp.atomic_add(adj_u_prev, s, z, y, x, -lam)
-        # z axis: T = g + zeta_new with g = d2 + dpsi and zeta_new = b zeta + a g (PML strip),
-        # else T = d2. Recompute T for the model gradient; scatter the adjoint of g.
-        t = d2z(u, s, z, y, x, top) * inv_dx2
-        g = q
-        jz = az.store[z]
-        if jz >= 0:
-            gz = t + dpsi_z(psi_z, s, jz, y, x) * inv_dx
-            t = gz + az.b[z] * zeta_z[s, jz, y, x] + az.a[z] * gz
-            adj_zn = q + adj_zeta_z_new[s, jz, y, x]
-            g = q + az.a[z] * adj_zn
-            wp.atomic_add(adj_zeta_z, s, jz, y, x, az.b[z] * adj_zn)
-            sdp_z(adj_psi_z, s, jz, y, x, g * inv_dx)
-        sd2_z(adj_u, s, z, y, x, top, g * inv_dx2)
-        total = t
-        t = d2x(u, s, z, y, x, top) * inv_dx2
-        g = q
-        jx = ax.store[x]
-        if jx >= 0:
-            gx = t + dpsi_x(psi_x, s, z, y, jx) * inv_dx
-            t = gx + ax.b[x] * zeta_x[s, z, y, jx] + ax.a[x] * gx
-            adj_zn = q + adj_zeta_x_new[s, z, y, jx]
-            g = q + ax.a[x] * adj_zn
-            wp.atomic_add(adj_zeta_x, s, z, y, jx, ax.b[x] * adj_zn)
-            sdp_x(adj_psi_x, s, z, y, jx, g * inv_dx)
-        sd2_x(adj_u, s, z, y, x, top, g * inv_dx2)
-        total += t
+        acc = gather_z(adj_u_next, v, adj_zeta_z_new, az, dt2, s, z, y, x, lo_z, u.shape[1] - wp.static(R), top)
+        acc += gather_x(adj_u_next, v, adj_zeta_x_new, ax, dt2, s, z, y, x, wp.static(R), u.shape[3] - wp.static(R), top)
         if wp.static(three):
-            t = d2y(u, s, z, y, x, top) * inv_dx2
-            g = q
-            jy = ay.store[y]
-            if jy >= 0:
-                gy = t + dpsi_y(psi_y, s, z, jy, x) * inv_dx
-                t = gy + ay.b[y] * zeta_y[s, z, jy, x] + ay.a[y] * gy
-                adj_zn = q + adj_zeta_y_new[s, z, jy, x]
-                g = q + ay.a[y] * adj_zn
-                wp.atomic_add(adj_zeta_y, s, z, jy, x, ay.b[y] * adj_zn)
-                sdp_y(adj_psi_y, s, z, jy, x, g * inv_dx)
-            sd2_y(adj_u, s, z, y, x, top, g * inv_dx2)
-            total += t
-        wp.atomic_add(adj_v, z, y, x, dtype(2.0) * vv * dt2 * lam * total)
+            acc += gather_y(adj_u_next, v, adj_zeta_y_new, ay, dt2, s, z, y, x, wp.static(R), u.shape[2] - wp.static(R), top)
+        acc = acc * inv_dx2
+        if z >= lo_z:
+            lam = adj_u_next[s, z, y, x]
+            vv = v[z, y, x]
+            q = vv * vv * dt2 * lam
+            acc += dtype(2.0) * lam
+            adj_u_prev[s, z, y, x] = adj_u_prev[s, z, y, x] - lam
+            total = sadj_z(d2z(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_z, zeta_z, adj_psi_z, adj_zeta_z, adj_zeta_z_new, az, inv_dx)
+            total += sadj_x(d2x(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_x, zeta_x, adj_psi_x, adj_zeta_x, adj_zeta_x_new, ax, inv_dx)
+            if wp.static(three):
+                total += sadj_y(d2y(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_y, zeta_y, adj_psi_y, adj_zeta_y, adj_zeta_y_new, ay, inv_dx)
+            wp.atomic_add(adj_v, z, y, x, dtype(2.0) * vv * dt2 * lam * total)
+        adj_u[s, z, y, x] = adj_u[s, z, y, x] + acc
+
+    def make_step_adjoint(rows: bool):
+        # one thread per interior cell (GPU) or per interior row, looping over x (CPU)
+        @wp.kernel(module="unique", grid_stride=False)
+        def step_adjoint(
+            u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+            adj_u: arr4, adj_u_prev: arr4, adj_u_next: arr4, adj_v: arr3,
+            adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
+            adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
+            adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
+            az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
+        ):  # fmt: skip
+            s, zi, yi, xi = wp.tid()
+            z = zi + wp.static(R)
+            y = yi
+            if wp.static(three):
+                y = yi + wp.static(R)
+            n = 1
+            if wp.static(rows):
+                n = u.shape[3] - wp.static(2 * R)
+            for k in range(n):
+                adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, adj_u, adj_u_prev, adj_u_next, adj_v,
+                             adj_psi_z, adj_psi_y, adj_psi_x, adj_zeta_z, adj_zeta_y, adj_zeta_x,
+                             adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new, az, ay, ax, dt2, inv_dx, top,
+                             s, z, y, xi + k + wp.static(R))  # fmt: skip
+
+        return step_adjoint
+
+    psi = [make_psi(a) for a in range(3)]
 
     @wp.func
     def hicks(d: dtype) -> dtype:
@@ -391,22 +642,23 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
     @wp.kernel(module="unique")
     def inject(
-        u_next: arr4, v: arr3, amp: arr3, loc: arr3, n: int,
+        u_next: arr4, v: arr3, amp: arr3, loc: arr3, n: int, clock: iarr1,
         origin: wp.vec3i, scale: dtype, inv_dx: dtype, top: int,
     ):  # fmt: skip
-        # u_next += v^2 dt^2 s[n] w / dx^ndim at the operator's nodes (scale = dt^2 / dx^ndim).
+        # u_next += v^2 dt^2 s[n] w / dx^ndim at the operator's nodes (scale = dt^2 / dx^ndim); here and
+        # in the other source/receiver kernels the sample is n + clock[0] (a device counter, for graphs).
         s, src, q = wp.tid()
         idx, w = point(loc, s, src, q, origin, inv_dx, top)
         if w != dtype(0.0):
             vv = v[idx[0], idx[1], idx[2]]
-            wp.atomic_add(u_next, s, idx[0], idx[1], idx[2], scale * vv * vv * w * amp[s, src, n])
+            wp.atomic_add(u_next, s, idx[0], idx[1], idx[2], scale * vv * vv * w * amp[s, src, n + clock[0]])
 
     @wp.kernel(module="unique")
-    def record(u: arr4, data: arr3, loc: arr3, n: int, origin: wp.vec3i, inv_dx: dtype, top: int):
+    def record(u: arr4, data: arr3, loc: arr3, n: int, clock: iarr1, origin: wp.vec3i, inv_dx: dtype, top: int):
         s, rec, q = wp.tid()
         idx, w = point(loc, s, rec, q, origin, inv_dx, top)
         if w != dtype(0.0):
-            wp.atomic_add(data, s, rec, n, w * u[s, idx[0], idx[1], idx[2]])
+            wp.atomic_add(data, s, rec, n + clock[0], w * u[s, idx[0], idx[1], idx[2]])
 
     # Precomputed operator (positions that are not differentiated, e.g. receivers): the node index and
     # weight of every stencil point, computed once per run instead of at every time step.
@@ -418,21 +670,21 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         w[s, n, q] = wq
 
     @wp.kernel(module="unique")
-    def inject_fixed(u_next: arr4, v: arr3, amp: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, scale: dtype):
+    def inject_fixed(u_next: arr4, v: arr3, amp: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1, scale: dtype):
         s, src, q = wp.tid()
         wq = w[s, src, q]
         if wq != dtype(0.0):
             i = idx[s, src, q]
             vv = v[i[0], i[1], i[2]]
-            wp.atomic_add(u_next, s, i[0], i[1], i[2], scale * vv * vv * wq * amp[s, src, n])
+            wp.atomic_add(u_next, s, i[0], i[1], i[2], scale * vv * vv * wq * amp[s, src, n + clock[0]])
 
     @wp.kernel(module="unique")
-    def record_fixed(u: arr4, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int):
+    def record_fixed(u: arr4, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1):
         s, rec, q = wp.tid()
         wq = w[s, rec, q]
         if wq != dtype(0.0):
             i = idx[s, rec, q]
-            wp.atomic_add(data, s, rec, n, wq * u[s, i[0], i[1], i[2]])
+            wp.atomic_add(data, s, rec, n + clock[0], wq * u[s, i[0], i[1], i[2]])
 
     @wp.kernel(module="unique")
     def pad_model(v: arr3, vpad: arr3, origin: wp.vec3i):
@@ -464,20 +716,45 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         wp.atomic_add(e, z, y, x, val * val)
 
     @wp.kernel(module="unique")
-    def monitor(u: arr4, stats: arr1):
-        # stats[0] = max |u|, stats[1] = number of non-finite values (blow-up detection).
-        s, z, y, x = wp.tid()
-        val = u[s, z, y, x]
-        if wp.isfinite(val):
-            wp.atomic_max(stats, 0, wp.abs(val))
-        else:
-            wp.atomic_add(stats, 1, dtype(1.0))
+    def monitor(u: arr1, stats: arr1, per: int, stride: int, iters: int, lanes: int):
+        # stats[0] = max |u|, stats[1] += number of non-finite values (blow-up detection) over the flat
+        # field u. Thread t reads u[t * per + k * stride], k < iters: (per, stride) = (1, threads) on a GPU
+        # (coalesced), (iters, 1) on the CPU (contiguous chunks); a block reduces, then one atomic per block
+        # (`lanes` threads per block; 1 on the CPU).
+        t = wp.tid()
+        top = dtype(0.0)
+        bad = dtype(0.0)
+        for k in range(iters):
+            c = t * per + k * stride
+            if c < u.shape[0]:
+                val = u[c]
+                if wp.isfinite(val):
+                    top = wp.max(top, wp.abs(val))
+                else:
+                    bad += dtype(1.0)
+        block_top = wp.tile_max(wp.tile(top))
+        block_bad = wp.tile_sum(wp.tile(bad))
+        if t % lanes == 0:
+            wp.atomic_max(stats, 0, block_top[0])
+            wp.atomic_add(stats, 1, block_bad[0])
 
     return _Kernels(
-        Axis=Axis, step=step, psi=(make_psi(0), make_psi(1), make_psi(2)), inject=inject, step_adjoint=step_adjoint,
+        Axis=Axis, step=step, step_frame=step_frame, step_core=step_core, step_core_flat=step_core_flat, step_rows=step_rows, psi=psi, inject=inject,
+        step_adjoint={False: make_step_adjoint(False), True: make_step_adjoint(True)},
         psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
         record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=record_fixed, pad_model=pad_model, scatter=scatter, energy=energy, monitor=monitor, halo=R, operator_points=NPTS,
     )  # fmt: skip
+
+
+@wp.kernel
+def tick(clock: wp.array(dtype=wp.int32), steps: int):
+    """clock[0] += steps (the time index of a replayed graph)."""
+    clock[0] = clock[0] + steps
+
+
+def _rows(n: int, i: int, parts: int):
+    """Rows [r0, r1) of block i of n rows split into `parts` blocks."""
+    return n * i // parts, n * (i + 1) // parts
 
 
 class _Kernels:
@@ -558,7 +835,8 @@ class Acoustic:
         self.shape = tuple(int(n) for n in shape)
         self.dx, self.dt, self.order, self.n_shots = float(dx), float(dt), int(order), int(n_shots)
         self.dtype, self.device = dtype, device
-        self.k = build(self.ndim, self.order, dtype, bool(free_surface))
+        self.fs = bool(free_surface)
+        self.k = build(self.ndim, self.order, dtype, self.fs, GPU_TILE)
         R = self.k.halo
         shape3 = (self.shape[0], self.shape[1] if self.ndim == 3 else 1, self.shape[-1])
         nb = int(pml_width)
@@ -580,10 +858,25 @@ class Acoustic:
             axis.pos = wp.array(pos, dtype=wp.int32, device=device)
             self.axes.append(axis)
             self.strip_width.append(len(pos) if lo[a] + hi[a] > 0 else 0)
+        # 2D GPU step: the core (padded rows core[0]:core[1], columns core[2]:core[3]) needs neither CPML
+        # nor the free surface's image; the frame of interior cells around it does
+        band = [[R + n if n else 0 for n in (lo[a], hi[a])] for a in (0, 2)]
+        if free_surface:
+            band[0][0] = R  # the surface row and the rows whose stencil reaches above it
+        self.core = wp.vec4i(R + band[0][0], self.padded[0] - R - band[0][1], R + band[1][0], self.padded[2] - R - band[1][1])
+        core_rows, core_cols = self.core[1] - self.core[0], self.core[3] - self.core[2]
+        self.frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - max(core_rows, 0) * max(core_cols, 0)
+        self.has_core = self.ndim == 2 and core_rows > 0 and core_cols > 0
         self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * halo[1], self.padded[2] - 2 * R)
         self.inv_dx = dtype(1.0 / dx)
         self.dt2 = dtype(dt * dt)
         self.src_scale = dtype(dt * dt / dx**self.ndim)
+        self.cuda = wp.get_device(device).is_cuda
+        self.tile_threads = GPU_TILE_THREADS
+        self.tile = GPU_TILE
+        self.threads = 1 if self.cuda else max(1, min(CPU_THREADS, os.cpu_count() or 1, self.interior[1]))
+        self._pool = None
+        self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
 
     def strip_shape(self, axis: int):
         """Shape of psi/zeta along `axis`; (1, 1, 1, 1) for an axis without CPML (never read)."""
@@ -620,18 +913,43 @@ class Acoustic:
         else:
             out = State(st.u, out.u, out.psi, out.zeta)
             u_next = out.u
-        record = tape is None
         axes = [a for a in range(3) if self.strip_width[a]]
-        for a in axes:
-            wp.launch(self.k.psi[a], dim=self.strip_shape(a), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx],
-                      device=self.device, record_tape=record)  # fmt: skip
-        wp.launch(self.k.step, dim=self.interior,
-                  inputs=[st.u, st.u_prev, u_next, vpad, *out.psi, *st.zeta, *out.zeta, *self.axes,
-                          self.dt2, self.inv_dx, self.top], device=self.device, record_tape=record)  # fmt: skip
+        S, nz, ny, nx = self.interior
+        R = self.k.halo
+        step_args = [st.u, st.u_prev, u_next, vpad, *out.psi, *st.zeta, *out.zeta, *self.axes, self.dt2, self.inv_dx, self.top]
+        # A wp.Tape without our adjoint (adjoint="warp") replays the per-cell reference kernels; a GPU
+        # runs the 2D step as shared-memory tiles (3D: the reference kernel); a CPU runs rows, split
+        # among threads.
+        generated = tape is None and wp._src.context.runtime.tape is not None
+        if generated or self.cuda:
+            for a in axes:
+                wp.launch(self.k.psi[a][0], dim=self.strip_shape(a), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx],
+                          device=self.device, record_tape=generated)  # fmt: skip
+            if generated or not self.has_core:
+                wp.launch(self.k.step, dim=self.interior, inputs=step_args, device=self.device, record_tape=generated)
+            else:
+                self.step_core(st.u, st.u_prev, u_next, vpad)
+                wp.launch(self.k.step_frame, dim=(S, self.frame_cells), inputs=[*step_args, self.core], device=self.device, record_tape=False)
+        else:
+
+            def psi(i):
+                for a in axes:
+                    shape = self.strip_shape(a)
+                    r0, r1 = _rows(shape[1], i, self.threads)
+                    wp.launch(self.k.psi[a][1], dim=(S, r1 - r0, shape[2]), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx, r0],
+                              device=self.device, record_tape=False)  # fmt: skip
+
+            def update(i):
+                r0, r1 = _rows(nz, i, self.threads)
+                wp.launch(self.k.step_rows, dim=(S, r1 - r0, ny), inputs=[*step_args, R + r0], device=self.device, record_tape=False)
+
+            self._split(psi)
+            self._split(update)
         if tape is not None:
+            shape = self.interior if self.cuda else (S, nz, ny, 1)
 
             def backward():
-                wp.launch(self.k.step_adjoint, dim=self.interior,
+                wp.launch(self.k.step_adjoint[not self.cuda], dim=shape,
                           inputs=[st.u, vpad, *out.psi, *st.zeta, st.u.grad, st.u_prev.grad, u_next.grad, vpad.grad,
                                   *(p.grad for p in out.psi), *(z.grad for z in st.zeta), *(z.grad for z in out.zeta),
                                   *self.axes, self.dt2, self.inv_dx, self.top], device=self.device)  # fmt: skip
@@ -641,6 +959,37 @@ class Acoustic:
 
             tape.record_func(backward, arrays=[*st.arrays(), *out.arrays(), vpad])
         return out
+
+    def core_views(self, u, u_prev, u_next, vpad):
+        """Views of the 2D core for step_core: u with its halo (S, nz + 2R, nx + 2R), u_prev and u_next
+        (S, nz, nx), vpad (1, nz, nx)."""
+        S, (Lz, _, Lx), R = self.n_shots, self.padded, self.k.halo
+        z0, z1, x0, x1 = self.core
+
+        def core(a, n, halo=0):
+            return a.reshape((n, Lz, Lx))[:, z0 - halo : z1 + halo, x0 - halo : x1 + halo]
+
+        return core(u, S, R), core(u_prev, S), core(u_next, S), core(vpad, 1)
+
+    def step_core(self, u, u_prev, u_next, vpad):
+        """The core part of a 2D GPU step (see step_frame for the rest)."""
+        tz, tx = self.tile
+        k = build(self.ndim, self.order, self.dtype, self.fs, self.tile)
+        dim = (self.n_shots, -(-(self.core[1] - self.core[0]) // tz), -(-(self.core[3] - self.core[2]) // tx))
+        wp.launch_tiled(k.step_core, dim=dim, inputs=[*self.core_views(u, u_prev, u_next, vpad), self.dt2, self.inv_dx],
+                        block_dim=self.tile_threads, device=self.device, record_tape=False)  # fmt: skip
+
+    def _split(self, job):
+        """job(i) for i < self.threads, i > 0 on worker threads (CPU launches release the GIL)."""
+        if self.threads == 1:
+            job(0)
+            return
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="adseismic")
+        pending = [self._pool.submit(job, i) for i in range(1, self.threads)]
+        job(0)
+        for f in pending:
+            f.result()
 
     def operator(self, locations, differentiable=False):
         """The source/receiver operator at locations (wp.array (S, n, 3), metres): the locations
@@ -654,21 +1003,24 @@ class Acoustic:
         wp.launch(self.k.weights, dim=shape, inputs=[locations, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
         return (idx, w)
 
-    def inject(self, u, vpad, amplitudes, op, n: int):
-        """Add source samples n (amplitudes (S, n_src, nt)) through the operator op into u."""
+    def inject(self, u, vpad, amplitudes, op, n: int, clock=None):
+        """Add source samples n (amplitudes (S, n_src, nt)) through the operator op into u; with `clock`
+        (int32 device array (1,)) the sample n + clock[0], read when the kernel runs (graph replays)."""
+        clock = self.clock if clock is None else clock
         if isinstance(op, tuple):
-            wp.launch(self.k.inject_fixed, dim=op[1].shape, inputs=[u, vpad, amplitudes, op[0], op[1], n, self.src_scale], device=self.device)
+            wp.launch(self.k.inject_fixed, dim=op[1].shape, inputs=[u, vpad, amplitudes, op[0], op[1], n, clock, self.src_scale], device=self.device)
         else:
             wp.launch(self.k.inject, dim=(self.n_shots, op.shape[1], self.k.operator_points),
-                      inputs=[u, vpad, amplitudes, op, n, self.origin, self.src_scale, self.inv_dx, self.top], device=self.device)  # fmt: skip
+                      inputs=[u, vpad, amplitudes, op, n, clock, self.origin, self.src_scale, self.inv_dx, self.top], device=self.device)  # fmt: skip
 
-    def record(self, u, data, op, n: int):
-        """data[:, :, n] += receiver samples of u through the operator op."""
+    def record(self, u, data, op, n: int, clock=None):
+        """data[:, :, n] += receiver samples of u through the operator op (clock as in inject)."""
+        clock = self.clock if clock is None else clock
         if isinstance(op, tuple):
-            wp.launch(self.k.record_fixed, dim=op[1].shape, inputs=[u, data, op[0], op[1], n], device=self.device)
+            wp.launch(self.k.record_fixed, dim=op[1].shape, inputs=[u, data, op[0], op[1], n, clock], device=self.device)
         else:
             wp.launch(self.k.record, dim=(self.n_shots, op.shape[1], self.k.operator_points),
-                      inputs=[u, data, op, n, self.origin, self.inv_dx, self.top], device=self.device)  # fmt: skip
+                      inputs=[u, data, op, n, clock, self.origin, self.inv_dx, self.top], device=self.device)  # fmt: skip
 
     def scatter(self, du_next, u_next, u, u_prev, vpad, dvpad):
         """du_next += 2 dv/v (u_next - 2 u + u_prev): the Born (tangent-linear) source term."""
@@ -687,4 +1039,13 @@ class Acoustic:
     def monitor(self, u, stats):
         """stats (2,) <- [max |u|, count of non-finite values]."""
         stats.zero_()
-        wp.launch(self.k.monitor, dim=u.shape, inputs=[u, stats], device=self.device)
+        flat = u.flatten()
+        n = flat.shape[0]
+        if self.cuda:
+            lanes = MONITOR_BLOCK
+            threads = lanes * min(-(-n // lanes), 4 * wp.get_device(self.device).sm_count)
+            per, stride, iters = 1, threads, -(-n // threads)
+        else:
+            lanes, threads, stride = 1, min(n, 64), 1
+            per = iters = -(-n // threads)
+        wp.launch(self.k.monitor, dim=threads, inputs=[flat, stats, per, stride, iters, lanes], block_dim=lanes, device=self.device)

@@ -1,0 +1,341 @@
+"""2D isotropic elastic propagation and its exact, memory-bounded gradients (kernels/elastic.py).
+
+Conventions (as adseismic.propagate; z depth, positive down):
+- vp, vs (m/s), rho (kg/m^3): (nz, nx) arrays on a regular grid of spacing dx (m); node (0, 0) at 0 m.
+  vs = 0 is a fluid; 0 <= vs <= vp / sqrt(2) (lambda >= 0).
+- locations: metres (z, x), shape (n_shots, n_per_shot, 2).
+- source_amplitudes (n_shots, n_src, nt): the source time function s(t) at t_k = k dt, and
+  source_components its direction/mechanism per source:
+    "force":     (n_shots, n_src, 2) = (f_z, f_x); line force F(t) = s(t) (f_z, f_x), N per metre of line;
+    "moment":    (n_shots, n_src, 3) = (Mxx, Mzz, Mxz); moment tensor M_ij(t) = m_ij s(t), N m per metre
+                 (equivalent body force -div(M delta)); s must start at 0;
+    "explosive": the moment tensor (1, 1, 0) s(t) (isotropic).
+- receiver data: vx, vz (m/s) sample n at t = (n - 1/2) dt, pressure -(sxx + szz)/2 (Pa) at t = n dt
+  (leapfrog staggering in time, see kernels/elastic.py), each (n_shots, n_receivers, nt).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+from tqdm.auto import tqdm
+
+from adseismic.kernels.acoustic import HICKS_RADIUS
+from adseismic.kernels.elastic import PSI, Elastic
+from adseismic.misfits import misfit as named_misfit
+from adseismic.numerics import check_order, staggered_cfl_limit
+from adseismic.propagate import (
+    BLOWUP_FACTOR,
+    DEFAULT_PML_REFLECTION,
+    DEFAULT_PML_WIDTH,
+    DTYPES,
+    PropagationError,
+    dominant_frequency,
+    resolve_device,
+)
+
+SOURCE_TYPES = {"force": 2, "moment": 3, "explosive": 3}
+COMPONENTS = ("vx", "vz", "pressure")
+WRT = ("vp", "vs", "rho", "source_amplitudes", "source_components", "source_locations")
+
+
+@dataclass
+class ElasticResult:
+    """Output of :func:`forward_elastic`: vx, vz (m/s) and pressure (Pa), each
+    (n_shots, n_receivers, nt); dt (s)."""
+
+    vx: np.ndarray
+    vz: np.ndarray
+    pressure: np.ndarray
+    dt: float
+
+
+@dataclass
+class ElasticGradient:
+    """Misfit and its gradients: vp, vs (per m/s) and rho (per kg/m^3) (nz, nx); source_amplitudes
+    (n_shots, n_src, nt); source_components (n_shots, n_src, 2 or 3); source_locations (n_shots, n_src, 2)
+    per metre; None where not requested. synthetic: {"vx", "vz", "pressure"} data."""
+
+    loss: float
+    synthetic: dict
+    vp: np.ndarray | None = None
+    vs: np.ndarray | None = None
+    rho: np.ndarray | None = None
+    source_amplitudes: np.ndarray | None = None
+    source_components: np.ndarray | None = None
+    source_locations: np.ndarray | None = None
+    segment_length: int = 0
+    n_segments: int = 0
+
+
+def check_elastic_inputs(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, order,
+                         source_type, source_components):  # fmt: skip
+    """Shape, value and stability checks; returns the components (n_shots, n_src, 2|3). Raises ValueError."""
+    check_order(order)
+    vp, vs, rho = (np.asarray(a, dtype=float) for a in (vp, vs, rho))
+    if vp.ndim != 2 or vs.shape != vp.shape or rho.shape != vp.shape:
+        raise ValueError(f"vp, vs, rho must be (nz, nx) arrays of one shape; got {vp.shape}, {vs.shape}, {rho.shape}")
+    for name, a, ok in (("vp", vp, vp > 0), ("rho", rho, rho > 0), ("vs", vs, vs >= 0)):
+        bad = ~np.isfinite(a) | ~ok
+        if bad.any():
+            raise ValueError(f"{name} has {int(bad.sum())} non-finite or out-of-range values (first at index {tuple(np.argwhere(bad)[0])}); vp, rho > 0 and vs >= 0")
+    neg = vs > vp / math.sqrt(2.0) * (1.0 + 1e-12)
+    if neg.any():
+        i = tuple(np.argwhere(neg)[0])
+        raise ValueError(f"vs > vp / sqrt(2) at index {i} (vp {vp[i]:g}, vs {vs[i]:g} m/s) gives a negative Lame lambda; use vs <= {vp[i] / math.sqrt(2):g} m/s")
+    if source_type not in SOURCE_TYPES:
+        raise ValueError(f"source_type {source_type!r} is not one of {sorted(SOURCE_TYPES)}")
+    amp = np.asarray(source_amplitudes)
+    if amp.ndim != 3:
+        raise ValueError(f"source_amplitudes must be (n_shots, n_sources, nt); got shape {amp.shape}")
+    extent = (np.array(vp.shape) - 1) * dx
+    for name, loc in (("source_locations", np.asarray(source_locations)), ("receiver_locations", np.asarray(receiver_locations))):
+        if loc.ndim != 3 or loc.shape[0] != amp.shape[0] or loc.shape[2] != 2:
+            raise ValueError(f"{name} must be (n_shots={amp.shape[0]}, n, 2) metres (z, x); got shape {loc.shape}")
+        outside = np.any((loc < 0) | (loc > extent), axis=-1)
+        if outside.any():
+            i = np.argwhere(outside)[0]
+            raise ValueError(f"{name}[{i[0]}, {i[1]}] = {loc[i[0], i[1]].tolist()} m lies outside the grid [0, {extent.tolist()}] m")
+    if np.shape(source_locations)[1] != amp.shape[1]:
+        raise ValueError(f"source_locations has {np.shape(source_locations)[1]} sources per shot but source_amplitudes has {amp.shape[1]}")
+    nc = SOURCE_TYPES[source_type]
+    if source_type == "explosive":
+        comp = np.broadcast_to(np.array([1.0, 1.0, 0.0]), (*amp.shape[:2], 3))
+    elif source_components is None:
+        if source_type == "moment":
+            raise ValueError("source_type 'moment' needs source_components (n_shots, n_src, 3) = (Mxx, Mzz, Mxz)")
+        comp = np.broadcast_to(np.array([1.0, 0.0]), (*amp.shape[:2], 2))  # vertical force
+    else:
+        comp = np.asarray(source_components, dtype=float)
+        if comp.shape != (*amp.shape[:2], nc):
+            raise ValueError(f"source_components must be (n_shots, n_src, {nc}) for source_type {source_type!r}; got {comp.shape}")
+    limit = staggered_cfl_limit(order, 2)
+    courant = float(vp.max()) * dt / dx
+    if courant > limit:
+        raise ValueError(
+            f"dt = {dt:.6g} s is unstable: Courant number vp_max dt/dx = {courant:.4f} exceeds the staggered-grid limit "
+            f"{limit:.4f} of order {order} in 2D; use dt <= {limit * dx / vp.max():.6g} s"
+        )
+    return np.ascontiguousarray(comp)
+
+
+@dataclass
+class ElasticSetup:
+    """Device-side inputs of one elastic simulation (see :func:`setup_elastic`)."""
+
+    prop: Elastic
+    nt: int
+    kind: str  # "force" or "moment"
+    model: tuple  # physical (vp, vs, rho) wp.array2d
+    amplitudes: wp.array
+    components: wp.array
+    sources: wp.array
+    receivers: wp.array
+
+    def padded_model(self, requires_grad=False):
+        return tuple(self.prop.pad_model(m, requires_grad) for m in self.model)
+
+    def source_args(self):
+        return (self.kind, self.amplitudes, self.components, self.sources)
+
+
+def setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, source_type="force",
+                  source_components=None, order=4, pml_width=None, pml_reflection=None, pml_frequency=None,
+                  pml_velocity=None, free_surface=False, device="cpu", precision="float32", requires_grad=()) -> ElasticSetup:  # fmt: skip
+    """Validate the inputs and move them to the device; requires_grad names the arrays (WRT) to differentiate."""
+    amp = np.asarray(source_amplitudes, dtype=float)
+    comp = check_elastic_inputs(vp, vs, rho, dx, dt, amp, source_locations, receiver_locations, order, source_type, source_components)
+    if precision not in DTYPES:
+        raise ValueError(f"precision {precision!r} is not one of {sorted(DTYPES)}")
+    width = DEFAULT_PML_WIDTH if pml_width is None else int(pml_width)
+    if width < HICKS_RADIUS:
+        raise ValueError(f"pml_width = {width} cells is below the source/receiver operator's half-width {HICKS_RADIUS}; use >= {HICKS_RADIUS}")
+    refl = DEFAULT_PML_REFLECTION[order] if pml_reflection is None else float(pml_reflection)
+    f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
+    vref = float(np.max(vp)) if pml_velocity is None else float(pml_velocity)
+    dtype = DTYPES[precision]
+    prop = Elastic(np.shape(vp), dx, dt, order, amp.shape[0], width, refl, f_pml, vref, free_surface=free_surface,
+                   dtype=dtype, device=resolve_device(device))  # fmt: skip
+
+    def put(x, name):
+        return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)
+
+    kind = "force" if source_type == "force" else "moment"
+    return ElasticSetup(prop, amp.shape[2], kind, (put(vp, "vp"), put(vs, "vs"), put(rho, "rho")), put(amp, "source_amplitudes"),
+                        put(comp, "source_components"), put(source_locations, "source_locations"), put(receiver_locations, "receiver_locations"))  # fmt: skip
+
+
+class ElasticBlowupGuard:
+    """Stops a run whose velocities turn non-finite or keep growing after the source has ended."""
+
+    def __init__(self, prop: Elastic, source_amplitudes: np.ndarray, every: int):
+        self.prop, self.every = prop, max(int(every), 1)
+        a = np.abs(np.diff(source_amplitudes, axis=-1)).max(axis=(0, 1))  # moment sources act through ds
+        active = np.nonzero(a > 1e-3 * a.max())[0] if a.max() > 0 else np.array([0])
+        self.source_end = int(active[-1]) + 2
+        self.peak = 0.0
+        self.stats = wp.zeros(2, dtype=prop.dtype, device=prop.device)
+
+    def __call__(self, st, n: int):
+        if n % self.every:
+            return
+        self.prop.monitor((st.vx, st.vz), self.stats)
+        amax, nonfinite = self.stats.numpy()
+        if n <= self.source_end:
+            self.peak = max(self.peak, float(amax))
+        runaway = n > self.source_end and self.peak > 0 and amax > BLOWUP_FACTOR * self.peak
+        if nonfinite or runaway:
+            p = self.prop
+            what = f"{int(nonfinite)} non-finite values" if nonfinite else f"max|v| = {amax:.3g}, {amax / self.peak:.3g} x its peak while the source was active"
+            raise PropagationError(
+                f"elastic wavefield blew up at step {n} (t = {n * p.dt:.6g} s): {what}. Likely cause: dt = {p.dt:.6g} s too close to "
+                f"the staggered-grid stability limit (order {p.order}, Courant limit {staggered_cfl_limit(p.order, 2):.4f}), extreme model "
+                "contrasts, or a PML whose damping is too strong for its width"
+            )
+
+
+def run_elastic(su: ElasticSetup, st, model, data, steps: range, next_state=None, callback=None):
+    """Record level n into data[..., n - steps.start] and advance one step, for n in steps; returns the state
+    at steps.stop (or nt - 1). next_state: callable giving fresh arrays for the next level (needed under a
+    tape); None steps in place. callback(state, n) runs after recording."""
+    prop = su.prop
+    src = su.source_args()
+    for n in steps:
+        prop.record(st, data, su.receivers, n - steps.start)
+        if callback is not None:
+            callback(st, n)
+        if n == su.nt - 1:
+            break
+        st = prop.step(st, model, src, n, next_state() if next_state is not None else None)
+    return st
+
+
+def _new_data(su, n, requires_grad=False):
+    shape = (su.prop.n_shots, su.receivers.shape[1], n)
+    return tuple(wp.zeros(shape, dtype=su.prop.dtype, device=su.prop.device, requires_grad=requires_grad) for _ in COMPONENTS)
+
+
+def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, source_type="force",
+                    source_components=None, order=4, pml_width=None, pml_reflection=None, pml_frequency=None,
+                    pml_velocity=None, free_surface=False, device="cpu", precision="float32", check_every=25,
+                    progress=False) -> ElasticResult:  # fmt: skip
+    """Simulate the 2D elastic wave equation for all shots at once (conventions: module docstring).
+
+    order 2, 4 or 8; pml_width cells (default 20); pml_reflection target; pml_frequency CPML alpha
+    frequency (Hz, default the sources' dominant frequency); pml_velocity CPML reference speed (m/s, default
+    max(vp)); free_surface: stress-free top boundary at z = 0. Raises ValueError on bad input or an
+    unstable dt, PropagationError if the run blows up.
+    """
+    su = setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, source_type=source_type,
+                       source_components=source_components, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
+                       pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
+                       precision=precision)  # fmt: skip
+    data = _new_data(su, su.nt)
+    guard = ElasticBlowupGuard(su.prop, np.asarray(source_amplitudes, dtype=float), check_every)
+    bar = tqdm(total=su.nt, desc="time steps", unit="step", disable=not progress, leave=False)
+
+    def callback(st, n):
+        guard(st, n)
+        bar.update()
+
+    run_elastic(su, su.prop.new_state(), su.padded_model(), data, range(su.nt), callback=callback)
+    bar.close()
+    vx, vz, p = (d.numpy().astype(float) for d in data)
+    return ElasticResult(vx=vx, vz=vz, pressure=p, dt=float(dt))
+
+
+def _segment_length(prop, nt, memory_budget, segment_length):
+    """Checkpoint spacing: pinned, all steps when they fit memory_budget (bytes), else ~sqrt(nt)."""
+    if segment_length is not None:
+        return int(segment_length)
+    item = 4 if prop.dtype == wp.float32 else 8
+    cells = 5 * prop.n_shots * math.prod(prop.padded) + sum(math.prod(prop.psi_shape(k)) for k in PSI)
+    per_step = 2 * item * cells  # fresh fields and CPML memory variables, and their adjoints
+    if memory_budget is not None and nt * per_step <= memory_budget:
+        return nt
+    return max(1, int(round(math.sqrt(nt))))
+
+
+def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
+                     misfit="l2", components=COMPONENTS, wrt=("vp", "vs", "rho"), source_type="force", source_components=None,
+                     order=4, pml_width=None, pml_reflection=None, pml_frequency=None, pml_velocity=None,
+                     free_surface=False, device="cpu", precision="float32", memory_budget=None, segment_length=None,
+                     progress=False) -> ElasticGradient:  # fmt: skip
+    """Misfit between simulated and observed data and its exact gradient (discrete adjoint by wp.Tape).
+
+    observed: {"vx": ..., "vz": ..., "pressure": ...} arrays (n_shots, n_receivers, nt) for the names in
+    `components`; misfit: a name in misfits.MISFITS (summed over components) or a callable
+    synthetic dict -> (J, {name: dJ/d synthetic}). wrt: any of WRT. Memory is bounded by checkpointing
+    (gradient.py's scheme): the state every segment_length steps (default ~sqrt(nt), or every step when
+    memory_budget bytes allow), each segment re-run under a fresh tape with its own arrays per level.
+    Other arguments as in forward_elastic. PML settings are treated as fixed (pin pml_velocity and
+    pml_frequency when the model changes between calls).
+    """
+    unknown = set(wrt) - set(WRT)
+    if unknown:
+        raise ValueError(f"wrt: {sorted(unknown)} not among {WRT}")
+    su = setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, source_type=source_type,
+                       source_components=source_components, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
+                       pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
+                       precision=precision, requires_grad=set(wrt))  # fmt: skip
+    prop, nt = su.prop, su.nt
+    if callable(misfit):
+        loss_fn = misfit
+    else:
+
+        def loss_fn(syn):
+            total, adj = 0.0, {}
+            for c in components:
+                j, adj[c] = named_misfit(misfit, syn[c], np.asarray(observed[c], dtype=float), dt)
+                total += j
+            return total, adj
+
+    seg = _segment_length(prop, nt, memory_budget, segment_length)
+    n_seg = math.ceil(nt / seg)
+    # forward sweep without a tape, keeping the state at the start of every segment
+    data = _new_data(su, nt)
+    checkpoints = []
+
+    def keep(st, n):
+        if n % seg == 0:
+            checkpoints.append([wp.clone(a) for a in st.arrays()])
+
+    run_elastic(su, prop.new_state(), su.padded_model(), data, range(nt), callback=keep)
+    synthetic = dict(zip(COMPONENTS, (d.numpy().astype(float) for d in data)))
+    loss, adj = loss_fn(synthetic)
+    levels = [prop.new_state(requires_grad=True) for _ in range(seg)]
+    starts = [prop.new_state(requires_grad=True) for _ in range(2)]
+    carry = None
+    for i, k in enumerate(tqdm(reversed(range(n_seg)), total=n_seg, desc="adjoint segments", disable=not progress, leave=False)):
+        n0, n1 = k * seg, min((k + 1) * seg, nt)
+        st0 = starts[i % 2]
+        for dst, src in zip(st0.arrays(), checkpoints[k]):
+            wp.copy(dst, src)
+            dst.grad.zero_()
+        checkpoints[k] = None
+        for lvl in levels:
+            for a in lvl.arrays():
+                a.grad.zero_()
+        data_seg = _new_data(su, n1 - n0, requires_grad=True)
+        pool = iter(levels)
+        tape = wp.Tape()
+        with tape:
+            st = run_elastic(su, st0, su.padded_model(requires_grad=True), data_seg, range(n0, n1), next_state=lambda: next(pool))
+        seeds = {}
+        for name, d in zip(COMPONENTS, data_seg):
+            if name in adj:
+                seeds[d] = wp.array(np.ascontiguousarray(adj[name][:, :, n0:n1]), dtype=prop.dtype, device=prop.device)
+        if carry is not None:
+            seeds.update(zip(st.arrays(), carry))
+        tape.backward(grads=seeds)
+        carry = [a.grad for a in st0.arrays()]
+        del tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
+    res = ElasticGradient(loss=float(loss), synthetic=synthetic, segment_length=seg, n_segments=n_seg)
+    arrays = dict(zip(("vp", "vs", "rho"), su.model), source_amplitudes=su.amplitudes, source_components=su.components,
+                  source_locations=su.sources)  # fmt: skip
+    for name in wrt:
+        setattr(res, name, arrays[name].grad.numpy().astype(float))
+    return res
