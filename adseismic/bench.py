@@ -27,9 +27,8 @@ Deepwave: when ``import deepwave`` works the same scenes run through it in the s
 ours; otherwise the rates recorded in reference.md (H200 and a 2-core CPU VM) are printed as
 reference anchors, labelled as recorded figures.
 
-Elastic scenes run through ``adseismic.elastic`` when that module exists and has ``forward`` and
-``gradient``; :func:`run_elastic` is the one adapter to adjust to its final API. Otherwise they are
-reported as "skipped: elastic propagator not available".
+Elastic scenes run through ``adseismic.elastic`` (:func:`run_elastic`: a vertical line force, vz
+recorded, gradient with respect to vp, vs and rho).
 
 Outputs in -o DIR (each written atomically): bench.json (rows + machine), bench.md (table),
 bench.png (Gcell/s per scene and device with the Deepwave anchors), bench.log. ``--suite
@@ -51,6 +50,7 @@ import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -196,27 +196,19 @@ def small_version(spec: SceneSpec) -> SceneSpec:
 
 # --------------------------------------------------------------------------------- engines
 
-def elastic_api():
-    """The module adseismic.elastic if it exists and has forward and gradient, else None."""
-    try:
-        from adseismic import elastic
-    except ImportError:
-        return None
-    return elastic if all(callable(getattr(elastic, f, None)) for f in ("forward", "gradient")) else None
+def run_elastic(mode: str, a: SceneArrays, device: str, order: int, memory_budget, observed=None):
+    """adseismic.elastic on an elastic scene: a vertical line force, vz recorded (the receiver data
+    and the gradient's misfit use vz only). Returns an object with receiver_amplitudes (forward) or
+    the ElasticGradient (gradient, wrt vp, vs, rho)."""
+    from adseismic import elastic as api
 
-
-def run_elastic(api, mode: str, a: SceneArrays, device: str, order: int, memory_budget, observed=None):
-    """THE elastic adapter (adjust here once adseismic.elastic's API is final). Assumed API, mirroring
-    propagate.forward / gradient.gradient: forward(vp, vs, rho, dx, dt, source_amplitudes,
-    source_locations, receiver_locations, *, order, pml_width, device) -> object with
-    receiver_amplitudes; gradient(..., observed, *, memory_budget, ...) -> object with
-    peak_bytes_estimate (optional). Returns the engine's result."""
     m = a.model
+    force = np.broadcast_to([1.0, 0.0], (*a.sources.shape[:2], 2))
     args = (m["vp"], m["vs"], m["rho"], DX, DT, a.amplitudes, a.sources, a.receivers)
-    kw = dict(order=order, pml_width=PML, device=device)
+    kw = dict(source_type="force", source_components=force, order=order, pml_width=PML, device=device)
     if mode == "forward":
-        return api.forward(*args, **kw)
-    return api.gradient(*args, observed, memory_budget=memory_budget, **kw)
+        return SimpleNamespace(receiver_amplitudes=api.forward_elastic(*args, **kw).vz)
+    return api.gradient_elastic(*args, {"vz": observed}, components=("vz",), memory_budget=memory_budget, **kw)
 
 
 def run_acoustic(mode: str, a: SceneArrays, device: str, order: int, memory_budget, observed=None, segment_length=None):
@@ -388,13 +380,10 @@ def run_job(job: BenchJob) -> list[BenchRow]:
     base = dict(scene=spec.name, kind=spec.kind, device=device, device_name=name, order=job.order, shape=tuple(spec.shape),
                 shots=spec.shots, nt=job.nt, nt_reference=spec.nt, padded_cells=padded_cells(spec, job.order))  # fmt: skip
     rows = []
-    api = elastic_api() if spec.kind == "elastic" else None
-    if spec.kind == "elastic" and api is None:
-        return [BenchRow(engine="adseismic", mode=m, status="skipped: elastic propagator not available", **base) for m in job.modes]
 
     def engine(mode, a, observed=None, segment_length=None):
         if spec.kind == "elastic":
-            return run_elastic(api, mode, a, device, job.order, job.memory_budget, observed)
+            return run_elastic(mode, a, device, job.order, job.memory_budget, observed)
         return run_acoustic(mode, a, device, job.order, job.memory_budget, observed, segment_length)
 
     def sync():

@@ -204,12 +204,13 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
     f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
     vref = vmax if pml_velocity is None else pml_velocity
     prop = make_propagator(velocity, dx, dt, amp.shape[0], order, pml_width, pml_reflection, f_pml, free_surface, device, precision, vref)
-    vel = np.asarray(velocity, dtype=wp.dtype_to_numpy(prop.dtype))  # one conversion, straight to the device type
+    # one conversion, straight to the device type; reshape, not [:, None], whose zero stride Warp copies slowly
+    vel = np.asarray(velocity, dtype=wp.dtype_to_numpy(prop.dtype))
 
     def put(x, name):
         return wp.array(x, dtype=prop.dtype, device=prop.device, requires_grad=name in requires_grad)
 
-    su = Setup(prop, ndim, amp.shape[2], put(vel[:, None, :] if ndim == 2 else vel, "velocity"), put(amp, "source_amplitudes"),
+    su = Setup(prop, ndim, amp.shape[2], put(vel.reshape(vel.shape[0], 1, -1) if ndim == 2 else vel, "velocity"), put(amp, "source_amplitudes"),
                put(to_zyx(source_locations, ndim), "source_locations"), put(to_zyx(receiver_locations, ndim), "receiver_locations"))  # fmt: skip
     su.source_op = prop.operator(su.sources, differentiable="source_locations" in requires_grad)
     su.receiver_op = prop.operator(su.receivers)
@@ -234,17 +235,33 @@ def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback
     return st
 
 
+def graph_plan(prop: Acoustic, nt: int, every: int):
+    """(K, graphs) for run_graphs: K steps per captured graph (even, as in-place steps swap u and u_prev,
+    and a multiple of `every`, the guard's interval), replayed `graphs` times to cover the nt levels (the
+    last replay runs up to K - 1 levels past them); graphs = 0 where none are used (CPU, or fewer than
+    two replays)."""
+    K = math.lcm(2, every)
+    K *= max(1, GRAPH_STEPS // K)
+    graphs = -(-nt // K)
+    return K, graphs if prop.cuda and graphs >= 2 else 0
+
+
 def run_graphs(su: Setup, st, vpad, data, guard: BlowupGuard, progress=None):
     """The untaped time loop of run_steps on a CUDA device as replays of one captured graph of K steps
-    (record, the guard's checks, step, inject; K even, as in-place steps swap u and u_prev, and a
-    multiple of guard.every), reading the guard's statistics after each replay. Returns the state and
-    the first level not run (for run_steps to finish), or (st, 0) if fewer than two graphs fit."""
+    (record, the guard's checks, step, inject; see graph_plan), reading the guard's statistics after each
+    replay. The replays run all levels to K * graphs >= nt, without a host-launched tail: data must have
+    that many samples (the ones past nt - 1 are padding; the guard ignores those levels). Returns the state
+    at level K * graphs."""
     prop = su.prop
-    K = math.lcm(2, guard.every)
-    K *= max(1, GRAPH_STEPS // K)
-    graphs = (su.nt - 1) // K  # levels below graphs * K are each followed by a step
-    if not prop.cuda or graphs < 2:
-        return st, 0
+    K, graphs = graph_plan(prop, su.nt, guard.every)
+    levels = K * graphs
+    if data.shape[2] < levels:
+        raise ValueError(f"data has {data.shape[2]} samples; run_graphs records {levels}")
+    amplitudes = su.amplitudes
+    if amplitudes.shape[2] < levels:  # zero source samples past nt
+        padded = np.zeros((*amplitudes.shape[:2], levels), dtype=wp.dtype_to_numpy(prop.dtype))
+        padded[:, :, : su.nt] = amplitudes.numpy()
+        amplitudes = wp.array(padded, dtype=prop.dtype, device=prop.device)
     checks = K // guard.every
     stats = wp.zeros((checks, 2), dtype=prop.dtype, device=prop.device)
     clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
@@ -259,15 +276,16 @@ def run_graphs(su: Setup, st, vpad, data, guard: BlowupGuard, progress=None):
             if k % guard.every == 0:
                 prop.monitor(st.u, stats[k // guard.every])
             st = prop.step(st, vpad)
-            prop.inject(st.u, vpad, su.amplitudes, su.source_op, k, clock)
+            prop.inject(st.u, vpad, amplitudes, su.source_op, k, clock)
         wp.launch(tick, dim=1, inputs=[clock, K], device=prop.device)
     for g in range(graphs):
         wp.capture_launch(capture.graph)
         for j, (amax, nonfinite) in enumerate(stats.numpy()):
-            guard.check(g * K + j * guard.every, float(amax), float(nonfinite))
+            if g * K + j * guard.every < su.nt:
+                guard.check(g * K + j * guard.every, float(amax), float(nonfinite))
         if progress is not None:
-            progress.update(K)
-    return st, graphs * K
+            progress.update(min(K, su.nt - g * K))
+    return st
 
 
 def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4,
@@ -290,8 +308,9 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
                pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
                free_surface=free_surface, device=device, precision=precision)  # fmt: skip
     prop = su.prop
-    data = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
     guard = BlowupGuard(prop, np.asarray(source_amplitudes), check_every)
+    K, graphs = graph_plan(prop, su.nt, guard.every) if not snapshot_every else (0, 0)
+    data = wp.zeros((prop.n_shots, su.receivers.shape[1], max(su.nt, K * graphs)), dtype=prop.dtype, device=prop.device)
     snaps, snap_t = [], []
     o, ny = prop.origin, (prop.shape[1] if su.ndim == 3 else 1)
     phys = (slice(None), slice(o[0], o[0] + prop.shape[0]), slice(o[1], o[1] + ny), slice(o[2], o[2] + prop.shape[-1]))
@@ -306,14 +325,13 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
         bar.update()
 
     st, vpad = prop.new_state(), prop.pad_model(su.velocity)
-    start = 0
-    if not snapshot_every:
-        st, start = run_graphs(su, st, vpad, data, guard, bar)
-    run_data = data if start == 0 else data[:, :, start:]
-    run_steps(su, st, vpad, run_data, range(start, su.nt), callback=callback)
+    if graphs:
+        run_graphs(su, st, vpad, data, guard, bar)
+    else:
+        run_steps(su, st, vpad, data, range(su.nt), callback=callback)
     bar.close()
     return ForwardResult(
-        receiver_amplitudes=data.numpy().astype(float),
+        receiver_amplitudes=data.numpy()[:, :, : su.nt].astype(float),
         dt=float(dt),
         snapshots=np.stack(snaps) if snaps else None,
         snapshot_times=np.asarray(snap_t) if snaps else None,

@@ -1,12 +1,17 @@
-"""Check and time the acoustic time loop on one device: the optimised path (line kernels, CUDA graphs,
-CPU threads) against the per-cell reference kernels, the time of each kernel (tile kernel at several block sizes) and the
-time loop's rate (as forward runs it, without forward's host-side set-up). One JSON line each.
+"""Check and time the acoustic time loop on one device: the optimised path (core + frame kernels and
+CUDA graphs on a GPU, row kernels and threads on a CPU) against the per-cell reference kernels, the time
+of each kernel (the GPU core step at several cells per thread and block sizes, each checked against the
+reference step), the time loop's rate (as forward runs it, without forward's host-side set-up) and
+the whole forward() call. One JSON line each.
 
-    python benchmarks/speed_kernels.py --device cuda:0 [--scenes S600x16 S4000]
+    python benchmarks/speed_kernels.py --device cuda:0 [--scenes S600x16 S4000] [--profile]
 """
 
 import argparse
+import cProfile
+import io
 import json
+import pstats
 import sys
 import time
 from pathlib import Path
@@ -20,6 +25,8 @@ from speed import SCENES, scene  # noqa: E402
 import adseismic.propagate as P  # noqa: E402
 from adseismic.kernels import acoustic as K  # noqa: E402
 
+CORE_VARIANTS = [(8, 128), (16, 128), (16, 256), (32, 128)]  # (cells per thread, threads per block) of step_core
+
 
 def make(name, device, order, nt=None):
     n, shots, nt0 = SCENES[name]
@@ -28,17 +35,20 @@ def make(name, device, order, nt=None):
 
 
 def loop(su, s):
-    """forward's time loop (graphs where possible, then run_steps); returns (seconds, data)."""
+    """forward's time loop (graphs on a GPU, else run_steps); returns (seconds, data)."""
     prop = su.prop
-    data = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
     guard = P.BlowupGuard(prop, s, 25)
+    K, graphs = P.graph_plan(prop, su.nt, guard.every)
+    data = wp.zeros((prop.n_shots, su.receivers.shape[1], max(su.nt, K * graphs)), dtype=prop.dtype, device=prop.device)
     st, vpad = prop.new_state(), prop.pad_model(su.velocity)
     wp.synchronize_device(prop.device)
     t = time.perf_counter()
-    st, start = P.run_graphs(su, st, vpad, data, guard)
-    P.run_steps(su, st, vpad, data if start == 0 else data[:, :, start:], range(start, su.nt), callback=lambda st, n: guard(st.u, n))
+    if graphs:
+        P.run_graphs(su, st, vpad, data, guard)
+    else:
+        P.run_steps(su, st, vpad, data, range(su.nt), callback=lambda st, n: guard(st.u, n))
     wp.synchronize_device(prop.device)
-    return time.perf_counter() - t, data.numpy()
+    return time.perf_counter() - t, data.numpy()[:, :, : su.nt]
 
 
 def reference(su):
@@ -51,8 +61,19 @@ def reference(su):
 
 
 def per_launch(fn, device, reps):
+    """Seconds per call of fn (on a GPU replayed from a captured graph of `reps` calls: no launch overhead)."""
     fn()
     wp.synchronize_device(device)
+    if wp.get_device(device).is_cuda:
+        with wp.ScopedCapture(device=device) as capture:
+            for _ in range(reps):
+                fn()
+        wp.capture_launch(capture.graph)
+        wp.synchronize_device(device)
+        t = time.perf_counter()
+        wp.capture_launch(capture.graph)
+        wp.synchronize_device(device)
+        return (time.perf_counter() - t) / reps
     t = time.perf_counter()
     for _ in range(reps):
         fn()
@@ -61,23 +82,34 @@ def per_launch(fn, device, reps):
 
 
 def kernel_times(su, reps):
+    """Per-kernel seconds; on a GPU each core variant's step is also checked against the reference step
+    on random fields (max |difference| / max |reference|)."""
     prop = su.prop
     st, vpad = prop.new_state(), prop.pad_model(su.velocity)
     rng = np.random.default_rng(0)
     for a in (st.u, st.u_prev):
         a.assign(rng.standard_normal(a.shape).astype(np.float32) * 1e-3)
-    S, nz, ny, nx = prop.interior
-    R = prop.k.halo
-    args = [st.u, st.u_prev, st.u_prev, vpad, *st.psi, *st.zeta, *st.zeta, *prop.axes, prop.dt2, prop.inv_dx, prop.top]
+    S, nz, ny, _ = prop.interior
     dev = prop.device
-    out = {}
-    out["step_reference"] = per_launch(lambda: wp.launch(prop.k.step, dim=prop.interior, inputs=args, device=dev), dev, reps)
-    if prop.cuda:
-        rows = st.u.reshape((S * prop.padded[0], prop.padded[2]))
-        tz, tx = K.GPU_TILE
-        for block in (128, 256, 512):
-            out[f"step_tile_b{block}"] = per_launch(lambda: wp.launch_tiled(prop.k.step_tile, dim=(S, -(-nz // tz), -(-nx // tx)),
-                                                    inputs=[st.u, rows, *args[1:]], block_dim=block, device=dev), dev, reps)  # fmt: skip
+    ref_next, fast_next = wp.zeros_like(st.u), wp.zeros_like(st.u)
+    zeta_new = prop.new_state().zeta  # the steps below read st.zeta and write here, so every launch sees the same input
+
+    def args(u_next):
+        return [st.u, st.u_prev, u_next, vpad, *st.psi, *st.zeta, *zeta_new, *prop.axes, prop.dt2, prop.inv_dx, prop.top]
+
+    out, checks = {}, {}
+    out["step_reference"] = per_launch(lambda: wp.launch(prop.k.step, dim=prop.interior, inputs=args(ref_next), device=dev), dev, reps)
+    if prop.cuda and prop.has_core:
+        out["step_frame"] = per_launch(lambda: wp.launch(prop.k.step_frame, dim=(S, prop.frame_cells), inputs=[*args(fast_next), prop.core], device=dev), dev, reps)  # fmt: skip
+        ref = ref_next.numpy()
+        for rows, block in CORE_VARIANTS:
+            prop.core_rows, prop.core_threads = rows, block
+            name = f"step_core_r{rows}_b{block}"
+            out[name] = per_launch(lambda: prop.step_core(st.u, st.u_prev, fast_next, vpad), dev, reps)
+            checks[name] = float(np.abs(fast_next.numpy() - ref).max() / np.abs(ref).max())
+            fast_next.zero_()
+            wp.launch(prop.k.step_frame, dim=(S, prop.frame_cells), inputs=[*args(fast_next), prop.core], device=dev)
+        prop.core_rows, prop.core_threads = K.GPU_CORE_ROWS, K.GPU_CORE_THREADS
     out["step_in_place"] = per_launch(lambda: prop.step(st, vpad), dev, reps)
     grads = prop.new_state(requires_grad=True)
     adj = [grads.u.grad, grads.u_prev.grad, st.u, vpad, *(a.grad for a in grads.psi), *(a.grad for a in grads.zeta), *(a.grad for a in grads.zeta)]
@@ -92,7 +124,26 @@ def kernel_times(su, reps):
     out["record"] = per_launch(lambda: prop.record(st.u, data, su.receiver_op, 3), dev, reps)
     out["inject"] = per_launch(lambda: prop.inject(st.u, vpad, su.amplitudes, su.source_op, 3), dev, reps)
     cells = S * np.prod(prop.padded)
-    return {k: {"us": round(v * 1e6, 1), "gcells": round(cells / v / 1e9, 1)} for k, v in out.items()}
+    times = {k: {"us": round(v * 1e6, 1), "gcells": round(cells / v / 1e9, 1)} for k, v in out.items()}
+    for k, v in checks.items():
+        times[k]["max_rel_diff"] = v
+    return times
+
+
+def forward_call(name, device, order):
+    """Seconds of the whole forward() call on a scene (best of 3, after a warm-up)."""
+    n, shots, nt = SCENES[name]
+    v, src, rec, s = scene(n, shots, nt)
+
+    def run():
+        wp.synchronize_device(device)
+        t = time.perf_counter()
+        P.forward(v, 10.0, 1e-3, s, src, rec, order=order, pml_width=20, device=device)
+        wp.synchronize_device(device)
+        return time.perf_counter() - t
+
+    run()
+    return min(run() for _ in range(3)), (v, src, rec, s)
 
 
 def main():
@@ -101,6 +152,7 @@ def main():
     ap.add_argument("--order", type=int, default=4)
     ap.add_argument("--scenes", nargs="+", default=["S600x16", "S4000"])
     ap.add_argument("--reps", type=int, default=50)
+    ap.add_argument("--profile", action="store_true", help="also profile one forward() call per scene (host time)")
     a = ap.parse_args()
     P.init_warp()
     # correctness: optimised vs reference traces, on a short run of each scene
@@ -117,6 +169,16 @@ def main():
         loop(su, s)  # warm-up (compile, first capture)
         times = [loop(su, s)[0] for _ in range(3)]
         print(json.dumps({"loop": name, "seconds": [round(t, 4) for t in times], "gcells": round(cells / min(times) / 1e9, 1)}), flush=True)
+        del su
+        tf, inputs = forward_call(name, a.device, a.order)
+        print(json.dumps({"forward": name, "seconds": round(tf, 4), "gcells": round(cells / tf / 1e9, 1)}), flush=True)
+        if a.profile:
+            prof = cProfile.Profile()
+            v, src, rec, s = inputs
+            prof.runcall(P.forward, v, 10.0, 1e-3, s, src, rec, order=a.order, pml_width=20, device=a.device)
+            text = io.StringIO()
+            pstats.Stats(prof, stream=text).sort_stats("cumulative").print_stats(20)
+            print(text.getvalue(), flush=True)
 
 
 if __name__ == "__main__":

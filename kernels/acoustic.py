@@ -39,8 +39,8 @@ import warp as wp
 from adseismic.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 
 HICKS_RADIUS = 4
-GPU_TILE = (32, 64)  # interior cells (z, x) per block of the 2D GPU forward step
-GPU_TILE_THREADS = 128  # threads per block of that step (128: 87 Gcell/s on S4000, 256: 78, 512: 65)
+GPU_CORE_ROWS = 16  # cells per thread (along z) of the 2D GPU core step (H200, S4000: 4: 102 us, 8: 91, 16: 90, 32: 95)
+GPU_CORE_THREADS = 128  # threads per block of that step (256: 1-2% slower)
 CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over row blocks of a CPU step
 MONITOR_BLOCK = 256
 HICKS_B = 6.31
@@ -56,9 +56,8 @@ def _i0(x: float) -> float:
 
 
 @functools.lru_cache(maxsize=None)
-def build(ndim: int, order: int, dtype, free_surface: bool, tile=GPU_TILE):
-    """Kernels for one (ndim, order, dtype, free_surface) combination, compiled once per process; tile:
-    (z, x) cells per block of the 2D GPU core step (default GPU_TILE)."""
+def build(ndim: int, order: int, dtype, free_surface: bool):
+    """Kernels for one (ndim, order, dtype, free_surface) combination, compiled once per process."""
     R = order // 2
     A = SECOND_DERIVATIVE[order]
     B = FIRST_DERIVATIVE[order]
@@ -208,8 +207,8 @@ def build(ndim: int, order: int, dtype, free_surface: bool, tile=GPU_TILE):
         return psi_kernel, psi_rows
 
     def make_stretch(axis: int):
-        # CPML-stretched second derivative along `axis` from t = d2u/dx2 at (s, z, y, x): in the strip
-        # t + d(psi)/dx + zeta_new (zeta_new stored), else t
+        # CPML term of the second derivative along `axis`, from t = d2u/dx2 at (s, z, y, x): in the strip
+        # d(psi)/dx + zeta_new (zeta_new stored), else 0
         dpsi = d1[axis]
 
         @wp.func
@@ -230,11 +229,11 @@ def build(ndim: int, order: int, dtype, free_surface: bool, tile=GPU_TILE):
                     iy = j
                 else:
                     ix = j
-                g = t + dpsi(psi, s, iz, iy, ix) * inv_dx
-                zn = ca.b[p] * zeta[s, iz, iy, ix] + ca.a[p] * g
+                d = dpsi(psi, s, iz, iy, ix) * inv_dx
+                zn = ca.b[p] * zeta[s, iz, iy, ix] + ca.a[p] * (t + d)
                 zeta_new[s, iz, iy, ix] = zn
-                return g + zn
-            return t
+                return d + zn
+            return dtype(0.0)
 
         return stretch
 
@@ -246,11 +245,6 @@ def build(ndim: int, order: int, dtype, free_surface: bool, tile=GPU_TILE):
         return dtype(2.0) * uc - up + vv * vv * dt2 * lap
 
     @wp.func
-    def advance_core(uc: dtype, up: dtype, vv: dtype, dzz: dtype, dxx: dtype, dt2: dtype, inv_dx2: dtype) -> dtype:
-        # advance outside the CPML strips, from the second derivatives along z and x (times dx^2)
-        return advance(uc, up, vv, dt2, dzz * inv_dx2 + dxx * inv_dx2)
-
-    @wp.func
     def update(
         u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
         psi_z: arr4, psi_y: arr4, psi_x: arr4,
@@ -259,12 +253,18 @@ def build(ndim: int, order: int, dtype, free_surface: bool, tile=GPU_TILE):
         az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
         s: int, z: int, y: int, x: int, dzz: dtype, dxx: dtype, uc: dtype,
     ):  # fmt: skip
-        # u_next at one cell from uc = u there and its d2u along z and x (times dx^2)
+        # u_next at one cell from uc = u there and its d2u along z and x (times dx^2). The plain Laplacian
+        # comes first and the CPML terms (0 outside the strips) are added to it, so that outside the
+        # strips it rounds as in step_core, whatever multiply-adds the compiler fuses.
         inv_dx2 = inv_dx * inv_dx
-        lap = stretch_z(dzz * inv_dx2, s, z, y, x, psi_z, zeta_z, zeta_z_new, az, inv_dx)
-        lap = lap + stretch_x(dxx * inv_dx2, s, z, y, x, psi_x, zeta_x, zeta_x_new, ax, inv_dx)
         if wp.static(three):
-            lap = lap + stretch_y(d2y(u, s, z, y, x, top) * inv_dx2, s, z, y, x, psi_y, zeta_y, zeta_y_new, ay, inv_dx)
+            dyy = d2y(u, s, z, y, x, top)
+            lap = (dzz + dxx + dyy) * inv_dx2
+            lap = lap + stretch_y(dyy * inv_dx2, s, z, y, x, psi_y, zeta_y, zeta_y_new, ay, inv_dx)
+        else:
+            lap = (dzz + dxx) * inv_dx2
+        lap = lap + stretch_z(dzz * inv_dx2, s, z, y, x, psi_z, zeta_z, zeta_z_new, az, inv_dx)
+        lap = lap + stretch_x(dxx * inv_dx2, s, z, y, x, psi_x, zeta_x, zeta_x_new, ax, inv_dx)
         u_next[s, z, y, x] = advance(uc, u_prev[s, z, y, x], v[z, y, x], dt2, lap)
 
     @wp.func
@@ -371,44 +371,37 @@ def build(ndim: int, order: int, dtype, free_surface: bool, tile=GPU_TILE):
         cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
              az, ay, ax, dt2, inv_dx, top, s, z, 0, x)  # fmt: skip
 
-    TZ, TX = tile
-
-    @wp.kernel(module="unique")
-    def step_core(u: arr3, u_prev: arr3, u_next: arr3, v: arr3, dt2: dtype, inv_dx: dtype):
-        # 2D GPU step of the core (no CPML, no free surface), launch_tiled over (shots, z tiles, x tiles):
-        # a TZ x TX tile of u with its halo in shared memory, the stencil as sums of shifted views.
-        # Views of the core: u (S, nz + 2R, nx + 2R) with its halo; u_prev, u_next (S, nz, nx); v (1, nz, nx).
-        s, bz, bx = wp.tid()
-        z0 = bz * wp.static(TZ)
-        x0 = bx * wp.static(TX)
-        t = wp.tile_load(u, shape=(1, wp.static(TZ + 2 * R), wp.static(TX + 2 * R)), offset=(s, z0, x0), storage="shared")
-        c = wp.tile_view(t, offset=(0, wp.static(R), wp.static(R)), shape=(1, wp.static(TZ), wp.static(TX)))
-        dzz = c * dtype(wp.static(A[0]))
-        dxx = c * dtype(wp.static(A[0]))
-        for m in range(wp.static(R)):
-            zp = wp.tile_view(t, offset=(0, wp.static(R + 1) + m, wp.static(R)), shape=(1, wp.static(TZ), wp.static(TX)))
-            zm = wp.tile_view(t, offset=(0, wp.static(R - 1) - m, wp.static(R)), shape=(1, wp.static(TZ), wp.static(TX)))
-            xp = wp.tile_view(t, offset=(0, wp.static(R), wp.static(R + 1) + m), shape=(1, wp.static(TZ), wp.static(TX)))
-            xm = wp.tile_view(t, offset=(0, wp.static(R), wp.static(R - 1) - m), shape=(1, wp.static(TZ), wp.static(TX)))
-            dzz = dzz + (zp + zm) * dtype(wp.static(A[m + 1]))
-            dxx = dxx + (xp + xm) * dtype(wp.static(A[m + 1]))
-        up = wp.tile_load(u_prev, shape=(1, wp.static(TZ), wp.static(TX)), offset=(s, z0, x0))
-        vv = wp.tile_load(v, shape=(1, wp.static(TZ), wp.static(TX)), offset=(0, z0, x0))
-        wp.tile_store(u_next, wp.tile_map(advance_core, c, up, vv, dzz, dxx, dt2, inv_dx * inv_dx), offset=(s, z0, x0))
-
     @wp.kernel(module="unique", grid_stride=False)
-    def step_core_flat(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
-        # 2D GPU step of the core, one thread per cell on the flat arrays (u: S * Lz * Lx, v: Lz * Lx)
-        s, zi, xi = wp.tid()
-        c = (core[0] + zi) * lx + core[2] + xi
+    def step_core(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, rows: int, dt2: dtype, inv_dx: dtype):
+        # 2D GPU step of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded indices), where
+        # there is neither CPML nor a free surface, on the flat arrays (u: S * Lz * Lx, v: Lz * Lx). Thread t
+        # updates `rows` consecutive cells of one column with the stencil's values along z in a sliding
+        # window; a 1D launch, since unravelling a multi-dimensional thread index costs 64-bit divisions.
+        t = wp.tid()
+        nx = core[3] - core[2]
+        blocks = (core[1] - core[0] + rows - 1) // rows
+        q = t // nx
+        x = core[2] + t - q * nx
+        s = q // blocks
+        z = core[0] + (q - s * blocks) * rows
+        n = wp.min(rows, core[1] - z)
+        c = z * lx + x
         i = s * lz * lx + c
-        uc = u[i]
-        dzz = dtype(wp.static(A[0])) * uc
-        dxx = dtype(wp.static(A[0])) * uc
-        for m in range(wp.static(R)):
-            dzz += dtype(wp.static(A[m + 1])) * (u[i + (m + 1) * lx] + u[i - (m + 1) * lx])
-            dxx += dtype(wp.static(A[m + 1])) * (u[i + m + 1] + u[i - m - 1])
-        u_next[i] = advance_core(uc, u_prev[i], v[c], dzz, dxx, dt2, inv_dx * inv_dx)
+        w = vecw()
+        for m in range(wp.static(2 * R + 1)):
+            w[m] = u[i + (m - wp.static(R)) * lx]
+        inv_dx2 = inv_dx * inv_dx
+        for k in range(n):
+            dxx = dtype(wp.static(A[0])) * w[wp.static(R)]
+            for m in range(wp.static(R)):
+                dxx += dtype(wp.static(A[m + 1])) * (u[i + m + 1] + u[i - m - 1])
+            u_next[i] = advance(w[wp.static(R)], u_prev[i], v[c], dt2, (d2w(w) + dxx) * inv_dx2)
+            if k + 1 < n:
+                for m in range(wp.static(2 * R)):
+                    w[m] = w[m + 1]
+                w[wp.static(2 * R)] = u[i + wp.static(R + 1) * lx]
+            i += lx
+            c += lx
 
     # --- Hand-written adjoints of psi_kernel and step. They match Warp's generated adjoints
     # (tests/test_gradient.py) and are what the taped steps use. The step's adjoint gathers: the
@@ -739,7 +732,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool, tile=GPU_TILE):
             wp.atomic_add(stats, 1, block_bad[0])
 
     return _Kernels(
-        Axis=Axis, step=step, step_frame=step_frame, step_core=step_core, step_core_flat=step_core_flat, step_rows=step_rows, psi=psi, inject=inject,
+        Axis=Axis, step=step, step_frame=step_frame, step_core=step_core, step_rows=step_rows, psi=psi, inject=inject,
         step_adjoint={False: make_step_adjoint(False), True: make_step_adjoint(True)},
         psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
         record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=record_fixed, pad_model=pad_model, scatter=scatter, energy=energy, monitor=monitor, halo=R, operator_points=NPTS,
@@ -835,8 +828,7 @@ class Acoustic:
         self.shape = tuple(int(n) for n in shape)
         self.dx, self.dt, self.order, self.n_shots = float(dx), float(dt), int(order), int(n_shots)
         self.dtype, self.device = dtype, device
-        self.fs = bool(free_surface)
-        self.k = build(self.ndim, self.order, dtype, self.fs, GPU_TILE)
+        self.k = build(self.ndim, self.order, dtype, bool(free_surface))
         R = self.k.halo
         shape3 = (self.shape[0], self.shape[1] if self.ndim == 3 else 1, self.shape[-1])
         nb = int(pml_width)
@@ -866,14 +858,13 @@ class Acoustic:
         self.core = wp.vec4i(R + band[0][0], self.padded[0] - R - band[0][1], R + band[1][0], self.padded[2] - R - band[1][1])
         core_rows, core_cols = self.core[1] - self.core[0], self.core[3] - self.core[2]
         self.frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - max(core_rows, 0) * max(core_cols, 0)
-        self.has_core = self.ndim == 2 and core_rows > 0 and core_cols > 0
+        self.has_core = self.ndim == 2 and core_rows > 0 and core_cols > 0 and self.n_shots * self.padded[0] * self.padded[2] < 2**31  # int32 indices
         self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * halo[1], self.padded[2] - 2 * R)
         self.inv_dx = dtype(1.0 / dx)
         self.dt2 = dtype(dt * dt)
         self.src_scale = dtype(dt * dt / dx**self.ndim)
         self.cuda = wp.get_device(device).is_cuda
-        self.tile_threads = GPU_TILE_THREADS
-        self.tile = GPU_TILE
+        self.core_rows, self.core_threads = GPU_CORE_ROWS, GPU_CORE_THREADS
         self.threads = 1 if self.cuda else max(1, min(CPU_THREADS, os.cpu_count() or 1, self.interior[1]))
         self._pool = None
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
@@ -914,12 +905,12 @@ class Acoustic:
             out = State(st.u, out.u, out.psi, out.zeta)
             u_next = out.u
         axes = [a for a in range(3) if self.strip_width[a]]
-        S, nz, ny, nx = self.interior
+        S, nz, ny, _ = self.interior
         R = self.k.halo
         step_args = [st.u, st.u_prev, u_next, vpad, *out.psi, *st.zeta, *out.zeta, *self.axes, self.dt2, self.inv_dx, self.top]
         # A wp.Tape without our adjoint (adjoint="warp") replays the per-cell reference kernels; a GPU
-        # runs the 2D step as shared-memory tiles (3D: the reference kernel); a CPU runs rows, split
-        # among threads.
+        # runs the 2D step as the core and frame kernels (3D: the reference kernel); a CPU runs rows,
+        # split among threads.
         generated = tape is None and wp._src.context.runtime.tape is not None
         if generated or self.cuda:
             for a in axes:
@@ -960,24 +951,12 @@ class Acoustic:
             tape.record_func(backward, arrays=[*st.arrays(), *out.arrays(), vpad])
         return out
 
-    def core_views(self, u, u_prev, u_next, vpad):
-        """Views of the 2D core for step_core: u with its halo (S, nz + 2R, nx + 2R), u_prev and u_next
-        (S, nz, nx), vpad (1, nz, nx)."""
-        S, (Lz, _, Lx), R = self.n_shots, self.padded, self.k.halo
-        z0, z1, x0, x1 = self.core
-
-        def core(a, n, halo=0):
-            return a.reshape((n, Lz, Lx))[:, z0 - halo : z1 + halo, x0 - halo : x1 + halo]
-
-        return core(u, S, R), core(u_prev, S), core(u_next, S), core(vpad, 1)
-
     def step_core(self, u, u_prev, u_next, vpad):
-        """The core part of a 2D GPU step (see step_frame for the rest)."""
-        tz, tx = self.tile
-        k = build(self.ndim, self.order, self.dtype, self.fs, self.tile)
-        dim = (self.n_shots, -(-(self.core[1] - self.core[0]) // tz), -(-(self.core[3] - self.core[2]) // tx))
-        wp.launch_tiled(k.step_core, dim=dim, inputs=[*self.core_views(u, u_prev, u_next, vpad), self.dt2, self.inv_dx],
-                        block_dim=self.tile_threads, device=self.device, record_tape=False)  # fmt: skip
+        """The core part of a 2D GPU step (step_frame does the rest)."""
+        c, rows = self.core, self.core_rows
+        threads = self.n_shots * -(-(c[1] - c[0]) // rows) * (c[3] - c[2])
+        wp.launch(self.k.step_core, dim=threads, inputs=[u.flatten(), u_prev.flatten(), u_next.flatten(), vpad.flatten(), self.padded[0],
+                  self.padded[2], c, rows, self.dt2, self.inv_dx], block_dim=self.core_threads, device=self.device, record_tape=False)  # fmt: skip
 
     def _split(self, job):
         """job(i) for i < self.threads, i > 0 on worker threads (CPU launches release the GIL)."""

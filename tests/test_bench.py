@@ -11,7 +11,7 @@ from adseismic.bench import SCENES, BenchRow
 
 @pytest.fixture(scope="module")
 def bench_run(tmp_path_factory):
-    """S600 (8 steps) in its own worker process, and E2000 (run or skipped as the elastic module allows)."""
+    """S600 (8 steps) and E2000 (elastic), each in its own worker process."""
     out = tmp_path_factory.mktemp("bench") / "out"
     code = cli.main(["bench", "--scenes", "S600", "E2000", "--steps", "8", "--no-deepwave", "-o", str(out), "-q"])
     return code, out
@@ -35,7 +35,7 @@ def test_bench_writes_json_markdown_png(bench_run):
         assert r.rate == pytest.approx(644**2 * 8 / r.seconds)
     assert s600[1].peak_estimate_bytes > 0 and "x" in s600[1].segments
     e = [r for r in rows if r.scene == "E2000"]
-    assert len(e) == 2 and all(r.ok or r.status == "skipped: elastic propagator not available" for r in e)
+    assert len(e) == 2 and all(r.ok for r in e)
     md = (out / "bench.md").read_text()
     assert "| S600 | cpu | forward | 8 (of 1000) |" in md
     assert "2.08 (reference.md, 2-core CPU)" in md and "0.2 (reference.md, 2-core CPU)" in md

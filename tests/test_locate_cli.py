@@ -69,7 +69,10 @@ def test_miniseed_stationxml_round_trip_gives_the_in_memory_location(tmp_path, c
     s = json.loads((out / "summary.json").read_text())
 
     model, rec, _ = scene()
-    mem = locate(model, rec, observed(), DT, noise_window=tuple(NOISE_WINDOW), pml_width=10, device=DEVICE)
+    # the command measures the noise's autocorrelation time in the window (~1 for this white noise)
+    # and inflates the covariance by it: give the in-memory run the same factor
+    mem = locate(model, rec, observed(), DT, noise_window=tuple(NOISE_WINDOW), pml_width=10, device=DEVICE,
+                 noise_correlation=s["noise_correlation_samples"])
     pos = np.array([s["position_m"]["z"], s["position_m"]["x"]])
     # identical samples (float64 MiniSEED, same dt, no filter) and station positions through
     # latitude/longitude to < 1e-6 m: the same optimisation path, so the same answer to rounding
