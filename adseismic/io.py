@@ -20,6 +20,7 @@ renamed into place with ``os.replace`` only when complete; on any error the part
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
 from dataclasses import dataclass, field
@@ -37,31 +38,32 @@ def atomic_path(path) -> pathlib.Path:
     return path.with_name(path.name + ".part")  # data.h5 -> data.h5.part (= with_suffix(".h5.part"))
 
 
-def write_text_atomic(path, text: str) -> None:
-    """Write ``text`` to ``path`` via its .part name; nothing is left behind on error."""
+@contextlib.contextmanager
+def atomic_write(path):
+    """Context yielding the .part path to write ``path`` under: renamed into place when the block
+    completes, removed on any error, so ``path`` appears complete or not at all."""
     path = pathlib.Path(path)
     part = atomic_path(path)
     try:
-        part.write_text(text, encoding="utf-8")
+        yield part
         os.replace(part, path)
     except BaseException:
         part.unlink(missing_ok=True)
         raise
+
+
+def write_text_atomic(path, text: str) -> None:
+    """Write ``text`` to ``path`` via its .part name; nothing is left behind on error."""
+    with atomic_write(path) as part:
+        part.write_text(text, encoding="utf-8")
 
 
 def write_h5_atomic(path, fill) -> None:
     """Create an HDF5 file at ``path`` with ``fill(h5py.File)`` via its .part name (atomic)."""
     import h5py
 
-    path = pathlib.Path(path)
-    part = atomic_path(path)
-    try:
-        with h5py.File(part, "w") as f:
-            fill(f)
-        os.replace(part, path)
-    except BaseException:
-        part.unlink(missing_ok=True)
-        raise
+    with atomic_write(path) as part, h5py.File(part, "w") as f:
+        fill(f)
 
 
 @dataclass

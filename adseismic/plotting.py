@@ -7,12 +7,11 @@ place when complete. Coordinates are in world metres (shown in km when the secti
 """
 from __future__ import annotations
 
-import os
 import pathlib
 
 import numpy as np
 
-from adseismic.io import atomic_path
+from adseismic.io import atomic_write
 
 __all__ = ["plot_model", "plot_gather", "plot_snapshots", "plot_misfit", "plot_station_traces", "plot_location", "save_figure", "xz_slice"]
 
@@ -28,15 +27,9 @@ def _figure(width: float, height: float):
 
 def save_figure(fig, path) -> pathlib.Path:
     """Write ``fig`` as PNG to ``path`` atomically (temporary name, then os.replace)."""
-    path = pathlib.Path(path)
-    part = atomic_path(path)
-    try:
+    with atomic_write(path) as part:
         fig.savefig(part, format="png")
-        os.replace(part, path)
-    except BaseException:
-        part.unlink(missing_ok=True)
-        raise
-    return path
+    return pathlib.Path(path)
 
 
 def _scale(extent_m: float) -> tuple[float, str]:

@@ -55,13 +55,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import pathlib
 import re
 
 import numpy as np
 
-from adseismic.io import atomic_path
+from adseismic.io import atomic_write
 from adseismic.traces import Reference, _as_reference, unproject
 
 __all__ = [
@@ -391,14 +389,8 @@ def write_quakeml(path, *, position, origin_time, covariance, reference, ndim: i
     event.preferred_origin_id = origin.resource_id
     catalog = Catalog(events=[event], creation_info=cinfo)
 
-    path = pathlib.Path(path)
-    part = atomic_path(path)
-    try:
+    with atomic_write(path) as part:
         catalog.write(str(part), format="QUAKEML")
-        os.replace(part, path)
-    except BaseException:
-        part.unlink(missing_ok=True)
-        raise
 
 
 # ------------------------------------------------------------------------------- reading
