@@ -24,6 +24,7 @@ import warp as wp
 from tqdm.auto import tqdm
 
 from adseismic.kernels.acoustic import HICKS_RADIUS
+from adseismic.kernels.acoustic import tick
 from adseismic.kernels.elastic import PSI, Elastic
 from adseismic.misfits import misfit as named_misfit
 from adseismic.numerics import check_order, staggered_cfl_limit
@@ -40,6 +41,7 @@ from adseismic.propagate import (
 SOURCE_TYPES = {"force": 2, "moment": 3, "explosive": 3}
 COMPONENTS = ("vx", "vz", "pressure")
 WRT = ("vp", "vs", "rho", "source_amplitudes", "source_components", "source_locations")
+GRAPH_STEPS = 50  # time steps per captured CUDA graph in forward_elastic (rounded to a multiple of the checks)
 
 
 @dataclass
@@ -134,9 +136,11 @@ class ElasticSetup:
     components: wp.array
     sources: wp.array
     receivers: wp.array
+    receiver_op: tuple  # Elastic.receivers
 
-    def padded_model(self, requires_grad=False):
-        return tuple(self.prop.pad_model(m, requires_grad) for m in self.model)
+    def materials(self, requires_grad=False):
+        """The padded model's MATERIALS (kernels/elastic.py); differentiable under a tape."""
+        return self.prop.materials(*(self.prop.pad_model(m, requires_grad) for m in self.model), requires_grad=requires_grad)
 
     def source_args(self):
         return (self.kind, self.amplitudes, self.components, self.sources)
@@ -164,8 +168,9 @@ def setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, rece
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)
 
     kind = "force" if source_type == "force" else "moment"
+    receivers = put(receiver_locations, "receiver_locations")
     return ElasticSetup(prop, amp.shape[2], kind, (put(vp, "vp"), put(vs, "vs"), put(rho, "rho")), put(amp, "source_amplitudes"),
-                        put(comp, "source_components"), put(source_locations, "source_locations"), put(receiver_locations, "receiver_locations"))  # fmt: skip
+                        put(comp, "source_components"), put(source_locations, "source_locations"), receivers, prop.receivers(receivers))  # fmt: skip
 
 
 class ElasticBlowupGuard:
@@ -183,7 +188,10 @@ class ElasticBlowupGuard:
         if n % self.every:
             return
         self.prop.monitor((st.vx, st.vz), self.stats)
-        amax, nonfinite = self.stats.numpy()
+        self.check(n, *self.stats.numpy())
+
+    def check(self, n: int, amax: float, nonfinite: float):
+        """Judge the statistics (max |v|, count of non-finite values) of level n; raises PropagationError."""
         if n <= self.source_end:
             self.peak = max(self.peak, float(amax))
         runaway = n > self.source_end and self.peak > 0 and amax > BLOWUP_FACTOR * self.peak
@@ -197,19 +205,62 @@ class ElasticBlowupGuard:
             )
 
 
-def run_elastic(su: ElasticSetup, st, model, data, steps: range, next_state=None, callback=None):
+def run_elastic(su: ElasticSetup, st, mat, data, steps: range, next_state=None, callback=None, tape=None):
     """Record level n into data[..., n - steps.start] and advance one step, for n in steps; returns the state
-    at steps.stop (or nt - 1). next_state: callable giving fresh arrays for the next level (needed under a
-    tape); None steps in place. callback(state, n) runs after recording."""
+    at steps.stop (or nt - 1). mat: su.materials(); next_state: callable giving fresh arrays for the next
+    level (needed under a tape); None steps in place. callback(state, n) runs after recording. tape: the
+    active wp.Tape to record the hand-written adjoints on (None: Warp's generated ones)."""
     prop = su.prop
     src = su.source_args()
     for n in steps:
-        prop.record(st, data, su.receivers, n - steps.start)
+        prop.record(st, data, su.receiver_op, n - steps.start)
         if callback is not None:
             callback(st, n)
         if n == su.nt - 1:
             break
-        st = prop.step(st, model, src, n, next_state() if next_state is not None else None)
+        st = prop.step(st, mat, src, n, next_state() if next_state is not None else None, tape=tape)
+    return st
+
+
+def graph_plan(prop: Elastic, nt: int, every: int):
+    """(K, graphs): K steps per captured graph (a multiple of `every`, the guard's interval), replayed
+    `graphs` times to cover the nt levels; graphs = 0 where none are used (CPU, or fewer than two replays)."""
+    K = every * max(1, GRAPH_STEPS // every)
+    graphs = -(-nt // K)
+    return K, graphs if prop.cuda and graphs >= 2 else 0
+
+
+def run_graphs(su: ElasticSetup, st, mat, data, guard: ElasticBlowupGuard, progress=None):
+    """The in-place time loop of run_elastic on a CUDA device as replays of one captured graph of K steps
+    (record, the guard's checks, step; see graph_plan), reading the guard's statistics after each replay.
+    Runs K * graphs >= nt levels: data must have that many samples (those past nt - 1 are padding)."""
+    prop = su.prop
+    K, graphs = graph_plan(prop, su.nt, guard.every)
+    levels = K * graphs
+    amp = np.zeros((*su.amplitudes.shape[:2], levels + 1), dtype=wp.dtype_to_numpy(prop.dtype))  # zero samples past nt
+    amp[:, :, : su.nt] = su.amplitudes.numpy()
+    src = (su.kind, wp.array(amp, dtype=prop.dtype, device=prop.device), su.components, su.sources)
+    checks = K // guard.every
+    stats = wp.zeros((checks, 2), dtype=prop.dtype, device=prop.device)
+    clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
+    k = prop.k
+    for kernel in (k.monitor, k.velocity, k.stress, k.velocity_frame, k.stress_frame, k.velocity_core, k.stress_core,
+                   k.record, k.inject_force if su.kind == "force" else k.inject_moment, tick):  # fmt: skip
+        wp.load_module(kernel.module, device=prop.device)
+    with wp.ScopedCapture(device=prop.device, force_module_load=False) as capture:
+        for n in range(K):
+            prop.record(st, data, su.receiver_op, n, clock)
+            if n % guard.every == 0:
+                prop.monitor((st.vx, st.vz), stats[n // guard.every])
+            st = prop.step(st, mat, src, n, clock=clock)
+        wp.launch(tick, dim=1, inputs=[clock, K], device=prop.device)
+    for g in range(graphs):
+        wp.capture_launch(capture.graph)
+        for j, (amax, nonfinite) in enumerate(stats.numpy()):
+            if g * K + j * guard.every < su.nt:
+                guard.check(g * K + j * guard.every, float(amax), float(nonfinite))
+        if progress is not None:
+            progress.update(min(K, su.nt - g * K))
     return st
 
 
@@ -233,17 +284,21 @@ def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
                        source_components=source_components, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
                        pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
                        precision=precision)  # fmt: skip
-    data = _new_data(su, su.nt)
     guard = ElasticBlowupGuard(su.prop, np.asarray(source_amplitudes, dtype=float), check_every)
+    K, graphs = graph_plan(su.prop, su.nt, guard.every)
+    data = _new_data(su, max(su.nt, K * graphs))
     bar = tqdm(total=su.nt, desc="time steps", unit="step", disable=not progress, leave=False)
 
     def callback(st, n):
         guard(st, n)
         bar.update()
 
-    run_elastic(su, su.prop.new_state(), su.padded_model(), data, range(su.nt), callback=callback)
+    if graphs:
+        run_graphs(su, su.prop.new_state(), su.materials(), data, guard, bar)
+    else:
+        run_elastic(su, su.prop.new_state(), su.materials(), data, range(su.nt), callback=callback)
     bar.close()
-    vx, vz, p = (d.numpy().astype(float) for d in data)
+    vx, vz, p = (d.numpy()[:, :, : su.nt].astype(float) for d in data)
     return ElasticResult(vx=vx, vz=vz, pressure=p, dt=float(dt))
 
 
@@ -263,20 +318,24 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
                      misfit="l2", components=COMPONENTS, wrt=("vp", "vs", "rho"), source_type="force", source_components=None,
                      order=4, pml_width=None, pml_reflection=None, pml_frequency=None, pml_velocity=None,
                      free_surface=False, device="cpu", precision="float32", memory_budget=None, segment_length=None,
-                     progress=False) -> ElasticGradient:  # fmt: skip
+                     adjoint="hand", progress=False) -> ElasticGradient:  # fmt: skip
     """Misfit between simulated and observed data and its exact gradient (discrete adjoint by wp.Tape).
 
     observed: {"vx": ..., "vz": ..., "pressure": ...} arrays (n_shots, n_receivers, nt) for the names in
     `components`; misfit: a name in misfits.MISFITS (summed over components) or a callable
     synthetic dict -> (J, {name: dJ/d synthetic}). wrt: any of WRT. Memory is bounded by checkpointing
     (gradient.py's scheme): the state every segment_length steps (default ~sqrt(nt), or every step when
-    memory_budget bytes allow), each segment re-run under a fresh tape with its own arrays per level.
-    Other arguments as in forward_elastic. PML settings are treated as fixed (pin pml_velocity and
-    pml_frequency when the model changes between calls).
+    memory_budget bytes allow), each segment re-run under a fresh tape with its own arrays per level (the
+    last segment is taped in the forward sweep itself). adjoint: "hand" (the hand-written adjoints of the
+    stencil kernels) or "warp" (Warp's generated adjoints of every kernel, the reference the hand-written
+    ones are tested against). Other arguments as in forward_elastic. PML settings are treated as fixed
+    (pin pml_velocity and pml_frequency when the model changes between calls).
     """
     unknown = set(wrt) - set(WRT)
     if unknown:
         raise ValueError(f"wrt: {sorted(unknown)} not among {WRT}")
+    if adjoint not in ("hand", "warp"):
+        raise ValueError(f"adjoint {adjoint!r} is not 'hand' or 'warp'")
     su = setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, source_type=source_type,
                        source_components=source_components, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
                        pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
@@ -295,27 +354,12 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
 
     seg = _segment_length(prop, nt, memory_budget, segment_length)
     n_seg = math.ceil(nt / seg)
-    # forward sweep without a tape, keeping the state at the start of every segment
-    data = _new_data(su, nt)
-    checkpoints = []
-
-    def keep(st, n):
-        if n % seg == 0:
-            checkpoints.append([wp.clone(a) for a in st.arrays()])
-
-    run_elastic(su, prop.new_state(), su.padded_model(), data, range(nt), callback=keep)
-    synthetic = dict(zip(COMPONENTS, (d.numpy().astype(float) for d in data)))
-    loss, adj = loss_fn(synthetic)
     levels = [prop.new_state(requires_grad=True) for _ in range(seg)]
     starts = [prop.new_state(requires_grad=True) for _ in range(2)]
-    carry = None
-    for i, k in enumerate(tqdm(reversed(range(n_seg)), total=n_seg, desc="adjoint segments", disable=not progress, leave=False)):
+
+    def taped(k, st0):
+        """Segment k (levels n0 .. n1) from st0 under a fresh tape: (tape, state at n1, data)."""
         n0, n1 = k * seg, min((k + 1) * seg, nt)
-        st0 = starts[i % 2]
-        for dst, src in zip(st0.arrays(), checkpoints[k]):
-            wp.copy(dst, src)
-            dst.grad.zero_()
-        checkpoints[k] = None
         for lvl in levels:
             for a in lvl.arrays():
                 a.grad.zero_()
@@ -323,7 +367,39 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
         pool = iter(levels)
         tape = wp.Tape()
         with tape:
-            st = run_elastic(su, st0, su.padded_model(requires_grad=True), data_seg, range(n0, n1), next_state=lambda: next(pool))
+            st = run_elastic(su, st0, su.materials(requires_grad=True), data_seg, range(n0, n1), next_state=lambda: next(pool),
+                             tape=tape if adjoint == "hand" else None)  # fmt: skip
+        return tape, st, data_seg
+
+    # forward sweep without a tape up to the last segment, keeping the state at the start of every segment;
+    # the last segment's state goes to starts[0] and that segment runs under its tape
+    last = (n_seg - 1) * seg
+    data = _new_data(su, last)
+    checkpoints = []
+
+    def keep(st, n):
+        if n % seg == 0:
+            checkpoints.append([wp.clone(a) for a in st.arrays()])
+
+    st = run_elastic(su, prop.new_state(), su.materials(), data, range(last), callback=keep)
+    for dst, a in zip(starts[0].arrays(), st.arrays()):
+        wp.copy(dst, a)
+    pending = taped(n_seg - 1, starts[0])
+    synthetic = {c: np.concatenate([a.numpy(), b.numpy()], axis=2).astype(float) for c, a, b in zip(COMPONENTS, data, pending[2])}
+    loss, adj = loss_fn(synthetic)
+    carry = None
+    for i, k in enumerate(tqdm(reversed(range(n_seg)), total=n_seg, desc="adjoint segments", disable=not progress, leave=False)):
+        n0, n1 = k * seg, min((k + 1) * seg, nt)
+        st0 = starts[i % 2]
+        if i:
+            for dst, src in zip(st0.arrays(), checkpoints[k]):
+                wp.copy(dst, src)
+            checkpoints[k] = None
+            pending = taped(k, st0)
+        for a in st0.arrays():
+            a.grad.zero_()
+        tape, st, data_seg = pending
+        pending = None
         seeds = {}
         for name, d in zip(COMPONENTS, data_seg):
             if name in adj:

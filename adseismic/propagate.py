@@ -20,7 +20,7 @@ import numpy as np
 import warp as wp
 from tqdm.auto import tqdm
 
-from adseismic.kernels.acoustic import HICKS_RADIUS, Acoustic, tick
+from adseismic.kernels.acoustic import HICKS_RADIUS, Acoustic, tick, value_range
 from adseismic.numerics import cfl_limit, check_order
 
 log = logging.getLogger(__name__)
@@ -83,22 +83,17 @@ def to_zyx(locations: np.ndarray, ndim: int) -> np.ndarray:
     return out
 
 
-def check_inputs(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order):
-    """Shape, value and stability checks shared by forward and gradient; raises ValueError. Returns ndim."""
-    return _check(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order)[0]
-
-
-def _check(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order):
-    """check_inputs, returning (ndim, max velocity in m/s)."""
-    v = np.asarray(velocity)
-    ndim = v.ndim
+def check_inputs(shape, value_range, dx, dt, source_amplitudes, source_locations, receiver_locations, order):
+    """Shape, value and stability checks shared by forward and gradient; raises ValueError. shape: the
+    velocity model's (nz, [ny,] nx); value_range: (min, max, first index of a non-finite or non-positive
+    value or None) of its values. Returns (ndim, max velocity in m/s)."""
+    ndim = len(shape)
     if ndim not in (2, 3):
-        raise ValueError(f"velocity must be 2D (nz, nx) or 3D (nz, ny, nx); got shape {v.shape}")
+        raise ValueError(f"velocity must be 2D (nz, nx) or 3D (nz, ny, nx); got shape {shape}")
     check_order(order)
-    vmin, vmax = float(v.min()), float(v.max())  # NaN propagates: one pass each, not isfinite + min
-    if not (math.isfinite(vmin) and math.isfinite(vmax)) or vmin <= 0:
-        bad = np.argwhere(~np.isfinite(v) | (v <= 0))
-        raise ValueError(f"velocity has {len(bad)} non-finite or non-positive values (first at index {tuple(bad[0])}); fix the model")
+    vmin, vmax, bad = value_range
+    if bad is not None:
+        raise ValueError(f"velocity has non-finite or non-positive values (first at index {bad}, min {vmin:.6g} m/s); fix the model")
     amp = np.asarray(source_amplitudes)
     sl, rl = np.asarray(source_locations), np.asarray(receiver_locations)
     if amp.ndim != 3:
@@ -106,7 +101,7 @@ def _check(velocity, dx, dt, source_amplitudes, source_locations, receiver_locat
     for name, loc in (("source_locations", sl), ("receiver_locations", rl)):
         if loc.ndim != 3 or loc.shape[0] != amp.shape[0] or loc.shape[2] != ndim:
             raise ValueError(f"{name} must be (n_shots={amp.shape[0]}, n, ndim={ndim}) metres; got shape {loc.shape}")
-        extent = (np.array(v.shape) - 1) * dx
+        extent = (np.array(shape) - 1) * dx
         outside = np.any((loc < 0) | (loc > extent), axis=-1)
         if outside.any():
             i = np.argwhere(outside)[0]
@@ -123,19 +118,51 @@ def _check(velocity, dx, dt, source_amplitudes, source_locations, receiver_locat
     return ndim, vmax
 
 
-def make_propagator(velocity, dx, dt, n_shots, order, pml_width, pml_reflection, pml_frequency,
-                    free_surface, device, precision, pml_velocity=None) -> Acoustic:  # fmt: skip
-    """The Acoustic launch helper for this grid, with defaults filled in (pml_velocity: the CPML
-    damping's reference speed, default max(velocity); fix it when the model changes between runs)."""
+def precision_dtype(precision: str):
     if precision not in DTYPES:
         raise ValueError(f"precision {precision!r} is not one of {sorted(DTYPES)}")
+    return DTYPES[precision]
+
+
+def upload_velocity(velocity, dtype, device: str, requires_grad=False):
+    """The model (NumPy or Warp array, (nz, [ny,] nx) m/s) as a new (nz, ny, nx) Warp array of dtype on
+    device (ny = 1 in 2D), its shape as given, and its (min, max, first bad index or None) for check_inputs;
+    a Warp array of that dtype is copied between devices and its range taken there."""
+    if isinstance(velocity, wp.array) and velocity.dtype == dtype and velocity.ndim in (2, 3):
+        shape3 = velocity.shape if velocity.ndim == 3 else (velocity.shape[0], 1, velocity.shape[1])
+        vel = wp.empty(shape3, dtype=dtype, device=device, requires_grad=requires_grad)
+        wp.copy(vel, velocity.reshape(shape3))
+        shape = velocity.shape
+        host = None if vel.device.is_cuda else vel.numpy()
+    else:
+        host = np.asarray(velocity.numpy() if isinstance(velocity, wp.array) else velocity, dtype=wp.dtype_to_numpy(dtype))
+        shape = host.shape
+        # reshape, not [:, None], whose zero stride Warp copies slowly
+        vel = wp.array(host.reshape(shape[0], 1, -1) if host.ndim == 2 else host, dtype=dtype, device=device, requires_grad=requires_grad)
+    if host is None:
+        vmin, vmax, nonfinite = value_range(vel)
+    else:
+        vmin, vmax = float(host.min()), float(host.max())  # NaN propagates: one pass each, not isfinite + min + max
+        nonfinite = int(not (math.isfinite(vmin) and math.isfinite(vmax)))
+    bad = None
+    if nonfinite or vmin <= 0:
+        v = vel.numpy().reshape(shape)
+        bad = tuple(int(i) for i in np.argwhere(~np.isfinite(v) | (v <= 0))[0])
+    return vel, tuple(shape), (vmin, vmax, bad)
+
+
+def make_propagator(shape, vmax, dx, dt, n_shots, order, pml_width, pml_reflection, pml_frequency,
+                    free_surface, device, precision, pml_velocity=None) -> Acoustic:  # fmt: skip
+    """The Acoustic launch helper for a grid of `shape` cells, with defaults filled in (pml_velocity: the CPML
+    damping's reference speed, default vmax, the model's maximum; fix it when the model changes between runs)."""
+    dtype = precision_dtype(precision)
     width = DEFAULT_PML_WIDTH if pml_width is None else int(pml_width)
     if width < HICKS_RADIUS:
         raise ValueError(f"pml_width = {width} cells is below the source/receiver operator's half-width {HICKS_RADIUS}; use >= {HICKS_RADIUS}")
     refl = DEFAULT_PML_REFLECTION[order] if pml_reflection is None else float(pml_reflection)
-    vref = float(np.max(velocity)) if pml_velocity is None else float(pml_velocity)
-    return Acoustic(np.shape(velocity), dx, dt, order, n_shots, width, refl, pml_frequency, vref,
-                    free_surface=free_surface, dtype=DTYPES[precision], device=resolve_device(device))  # fmt: skip
+    vref = float(vmax) if pml_velocity is None else float(pml_velocity)
+    return Acoustic(shape, dx, dt, order, n_shots, width, refl, pml_frequency, vref,
+                    free_surface=free_surface, dtype=dtype, device=resolve_device(device))  # fmt: skip
 
 
 def velocity_3d(velocity) -> np.ndarray:
@@ -198,19 +225,18 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
           pml_reflection=None, pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu",
           precision="float32", requires_grad=()) -> Setup:  # fmt: skip
     """Validate the inputs and move them to the device; requires_grad names the arrays to differentiate
-    ("velocity", "source_amplitudes", "source_locations")."""
+    ("velocity", "source_amplitudes", "source_locations"). velocity: NumPy or Warp array (nz, [ny,] nx)."""
     amp = np.asarray(source_amplitudes, dtype=float)
-    ndim, vmax = _check(velocity, dx, dt, amp, source_locations, receiver_locations, order)
+    dtype, device = precision_dtype(precision), resolve_device(device)
+    vel, shape, vrange = upload_velocity(velocity, dtype, device, requires_grad="velocity" in requires_grad)
+    ndim, vmax = check_inputs(shape, vrange, dx, dt, amp, source_locations, receiver_locations, order)
     f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
-    vref = vmax if pml_velocity is None else pml_velocity
-    prop = make_propagator(velocity, dx, dt, amp.shape[0], order, pml_width, pml_reflection, f_pml, free_surface, device, precision, vref)
-    # one conversion, straight to the device type; reshape, not [:, None], whose zero stride Warp copies slowly
-    vel = np.asarray(velocity, dtype=wp.dtype_to_numpy(prop.dtype))
+    prop = make_propagator(shape, vmax, dx, dt, amp.shape[0], order, pml_width, pml_reflection, f_pml, free_surface, device, precision, pml_velocity)
 
     def put(x, name):
         return wp.array(x, dtype=prop.dtype, device=prop.device, requires_grad=name in requires_grad)
 
-    su = Setup(prop, ndim, amp.shape[2], put(vel.reshape(vel.shape[0], 1, -1) if ndim == 2 else vel, "velocity"), put(amp, "source_amplitudes"),
+    su = Setup(prop, ndim, amp.shape[2], vel, put(amp, "source_amplitudes"),
                put(to_zyx(source_locations, ndim), "source_locations"), put(to_zyx(receiver_locations, ndim), "receiver_locations"))  # fmt: skip
     su.source_op = prop.operator(su.sources, differentiable="source_locations" in requires_grad)
     su.receiver_op = prop.operator(su.receivers)
@@ -246,46 +272,118 @@ def graph_plan(prop: Acoustic, nt: int, every: int):
     return K, graphs if prop.cuda and graphs >= 2 else 0
 
 
-def run_graphs(su: Setup, st, vpad, data, guard: BlowupGuard, progress=None):
-    """The untaped time loop of run_steps on a CUDA device as replays of one captured graph of K steps
-    (record, the guard's checks, step, inject; see graph_plan), reading the guard's statistics after each
-    replay. The replays run all levels to K * graphs >= nt, without a host-launched tail: data must have
-    that many samples (the ones past nt - 1 are padding; the guard ignores those levels). Returns the state
-    at level K * graphs."""
+@dataclass
+class GraphRun:
+    """A CUDA time loop captured once (see graph_plan): K steps per graph, replayed `graphs` times, with the
+    arrays its launches read: the inputs of `su`, the state, the padded model, the traces data (n_shots,
+    n_rec, K * graphs), the source samples zero-padded to K * graphs, the guard's statistics and the
+    device clock. forward keeps the last one and refills it for a later call with the same geometry."""
+
+    key: tuple
+    su: Setup
+    st: object
+    vpad: wp.array
+    data: wp.array
+    amplitudes: wp.array
+    stats: wp.array
+    clock: wp.array
+    graph: object
+    K: int
+    graphs: int
+
+
+_RUNS: dict = {}  # forward's kept GraphRun (at most one: each holds a full set of wavefields)
+
+
+def release_graphs():
+    """Free the device memory of the time loop that forward keeps for reuse."""
+    _RUNS.clear()
+
+
+def _samples(amplitudes: np.ndarray, levels: int, dtype) -> np.ndarray:
+    """Source samples (S, n_src, nt) zero-padded to `levels` samples."""
+    out = np.zeros((*amplitudes.shape[:2], levels), dtype=wp.dtype_to_numpy(dtype))
+    out[:, :, : amplitudes.shape[2]] = amplitudes
+    return out
+
+
+def capture(su: Setup, st, vpad, data, every: int) -> GraphRun:
+    """Capture K steps of the untaped time loop of run_steps (record, the guard's check every `every`
+    levels, step, inject) as one CUDA graph; data must have K * graphs samples (graph_plan)."""
     prop = su.prop
-    K, graphs = graph_plan(prop, su.nt, guard.every)
-    levels = K * graphs
-    if data.shape[2] < levels:
-        raise ValueError(f"data has {data.shape[2]} samples; run_graphs records {levels}")
-    amplitudes = su.amplitudes
-    if amplitudes.shape[2] < levels:  # zero source samples past nt
-        padded = np.zeros((*amplitudes.shape[:2], levels), dtype=wp.dtype_to_numpy(prop.dtype))
-        padded[:, :, : su.nt] = amplitudes.numpy()
-        amplitudes = wp.array(padded, dtype=prop.dtype, device=prop.device)
-    checks = K // guard.every
-    stats = wp.zeros((checks, 2), dtype=prop.dtype, device=prop.device)
+    K, graphs = graph_plan(prop, su.nt, every)
+    if data.shape[2] < K * graphs:
+        raise ValueError(f"data has {data.shape[2]} samples; the graph replays record {K * graphs}")
+    amplitudes = wp.array(_samples(su.amplitudes.numpy(), K * graphs, prop.dtype), dtype=prop.dtype, device=prop.device)
+    stats = wp.zeros((K // every, 2), dtype=prop.dtype, device=prop.device)
     clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
-    kernels = [prop.k.monitor, prop.k.step, prop.k.step_frame, prop.k.step_core, tick, *(prop.k.psi[a][0] for a in range(3))]
+    kernels = [prop.k.monitor, prop.k.step, prop.k.step_frame, prop.core_kernel(), tick, *(prop.k.psi[a][0] for a in range(3))]
     kernels += [prop.k.record_fixed if isinstance(su.receiver_op, tuple) else prop.k.record]
     kernels += [prop.k.inject_fixed if isinstance(su.source_op, tuple) else prop.k.inject]
     for k in kernels:
         wp.load_module(k.module, device=prop.device)
-    with wp.ScopedCapture(device=prop.device, force_module_load=False) as capture:
+    with wp.ScopedCapture(device=prop.device, force_module_load=False) as cap:
         for k in range(K):
             prop.record(st.u, data, su.receiver_op, k, clock)
-            if k % guard.every == 0:
-                prop.monitor(st.u, stats[k // guard.every])
+            if k % every == 0:
+                prop.monitor(st.u, stats[k // every])
             st = prop.step(st, vpad)
             prop.inject(st.u, vpad, amplitudes, su.source_op, k, clock)
         wp.launch(tick, dim=1, inputs=[clock, K], device=prop.device)
-    for g in range(graphs):
-        wp.capture_launch(capture.graph)
-        for j, (amax, nonfinite) in enumerate(stats.numpy()):
-            if g * K + j * guard.every < su.nt:
-                guard.check(g * K + j * guard.every, float(amax), float(nonfinite))
+    return GraphRun(_graph_key(su, every), su, st, vpad, data, amplitudes, stats, clock, cap.graph, K, graphs)
+
+
+def replay(run: GraphRun, guard: BlowupGuard, progress=None):
+    """Run all levels to K * graphs >= nt by replaying the graph (the levels past nt - 1 are padding; the
+    guard ignores them), checking the guard's statistics after each replay."""
+    nt, K, every = run.su.nt, run.K, guard.every
+    for g in range(run.graphs):
+        wp.capture_launch(run.graph)
+        for j, (amax, nonfinite) in enumerate(run.stats.numpy()):
+            if g * K + j * every < nt:
+                guard.check(g * K + j * every, float(amax), float(nonfinite))
         if progress is not None:
-            progress.update(min(K, su.nt - g * K))
-    return st
+            progress.update(min(K, nt - g * K))
+
+
+def run_graphs(su: Setup, st, vpad, data, guard: BlowupGuard, progress=None):
+    """The untaped time loop of run_steps on a CUDA device: capture, then replay (no reuse)."""
+    replay(capture(su, st, vpad, data, guard.every), guard, progress)
+
+
+def _graph_key(su: Setup, every: int) -> tuple:
+    """What a captured time loop bakes in: kernels, grid, scalars, array shapes, operator kinds."""
+    p = su.prop
+    return (p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, su.nt, su.amplitudes.shape, su.receivers.shape,
+            isinstance(su.source_op, tuple), isinstance(su.receiver_op, tuple), every)  # fmt: skip
+
+
+def _kept_run(su: Setup, every: int) -> GraphRun:
+    """forward's time loop for su: the kept one refilled with su's inputs when the geometry matches, else
+    a new capture (which replaces it)."""
+    key = _graph_key(su, every)
+    run = _RUNS.get(key)
+    if run is None:
+        _RUNS.clear()
+        prop = su.prop
+        K, graphs = graph_plan(prop, su.nt, every)
+        data = wp.zeros((prop.n_shots, su.receivers.shape[1], K * graphs), dtype=prop.dtype, device=prop.device)
+        run = _RUNS[key] = capture(su, prop.new_state(), prop.pad_model(su.velocity), data, every)
+        return run
+    prop = run.su.prop
+    for mine, new in zip(prop.axes, su.prop.axes):  # CPML coefficients depend on the model's maximum speed
+        wp.copy(mine.a, new.a)
+        wp.copy(mine.b, new.b)
+    run.amplitudes.assign(_samples(su.amplitudes.numpy(), run.K * run.graphs, prop.dtype))
+    for mine, locations in ((run.su.source_op, su.sources), (run.su.receiver_op, su.receivers)):
+        if isinstance(mine, tuple):
+            prop.operator(locations, out=mine)
+        else:
+            wp.copy(mine, locations)
+    prop.pad_model(su.velocity, out=run.vpad)
+    for a in (*run.st.arrays(), run.data, run.clock):
+        a.zero_()
+    return run
 
 
 def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4,
@@ -293,7 +391,7 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
             device="cpu", precision="float32", snapshot_every=0, check_every=25, progress=False) -> ForwardResult:  # fmt: skip
     """Simulate the acoustic wave equation for all shots at once.
 
-    velocity (nz, [ny,] nx) m/s; dx m; dt s; source_amplitudes (n_shots, n_src, nt);
+    velocity (nz, [ny,] nx) m/s, a NumPy array or a Warp array (e.g. already on the device); dx m; dt s; source_amplitudes (n_shots, n_src, nt);
     source/receiver_locations (n_shots, n, ndim) metres (axis order z, [y,] x).
     order: spatial order 2, 4 or 8. pml_width: cells (default 20) on every absorbing side;
     pml_reflection: target reflection coefficient; pml_frequency: CPML alpha frequency (Hz,
@@ -303,14 +401,16 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
     snapshot_every: keep the physical wavefield every that many steps (0: none).
     check_every: steps between blow-up checks. Raises ValueError on bad input or an unstable dt,
     PropagationError if the run blows up.
+    On a GPU the time loop is captured as a CUDA graph and kept (with its wavefields) for the next call
+    with the same grid, time step, number of steps, shots, sources and receivers, which then only copies
+    its inputs in (release_graphs frees it).
     """
     su = setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order=order, pml_width=pml_width,
                pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
                free_surface=free_surface, device=device, precision=precision)  # fmt: skip
     prop = su.prop
     guard = BlowupGuard(prop, np.asarray(source_amplitudes), check_every)
-    K, graphs = graph_plan(prop, su.nt, guard.every) if not snapshot_every else (0, 0)
-    data = wp.zeros((prop.n_shots, su.receivers.shape[1], max(su.nt, K * graphs)), dtype=prop.dtype, device=prop.device)
+    graphs = graph_plan(prop, su.nt, guard.every)[1] if not snapshot_every else 0
     snaps, snap_t = [], []
     o, ny = prop.origin, (prop.shape[1] if su.ndim == 3 else 1)
     phys = (slice(None), slice(o[0], o[0] + prop.shape[0]), slice(o[1], o[1] + ny), slice(o[2], o[2] + prop.shape[-1]))
@@ -324,11 +424,13 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
             snap_t.append(n * dt)
         bar.update()
 
-    st, vpad = prop.new_state(), prop.pad_model(su.velocity)
     if graphs:
-        run_graphs(su, st, vpad, data, guard, bar)
+        run = _kept_run(su, guard.every)
+        replay(run, guard, bar)
+        data = run.data
     else:
-        run_steps(su, st, vpad, data, range(su.nt), callback=callback)
+        data = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
+        run_steps(su, prop.new_state(), prop.pad_model(su.velocity), data, range(su.nt), callback=callback)
     bar.close()
     return ForwardResult(
         receiver_amplitudes=data.numpy()[:, :, : su.nt].astype(float),

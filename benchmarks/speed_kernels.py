@@ -25,7 +25,7 @@ from speed import SCENES, scene  # noqa: E402
 import adseismic.propagate as P  # noqa: E402
 from adseismic.kernels import acoustic as K  # noqa: E402
 
-CORE_VARIANTS = [(8, 128), (16, 128), (16, 256), (32, 128)]  # (cells per thread, threads per block) of step_core
+CORE_VARIANTS = [(16, 1, 128), (8, 1, 128), (32, 1, 128), (16, 1, 256), (8, 2, 128), (16, 2, 128), (8, 4, 128), (16, 4, 64)]  # (rows, columns per thread, threads per block) of step_core
 
 
 def make(name, device, order, nt=None):
@@ -93,23 +93,29 @@ def kernel_times(su, reps):
     dev = prop.device
     ref_next, fast_next = wp.zeros_like(st.u), wp.zeros_like(st.u)
     zeta_new = prop.new_state().zeta  # the steps below read st.zeta and write here, so every launch sees the same input
+    psi_ref = prop.new_state().psi  # psi[n] from st.psi by the psi kernels, for the reference step
+    for a in (0, 2):
+        wp.launch(prop.k.psi[a][0], dim=prop.strip_shape(a), inputs=[st.u, st.psi[a], psi_ref[a], prop.axes[a], prop.inv_dx], device=dev)
 
     def args(u_next):
-        return [st.u, st.u_prev, u_next, vpad, *st.psi, *st.zeta, *zeta_new, *prop.axes, prop.dt2, prop.inv_dx, prop.top]
+        return [st.u, st.u_prev, u_next, vpad, *psi_ref, *st.zeta, *zeta_new, *prop.axes, prop.dt2, prop.inv_dx, prop.top]
 
     out, checks = {}, {}
     out["step_reference"] = per_launch(lambda: wp.launch(prop.k.step, dim=prop.interior, inputs=args(ref_next), device=dev), dev, reps)
     if prop.cuda and prop.has_core:
-        out["step_frame"] = per_launch(lambda: wp.launch(prop.k.step_frame, dim=(S, prop.frame_cells), inputs=[*args(fast_next), prop.core], device=dev), dev, reps)  # fmt: skip
+        def frame():
+            wp.launch(prop.k.step_frame, dim=S * prop.frame_cells, inputs=[*args(fast_next), prop.core, prop.frame_cells], device=dev)
+
+        out["step_frame"] = per_launch(frame, dev, reps)
         ref = ref_next.numpy()
-        for rows, block in CORE_VARIANTS:
-            prop.core_rows, prop.core_threads = rows, block
-            name = f"step_core_r{rows}_b{block}"
+        for rows, cols, block in CORE_VARIANTS:
+            prop.core_rows, prop.core_cols, prop.core_threads = rows, cols, block
+            name = f"step_core_r{rows}_c{cols}_b{block}"
             out[name] = per_launch(lambda: prop.step_core(st.u, st.u_prev, fast_next, vpad), dev, reps)
             checks[name] = float(np.abs(fast_next.numpy() - ref).max() / np.abs(ref).max())
             fast_next.zero_()
-            wp.launch(prop.k.step_frame, dim=(S, prop.frame_cells), inputs=[*args(fast_next), prop.core], device=dev)
-        prop.core_rows, prop.core_threads = K.GPU_CORE_ROWS, K.GPU_CORE_THREADS
+            frame()
+        prop.core_rows, prop.core_cols, prop.core_threads = K.GPU_CORE_ROWS, K.GPU_CORE_COLS, K.GPU_CORE_THREADS
     out["step_in_place"] = per_launch(lambda: prop.step(st, vpad), dev, reps)
     grads = prop.new_state(requires_grad=True)
     adj = [grads.u.grad, grads.u_prev.grad, st.u, vpad, *(a.grad for a in grads.psi), *(a.grad for a in grads.zeta), *(a.grad for a in grads.zeta)]
@@ -130,10 +136,13 @@ def kernel_times(su, reps):
     return times
 
 
-def forward_call(name, device, order):
-    """Seconds of the whole forward() call on a scene (best of 3, after a warm-up)."""
+def forward_call(name, device, order, on_device=False):
+    """Seconds of the whole forward() call on a scene (best of 3, after a warm-up that also captures the time
+    loop forward keeps), the model from the host or (on_device) already on the device, and the inputs."""
     n, shots, nt = SCENES[name]
     v, src, rec, s = scene(n, shots, nt)
+    if on_device:
+        v = wp.array(v, dtype=wp.float32, device=device)
 
     def run():
         wp.synchronize_device(device)
@@ -170,8 +179,9 @@ def main():
         times = [loop(su, s)[0] for _ in range(3)]
         print(json.dumps({"loop": name, "seconds": [round(t, 4) for t in times], "gcells": round(cells / min(times) / 1e9, 1)}), flush=True)
         del su
-        tf, inputs = forward_call(name, a.device, a.order)
-        print(json.dumps({"forward": name, "seconds": round(tf, 4), "gcells": round(cells / tf / 1e9, 1)}), flush=True)
+        for on_device in (False, True):
+            tf, inputs = forward_call(name, a.device, a.order, on_device)
+            print(json.dumps({"forward": name, "model_on_device": on_device, "seconds": round(tf, 4), "gcells": round(cells / tf / 1e9, 1)}), flush=True)
         if a.profile:
             prof = cProfile.Profile()
             v, src, rec, s = inputs

@@ -31,6 +31,7 @@ input, so each time step can be differentiated by wp.Tape when given its own arr
 import functools
 import math
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -39,8 +40,10 @@ import warp as wp
 from adseismic.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 
 HICKS_RADIUS = 4
-GPU_CORE_ROWS = 16  # cells per thread (along z) of the 2D GPU core step (H200, S4000: 4: 102 us, 8: 91, 16: 90, 32: 95)
-GPU_CORE_THREADS = 128  # threads per block of that step (256: 1-2% slower)
+# 2D GPU core step: rows (along z) x adjacent columns per thread, threads per block (H200, S4000 / S600x16,
+# us: 8 x 2: 85.6 / 32.1, 16 x 2: 87.6 / 34.3, 8 x 1: 90.2 / 33.7, 16 x 1: 97.1 / 39.7, 8 x 4: 119 / 44.4;
+# 256 threads 1% slower)
+GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS = 8, 2, 128
 CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over row blocks of a CPU step
 MONITOR_BLOCK = 256
 HICKS_B = 6.31
@@ -162,6 +165,12 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             acc += dtype(wp.static(A[m + 1])) * (w[wp.static(R + 1) + m] + w[wp.static(R - 1) - m])
         return acc
 
+    @wp.func
+    def flat(a: arr1, base: int, k: int) -> dtype:
+        # a[base + k] for base, k >= 0, written so that the compiler sees a non-negative index: Warp wraps
+        # negative indices, and the select that takes keeps a loop over k from being vectorised
+        return a[wp.max(base, 0) + k]
+
     def make_psi_cell(axis: int):
         # psi along one axis (0: z, 1: y, 2: x) at one cell (s, i, j, k) of that axis' strip
         deriv = d1[axis]
@@ -197,12 +206,48 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             s, i, j, k = wp.tid()
             cell(u, psi_old, psi_new, ax, inv_dx, s, i, j, k)
 
-        # one thread per strip row from row `first`, looping over x (CPU)
+        # CPU: one thread per strip line (s, first + i, j), looping over its last axis on the flat arrays (as
+        # psi_cell; strip: the strip's shape (Z, Y, X), grid: the padded one), vectorised but along x
         @wp.kernel(module="unique")
-        def psi_rows(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype, first: int):
+        def psi_rows(u: arr1, psi_old: arr1, psi_new: arr1, ax: Axis, inv_dx: dtype, strip: wp.vec3i, grid: wp.vec3i, first: int):
             s, i, j = wp.tid()
-            for k in range(psi_new.shape[3]):
-                cell(u, psi_old, psi_new, ax, inv_dx, s, first + i, j, k)
+            i += first
+            q = ((s * strip[0] + i) * strip[1] + j) * strip[2]
+            c = ((s * grid[0] + i) * grid[1] + j) * grid[2]  # u at (s, i, j, 0)
+            if wp.static(axis < 2):
+                d = grid[2]  # the neighbours' offset along the axis
+                if wp.static(axis == 0):
+                    p = ax.pos[i]
+                    c += (p - i) * grid[1] * grid[2]
+                    d *= grid[1]
+                else:
+                    p = ax.pos[j]
+                    c += (p - j) * grid[2]
+                a = ax.a[p]
+                b = ax.b[p]
+                k = int(0)
+                while k < strip[2]:
+                    val = dtype(0.0)
+                    if a != dtype(0.0):
+                        du = dtype(0.0)
+                        for m in range(wp.static(R)):
+                            du += dtype(wp.static(B[m])) * (flat(u, c + (m + 1) * d, k) - flat(u, c - (m + 1) * d, k))
+                        val = b * flat(psi_old, q, k) + a * du * inv_dx
+                    psi_new[wp.max(q, 0) + k] = val
+                    k += 1
+            else:
+                k = int(0)
+                while k < strip[2]:
+                    p = ax.pos[k]
+                    a = ax.a[p]
+                    val = dtype(0.0)
+                    if a != dtype(0.0):
+                        du = dtype(0.0)
+                        for m in range(wp.static(R)):
+                            du += dtype(wp.static(B[m])) * (u[c + p + m + 1] - u[c + p - m - 1])
+                        val = ax.b[p] * psi_old[q + k] + a * du * inv_dx
+                    psi_new[q + k] = val
+                    k += 1
 
         return psi_kernel, psi_rows
 
@@ -303,6 +348,33 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
              az, ay, ax, dt2, inv_dx, top, s, z, y, x)  # fmt: skip
 
+    @wp.func
+    def row_cells(
+        u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
+        psi_z: arr4, psi_y: arr4, psi_x: arr4,
+        zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
+        s: int, z: int, y: int, x0: int, x1: int,
+    ):  # fmt: skip
+        # interior cells x0 <= x < x1 of row (s, z, y), with the stencil's values along x in a sliding window
+        surface = False
+        if wp.static(fs):
+            surface = z == top
+        w = vecw()
+        for m in range(wp.static(2 * R + 1)):
+            w[m] = u[s, z, y, x0 - wp.static(R) + m]
+        for x in range(x0, x1):
+            if surface:
+                u_next[s, z, y, x] = dtype(0.0)
+            else:
+                update(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                       az, ay, ax, dt2, inv_dx, top, s, z, y, x, d2z(u, s, z, y, x, top), d2w(w), w[wp.static(R)])  # fmt: skip
+            if x + 1 < x1:
+                for m in range(wp.static(2 * R)):
+                    w[m] = w[m + 1]
+                w[wp.static(2 * R)] = u[s, z, y, x + wp.static(R + 1)]
+
     @wp.kernel(module="unique", grid_stride=False)
     def step_rows(
         u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
@@ -310,32 +382,58 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
         zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
         az: Axis, ay: Axis, ax: Axis,
-        dt2: dtype, inv_dx: dtype, top: int, first: int,
+        dt2: dtype, inv_dx: dtype, top: int, first: int, core: wp.vec4i,
     ):  # fmt: skip
-        # Forward-only step on the CPU: one thread per interior row (row `first` + zi), looping over x
-        # with the stencil's values along x in a sliding window.
+        # Forward-only step on the CPU: one thread per interior row (row `first` + zi), but for the core
+        # columns [core[2], core[3]) of the core rows [core[0], core[1]) (padded indices), which
+        # step_core_rows does (core[1] = core[0]: none).
         s, zi, yi = wp.tid()
         y = yi
         if wp.static(three):
             y = yi + wp.static(R)
         z = first + zi
         end = u.shape[3] - wp.static(R)
-        surface = False
-        if wp.static(fs):
-            surface = z == top
-        w = vecw()
-        for m in range(wp.static(2 * R + 1)):
-            w[m] = u[s, z, y, m]
-        for x in range(wp.static(R), end):
-            if surface:
-                u_next[s, z, y, x] = dtype(0.0)
-            else:
-                update(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
-                       az, ay, ax, dt2, inv_dx, top, s, z, y, x, d2z(u, s, z, y, x, top), d2w(w), w[wp.static(R)])  # fmt: skip
-            if x + 1 < end:
-                for m in range(wp.static(2 * R)):
-                    w[m] = w[m + 1]
-                w[wp.static(2 * R)] = u[s, z, y, x + wp.static(R + 1)]
+        x1 = end
+        x2 = end
+        if z >= core[0] and z < core[1]:
+            x1 = core[2]
+            x2 = core[3]
+        row_cells(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                  az, ay, ax, dt2, inv_dx, top, s, z, y, wp.static(R), x1)  # fmt: skip
+        row_cells(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                  az, ay, ax, dt2, inv_dx, top, s, z, y, x2, end)  # fmt: skip
+
+    @wp.func
+    def core_row(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, i: int, c: int, n: int, lx: int, dt2: dtype, inv_dx2: dtype):
+        # n core cells of a row from flat index i (c in v), in a loop that the compiler vectorises (a while
+        # loop: Warp's range loops keep their step in a register pair that hides the induction variable)
+        k = int(0)
+        while k < n:
+            uc = flat(u, i, k)
+            dzz = dtype(wp.static(A[0])) * uc
+            for m in range(wp.static(R)):
+                dzz += dtype(wp.static(A[m + 1])) * (flat(u, i + (m + 1) * lx, k) + flat(u, i - (m + 1) * lx, k))
+            dxx = dtype(wp.static(A[0])) * uc
+            for m in range(wp.static(R)):
+                dxx += dtype(wp.static(A[m + 1])) * (flat(u, i + m + 1, k) + flat(u, i - m - 1, k))
+            u_next[wp.max(i, 0) + k] = advance(uc, flat(u_prev, i, k), flat(v, c, k), dt2, (dzz + dxx) * inv_dx2)
+            k += 1
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def step_core_rows(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, first: int, rows: int,
+                       in_place: int, dt2: dtype, inv_dx: dtype):  # fmt: skip
+        # 2D CPU step of the core columns [core[2], core[3]) of rows first..first + rows - 1 (padded, core rows)
+        # of every shot, on flat arrays as step_core, one thread per row; same arithmetic as the reference
+        # step. in_place: u_prev is u_next, read through u_next so that the compiler sees it (or else its
+        # overlap check sends every row down the scalar path).
+        t = wp.tid()
+        s = t // rows
+        c = (first + t - s * rows) * lx + core[2]
+        i = s * lz * lx + c
+        if in_place:
+            core_row(u, u_next, u_next, v, i, c, core[3] - core[2], lx, dt2, inv_dx * inv_dx)
+        else:
+            core_row(u, u_prev, u_next, v, i, c, core[3] - core[2], lx, dt2, inv_dx * inv_dx)
 
     @wp.kernel(module="unique", grid_stride=False)
     def step_frame(
@@ -344,13 +442,15 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
         zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
         az: Axis, ay: Axis, ax: Axis,
-        dt2: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
+        dt2: dtype, inv_dx: dtype, top: int, core: wp.vec4i, cells: int,
     ):  # fmt: skip
         # 2D GPU step of the interior cells outside the core rows [core[0], core[1]) x columns
         # [core[2], core[3]) (padded indices): the CPML strips and free-surface rows, as the reference
-        # step does them. Thread f of a shot: first the full rows above and below the core, then the
-        # left and right parts of the core rows.
-        s, f = wp.tid()
+        # step does them. `cells` per shot; cell f of a shot: first the full rows above and below the
+        # core, then the left and right parts of the core rows. A 1D launch (see step_core).
+        t = wp.tid()
+        s = t // cells
+        f = t - s * cells
         nx = u.shape[3] - wp.static(2 * R)
         above = (core[0] - wp.static(R)) * nx
         below = (u.shape[1] - wp.static(R) - core[1]) * nx
@@ -371,37 +471,52 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
              az, ay, ax, dt2, inv_dx, top, s, z, 0, x)  # fmt: skip
 
-    @wp.kernel(module="unique", grid_stride=False)
-    def step_core(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, rows: int, dt2: dtype, inv_dx: dtype):
+    def make_step_core(rows: int, cols: int):
         # 2D GPU step of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded indices), where
         # there is neither CPML nor a free surface, on the flat arrays (u: S * Lz * Lx, v: Lz * Lx). Thread t
-        # updates `rows` consecutive cells of one column with the stencil's values along z in a sliding
-        # window; a 1D launch, since unravelling a multi-dimensional thread index costs 64-bit divisions.
-        t = wp.tid()
-        nx = core[3] - core[2]
-        blocks = (core[1] - core[0] + rows - 1) // rows
-        q = t // nx
-        x = core[2] + t - q * nx
-        s = q // blocks
-        z = core[0] + (q - s * blocks) * rows
-        n = wp.min(rows, core[1] - z)
-        c = z * lx + x
-        i = s * lz * lx + c
-        w = vecw()
-        for m in range(wp.static(2 * R + 1)):
-            w[m] = u[i + (m - wp.static(R)) * lx]
-        inv_dx2 = inv_dx * inv_dx
-        for k in range(n):
-            dxx = dtype(wp.static(A[0])) * w[wp.static(R)]
-            for m in range(wp.static(R)):
-                dxx += dtype(wp.static(A[m + 1])) * (u[i + m + 1] + u[i - m - 1])
-            u_next[i] = advance(w[wp.static(R)], u_prev[i], v[c], dt2, (d2w(w) + dxx) * inv_dx2)
-            if k + 1 < n:
-                for m in range(wp.static(2 * R)):
-                    w[m] = w[m + 1]
-                w[wp.static(2 * R)] = u[i + wp.static(R + 1) * lx]
-            i += lx
-            c += lx
+        # updates `rows` consecutive rows of `cols` adjacent columns, with the stencil's values along z in
+        # sliding windows and one load per value of a row along x; a 1D launch, since unravelling a
+        # multi-dimensional thread index costs 64-bit divisions; the loop over rows is unrolled.
+        win = wp.types.matrix(shape=(cols, 2 * R + 1), dtype=dtype)
+        line = wp.types.vector(length=cols + 2 * R, dtype=dtype)
+
+        @wp.kernel(module="unique", grid_stride=False)
+        def step_core(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
+            t = wp.tid()
+            nxc = (core[3] - core[2] + wp.static(cols - 1)) // wp.static(cols)
+            blocks = (core[1] - core[0] + wp.static(rows - 1)) // wp.static(rows)
+            q = t // nxc
+            x = core[2] + (t - q * nxc) * wp.static(cols)
+            s = q // blocks
+            z = core[0] + (q - s * blocks) * wp.static(rows)
+            ncol = wp.min(wp.static(cols), core[3] - x)
+            c = z * lx + x
+            i = s * lz * lx + c
+            w = win()
+            for j in range(wp.static(cols)):
+                for m in range(wp.static(2 * R + 1)):
+                    if j < ncol:
+                        w[j, m] = u[i + j + (m - wp.static(R)) * lx]
+            inv_dx2 = inv_dx * inv_dx
+            for k in range(wp.static(rows)):
+                if z + k < core[1]:
+                    row = line()
+                    for p in range(wp.static(cols + 2 * R)):
+                        if p < ncol + wp.static(2 * R):
+                            row[p] = u[i + p - wp.static(R)]
+                    for j in range(wp.static(cols)):
+                        if j < ncol:
+                            dxx = dtype(wp.static(A[0])) * w[j, wp.static(R)]
+                            for m in range(wp.static(R)):
+                                dxx += dtype(wp.static(A[m + 1])) * (row[j + wp.static(R + 1) + m] + row[j + wp.static(R - 1) - m])
+                            u_next[i + j] = advance(w[j, wp.static(R)], u_prev[i + j], v[c + j], dt2, (d2w(w[j]) + dxx) * inv_dx2)
+                            for m in range(wp.static(2 * R)):
+                                w[j, m] = w[j, m + 1]
+                            w[j, wp.static(2 * R)] = u[i + j + wp.static(R + 1) * lx]
+                    i += lx
+                    c += lx
+
+        return step_core
 
     # --- Hand-written adjoints of psi_kernel and step. They match Warp's generated adjoints
     # (tests/test_gradient.py) and are what the taped steps use. The step's adjoint gathers: the
@@ -671,13 +786,23 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             vv = v[i[0], i[1], i[2]]
             wp.atomic_add(u_next, s, i[0], i[1], i[2], scale * vv * vv * wq * amp[s, src, n + clock[0]])
 
-    @wp.kernel(module="unique")
-    def record_fixed(u: arr4, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1):
-        s, rec, q = wp.tid()
-        wq = w[s, rec, q]
-        if wq != dtype(0.0):
-            i = idx[s, rec, q]
-            wp.atomic_add(data, s, rec, n + clock[0], wq * u[s, i[0], i[1], i[2]])
+    def make_record_fixed(per: int):
+        # thread (s, rec, g) adds the points g * per ... (g + 1) * per - 1, summed in order (unrolled, so that
+        # Warp differentiates it), with one atomic: per = 1 on a GPU, all points on the CPU (record_summed:
+        # one thread per receiver, threads costing more there than the sum)
+        @wp.kernel(module="unique")
+        def record_fixed(u: arr4, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1):
+            s, rec, g = wp.tid()
+            acc = dtype(0.0)
+            for k in range(wp.static(per)):
+                q = g * wp.static(per) + k
+                wq = w[s, rec, q]
+                if wq != dtype(0.0):
+                    i = idx[s, rec, q]
+                    acc += wq * u[s, i[0], i[1], i[2]]
+            wp.atomic_add(data, s, rec, n + clock[0], acc)
+
+        return record_fixed
 
     @wp.kernel(module="unique")
     def pad_model(v: arr3, vpad: arr3, origin: wp.vec3i):
@@ -732,10 +857,10 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             wp.atomic_add(stats, 1, block_bad[0])
 
     return _Kernels(
-        Axis=Axis, step=step, step_frame=step_frame, step_core=step_core, step_rows=step_rows, psi=psi, inject=inject,
+        Axis=Axis, step=step, step_frame=step_frame, step_core=functools.lru_cache(maxsize=None)(make_step_core), step_rows=step_rows, step_core_rows=step_core_rows, psi=psi, inject=inject,
         step_adjoint={False: make_step_adjoint(False), True: make_step_adjoint(True)},
         psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
-        record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=record_fixed, pad_model=pad_model, scatter=scatter, energy=energy, monitor=monitor, halo=R, operator_points=NPTS,
+        record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS), pad_model=pad_model, scatter=scatter, energy=energy, monitor=monitor, halo=R, operator_points=NPTS,
     )  # fmt: skip
 
 
@@ -743,6 +868,51 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 def tick(clock: wp.array(dtype=wp.int32), steps: int):
     """clock[0] += steps (the time index of a replayed graph)."""
     clock[0] = clock[0] + steps
+
+
+@functools.lru_cache(maxsize=None)
+def _extrema_kernel(dtype):
+    big = float(np.finfo(wp.dtype_to_numpy(dtype)).max)
+
+    @wp.kernel(module="unique")
+    def extrema(v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int, lanes: int):
+        # stats <- [min, max] of the finite values of the flat array v and += the number of non-finite ones
+        # (stats starts at [+max, -max, 0]); thread t reads v[t + k * stride], a block reduces, one atomic each
+        t = wp.tid()
+        lo = dtype(wp.static(big))
+        hi = -lo
+        bad = dtype(0.0)
+        for k in range(iters):
+            c = t + k * stride
+            if c < v.shape[0]:
+                val = v[c]
+                if wp.isfinite(val):
+                    lo = wp.min(lo, val)
+                    hi = wp.max(hi, val)
+                else:
+                    bad += dtype(1.0)
+        block_lo = wp.tile_min(wp.tile(lo))
+        block_hi = wp.tile_max(wp.tile(hi))
+        block_bad = wp.tile_sum(wp.tile(bad))
+        if t % lanes == 0:
+            wp.atomic_min(stats, 0, block_lo[0])
+            wp.atomic_max(stats, 1, block_hi[0])
+            wp.atomic_add(stats, 2, block_bad[0])
+
+    return extrema
+
+
+def value_range(v: wp.array):
+    """(min, max, number of non-finite values) of a float32/float64 Warp array on its own device."""
+    dev = wp.get_device(v.device)
+    flat = v.flatten()
+    big = float(np.finfo(wp.dtype_to_numpy(v.dtype)).max)
+    stats = wp.array([big, -big, 0.0], dtype=v.dtype, device=dev)
+    lanes = MONITOR_BLOCK if dev.is_cuda else 1
+    threads = lanes * min(-(-flat.shape[0] // lanes), 4 * (dev.sm_count if dev.is_cuda else 16))
+    wp.launch(_extrema_kernel(v.dtype), dim=threads, inputs=[flat, stats, threads, -(-flat.shape[0] // threads), lanes], block_dim=lanes, device=dev)
+    lo, hi, bad = stats.numpy()
+    return float(lo), float(hi), int(bad)
 
 
 def _rows(n: int, i: int, parts: int):
@@ -859,14 +1029,16 @@ class Acoustic:
         core_rows, core_cols = self.core[1] - self.core[0], self.core[3] - self.core[2]
         self.frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - max(core_rows, 0) * max(core_cols, 0)
         self.has_core = self.ndim == 2 and core_rows > 0 and core_cols > 0 and self.n_shots * self.padded[0] * self.padded[2] < 2**31  # int32 indices
+        self.core_frame = self.has_core and wp.get_device(device).is_cuda  # the 2D GPU step: psi, core and frame kernels
         self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * halo[1], self.padded[2] - 2 * R)
         self.inv_dx = dtype(1.0 / dx)
         self.dt2 = dtype(dt * dt)
         self.src_scale = dtype(dt * dt / dx**self.ndim)
         self.cuda = wp.get_device(device).is_cuda
-        self.core_rows, self.core_threads = GPU_CORE_ROWS, GPU_CORE_THREADS
+        self.core_rows, self.core_cols, self.core_threads = GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS
         self.threads = 1 if self.cuda else max(1, min(CPU_THREADS, os.cpu_count() or 1, self.interior[1]))
         self._pool = None
+        self._launches = {}  # recorded CPU step launches per set of arrays (_cpu_step)
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
 
     def strip_shape(self, axis: int):
@@ -887,9 +1059,9 @@ class Acoustic:
         return State(zeros(full) if with_prev else None, zeros(full), [zeros(self.strip_shape(a)) for a in range(3)],
                      [zeros(self.strip_shape(a)) for a in range(3)])  # fmt: skip
 
-    def pad_model(self, v, requires_grad=False):
-        """Padded model (Lz, Ly, Lx) from the physical one (wp.array3d, (nz, ny, nx), m/s)."""
-        vpad = wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+    def pad_model(self, v, requires_grad=False, out=None):
+        """Padded model (Lz, Ly, Lx) from the physical one (wp.array3d, (nz, ny, nx), m/s), into `out` if given."""
+        vpad = wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) if out is None else out
         wp.launch(self.k.pad_model, dim=self.padded, inputs=[v, vpad, self.origin], device=self.device)
         return vpad
 
@@ -906,36 +1078,22 @@ class Acoustic:
             u_next = out.u
         axes = [a for a in range(3) if self.strip_width[a]]
         S, nz, ny, _ = self.interior
-        R = self.k.halo
         step_args = [st.u, st.u_prev, u_next, vpad, *out.psi, *st.zeta, *out.zeta, *self.axes, self.dt2, self.inv_dx, self.top]
         # A wp.Tape without our adjoint (adjoint="warp") replays the per-cell reference kernels; a GPU
         # runs the 2D step as the core and frame kernels (3D: the reference kernel); a CPU runs rows,
         # split among threads.
         generated = tape is None and wp._src.context.runtime.tape is not None
-        if generated or self.cuda:
+        if generated or self.cuda or self.core_frame:
             for a in axes:
                 wp.launch(self.k.psi[a][0], dim=self.strip_shape(a), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx],
                           device=self.device, record_tape=generated)  # fmt: skip
-            if generated or not self.has_core:
-                wp.launch(self.k.step, dim=self.interior, inputs=step_args, device=self.device, record_tape=generated)
-            else:
+            if self.core_frame and not generated:
                 self.step_core(st.u, st.u_prev, u_next, vpad)
-                wp.launch(self.k.step_frame, dim=(S, self.frame_cells), inputs=[*step_args, self.core], device=self.device, record_tape=False)
+                wp.launch(self.k.step_frame, dim=S * self.frame_cells, inputs=[*step_args, self.core, self.frame_cells], device=self.device, record_tape=False)
+            else:
+                wp.launch(self.k.step, dim=self.interior, inputs=step_args, device=self.device, record_tape=generated)
         else:
-
-            def psi(i):
-                for a in axes:
-                    shape = self.strip_shape(a)
-                    r0, r1 = _rows(shape[1], i, self.threads)
-                    wp.launch(self.k.psi[a][1], dim=(S, r1 - r0, shape[2]), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx, r0],
-                              device=self.device, record_tape=False)  # fmt: skip
-
-            def update(i):
-                r0, r1 = _rows(nz, i, self.threads)
-                wp.launch(self.k.step_rows, dim=(S, r1 - r0, ny), inputs=[*step_args, R + r0], device=self.device, record_tape=False)
-
-            self._split(psi)
-            self._split(update)
+            self._cpu_step(st, out, u_next, vpad, step_args)
         if tape is not None:
             shape = self.interior if self.cuda else (S, nz, ny, 1)
 
@@ -951,12 +1109,64 @@ class Acoustic:
             tape.record_func(backward, arrays=[*st.arrays(), *out.arrays(), vpad])
         return out
 
+    def core_kernel(self):
+        return self.k.step_core(self.core_rows, self.core_cols)
+
     def step_core(self, u, u_prev, u_next, vpad):
         """The core part of a 2D GPU step (step_frame does the rest)."""
-        c, rows = self.core, self.core_rows
-        threads = self.n_shots * -(-(c[1] - c[0]) // rows) * (c[3] - c[2])
-        wp.launch(self.k.step_core, dim=threads, inputs=[u.flatten(), u_prev.flatten(), u_next.flatten(), vpad.flatten(), self.padded[0],
-                  self.padded[2], c, rows, self.dt2, self.inv_dx], block_dim=self.core_threads, device=self.device, record_tape=False)  # fmt: skip
+        c, rows, cols = self.core, self.core_rows, self.core_cols
+        threads = self.n_shots * -(-(c[1] - c[0]) // rows) * -(-(c[3] - c[2]) // cols)
+        wp.launch(self.core_kernel(), dim=threads, inputs=[u.flatten(), u_prev.flatten(), u_next.flatten(), vpad.flatten(), self.padded[0],
+                  self.padded[2], c, self.dt2, self.inv_dx], block_dim=self.core_threads, device=self.device, record_tape=False)  # fmt: skip
+
+    def _cpu_step(self, st, out, u_next, vpad, step_args):
+        """A CPU step, split among threads by rows: each thread does its rows of the psi strips and of the
+        core, and once every thread has its psi (the frame reads the neighbours'), the frame of its rows.
+        The launches are recorded once per set of arrays (an in-place run alternates two) and replayed:
+        packing the arguments of a plain launch costs more than a thread's share of the work."""
+        arrays = (st.u, st.u_prev, u_next, vpad, *st.psi, *out.psi, *st.zeta, *out.zeta)
+        key = tuple(a.ptr for a in arrays)
+        jobs = self._launches.get(key, (None,))[-1]
+        if jobs is None:
+            jobs = [self._cpu_launches(i, st, out, u_next, vpad, step_args) for i in range(self.threads)]
+            if len(self._launches) >= 2:
+                self._launches.clear()
+            self._launches[key] = (arrays, jobs)  # the arrays stay alive while their pointers are keys
+        barrier = threading.Barrier(self.threads)
+
+        def job(i):
+            first, then = jobs[i]
+            try:
+                for cmd in first:
+                    cmd.launch()
+                barrier.wait()
+                for cmd in then:
+                    cmd.launch()
+            except BaseException:
+                barrier.abort()
+                raise
+
+        self._split(job)
+
+    def _cpu_launches(self, i, st, out, u_next, vpad, step_args):
+        """Thread i's launches of a CPU step: (psi strips and core, frame) of its block of rows."""
+        S, nz, ny, _ = self.interior
+        R = self.k.halo
+        r0, r1 = _rows(nz, i, self.threads)
+        first = []
+        for a in range(3):
+            shape = self.strip_shape(a)
+            q0, q1 = _rows(shape[1], i, self.threads)
+            if self.strip_width[a] and q1 > q0:
+                first.append(wp.launch(self.k.psi[a][1], dim=(S, q1 - q0, shape[2]), inputs=[st.u.flatten(), st.psi[a].flatten(), out.psi[a].flatten(),
+                                       self.axes[a], self.inv_dx, wp.vec3i(*shape[1:]), wp.vec3i(*self.padded), q0], device=self.device, record_tape=False, record_cmd=True))  # fmt: skip
+        c = self.core if self.has_core else wp.vec4i(0, 0, 0, 0)
+        z0, z1 = max(c[0], R + r0), min(c[1], R + r1)
+        if z1 > z0:
+            first.append(wp.launch(self.k.step_core_rows, dim=S * (z1 - z0), inputs=[st.u.flatten(), st.u_prev.flatten(), u_next.flatten(), vpad.flatten(),
+                                   self.padded[0], self.padded[2], c, z0, z1 - z0, int(u_next.ptr == st.u_prev.ptr), self.dt2, self.inv_dx], device=self.device, record_tape=False, record_cmd=True))  # fmt: skip
+        then = [wp.launch(self.k.step_rows, dim=(S, r1 - r0, ny), inputs=[*step_args, R + r0, c], device=self.device, record_tape=False, record_cmd=True)]
+        return first, then
 
     def _split(self, job):
         """job(i) for i < self.threads, i > 0 on worker threads (CPU launches release the GIL)."""
@@ -970,15 +1180,14 @@ class Acoustic:
         for f in pending:
             f.result()
 
-    def operator(self, locations, differentiable=False):
+    def operator(self, locations, differentiable=False, out=None):
         """The source/receiver operator at locations (wp.array (S, n, 3), metres): the locations
         themselves when they are to be differentiated (weights recomputed every step), else the
-        precomputed node indices and weights (S, n, points)."""
+        precomputed node indices and weights (S, n, points), written into `out` (such a pair) if given."""
         if differentiable:
             return locations
         shape = (self.n_shots, locations.shape[1], self.k.operator_points)
-        idx = wp.zeros(shape, dtype=wp.vec3i, device=self.device)
-        w = wp.zeros(shape, dtype=self.dtype, device=self.device)
+        idx, w = out or (wp.empty(shape, dtype=wp.vec3i, device=self.device), wp.empty(shape, dtype=self.dtype, device=self.device))
         wp.launch(self.k.weights, dim=shape, inputs=[locations, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
         return (idx, w)
 
@@ -996,7 +1205,8 @@ class Acoustic:
         """data[:, :, n] += receiver samples of u through the operator op (clock as in inject)."""
         clock = self.clock if clock is None else clock
         if isinstance(op, tuple):
-            wp.launch(self.k.record_fixed, dim=op[1].shape, inputs=[u, data, op[0], op[1], n, clock], device=self.device)
+            kernel, per = (self.k.record_fixed, 1) if self.cuda else (self.k.record_summed, op[1].shape[2])
+            wp.launch(kernel, dim=(*op[1].shape[:2], op[1].shape[2] // per), inputs=[u, data, op[0], op[1], n, clock], device=self.device)
         else:
             wp.launch(self.k.record, dim=(self.n_shots, op.shape[1], self.k.operator_points),
                       inputs=[u, data, op, n, clock, self.origin, self.inv_dx, self.top], device=self.device)  # fmt: skip
@@ -1017,6 +1227,14 @@ class Acoustic:
 
     def monitor(self, u, stats):
         """stats (2,) <- [max |u|, count of non-finite values]."""
+        if not self.cuda:  # numpy on the field's zero-copy view: vectorised, 15x the kernel's rate there
+            a = u.numpy()
+            top, bad = max(a.max(), -a.min()), 0  # NaN if any value is
+            if not np.isfinite(top):
+                ok = np.isfinite(a)
+                top, bad = np.abs(a[ok]).max(initial=0.0), a.size - np.count_nonzero(ok)
+            stats.assign(np.array([top, bad], dtype=stats.numpy().dtype))
+            return
         stats.zero_()
         flat = u.flatten()
         n = flat.shape[0]

@@ -14,8 +14,8 @@ array index (i, k) of every field stands for:
 
 lambda and mu are taken at the normal-stress nodes, mu at a shear node is the harmonic mean of its four
 neighbours (0 if any is 0, so fluids carry no shear), the buoyancy at a velocity node the arithmetic
-mean of 1/rho at its two neighbours; all of these are computed inside the kernels from the padded vp, vs,
-rho, so that Warp differentiates through them. Staggered derivatives of order 2/4/8
+mean of 1/rho at its two neighbours; all of these are computed once per run from the padded vp, vs, rho
+by the `materials` kernel, which Warp differentiates (the chain rule to vp, vs, rho). Staggered derivatives of order 2/4/8
 (numerics.STAGGERED_DERIVATIVE).
 
 Time (leapfrog): the state at level n holds v at t = (n - 1/2) dt and the stresses at t = n dt. One
@@ -41,8 +41,16 @@ C^1 in the position) at each field's own staggered position. Near a free surface
 above it are folded onto their mirror nodes, with a sign change for szz and sxz (odd images) and
 without for vx, vz, sxx; a normal-stress node on the surface gets no szz weight.
 
-All kernels write fresh outputs from inputs (sources add with atomics), never read-modify their own
-input, so each time step can be differentiated by wp.Tape when given its own arrays.
+Kernels. A step is `velocity` then `stress`, each as per-cell reference kernels (what Warp
+differentiates for adjoint="warp") or as the fast path: a `core` kernel over the cells with neither CPML
+nor free surface, on flat arrays with a 1D launch, each thread updating `rows` cells of one column with
+the z-stencil in a sliding register window, plus a `frame` kernel doing the other interior cells with the
+reference's per-cell code. A kernel may write its outputs into its inputs (every cell reads only its own
+old value of a field it writes), so forward steps run in place; under a tape every level needs its own
+arrays. Hand-written adjoints (`*_adjoint`, then `*_transpose`) first compute per cell the adjoint of
+every raw stencil sum (CPML, materials and pointwise terms included) into scratch arrays, then apply the
+transposed stencils as gathers; rows next to a free surface, whose stencils fold or shrink, scatter with
+atomics instead.
 """
 
 
@@ -52,12 +60,19 @@ import math
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _i0
+from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, MONITOR_BLOCK, _i0
+from adseismic.kernels.acoustic import build as acoustic_build
 from adseismic.numerics import STAGGERED_DERIVATIVE
+
+GPU_CORE_ROWS = 16  # cells per thread (along z) of the core kernels
+GPU_CORE_THREADS = 128  # threads per block of the core kernels
 
 # CPML memory variables: name -> axis of their derivative and strip (0 = z, 1 = x). vx_x is d(sxx)/dx at
 # vx nodes, vx_z d(sxz)/dz at vx nodes, s_x d(vx)/dx at normal-stress nodes, xz_z d(vx)/dz at sxz nodes...
 PSI = {"vx_x": 1, "vx_z": 0, "vz_x": 1, "vz_z": 0, "s_x": 1, "s_z": 0, "xz_z": 0, "xz_x": 1}
+PSI_V = ("vx_x", "vx_z", "vz_x", "vz_z")  # of the velocity update
+PSI_S = ("s_x", "s_z", "xz_z", "xz_x")  # of the stress update
+MATERIALS = ("bx", "bz", "l2m", "lam", "mu", "muh")  # see build's `materials`
 
 
 @functools.lru_cache(maxsize=None)
@@ -68,10 +83,14 @@ def build(order: int, dtype, free_surface: bool):
     W = 2 * HR
     NPTS = W * W
     WINDOW_NORM = 1.0 / (_i0(HICKS_B) - 1.0)
+    C = STAGGERED_DERIVATIVE[order]
     fs = bool(free_surface)
     arr1 = wp.array(dtype=dtype)
     arr2 = wp.array2d(dtype=dtype)
     arr3 = wp.array3d(dtype=dtype)
+    arr4 = wp.array4d(dtype=dtype)
+    iarr1 = wp.array(dtype=wp.int32)
+    vecw = wp.types.vector(length=2 * M, dtype=dtype)
 
     @wp.struct
     class Axis:
@@ -84,6 +103,7 @@ def build(order: int, dtype, free_surface: bool):
     def make_dz(mr: int, half_in: bool, image: bool):
         # d/dz (times dz) with mr staggered weights of a field on half (half_in) or integer z nodes,
         # evaluated at integer (half_in) or half nodes; `image`: antisymmetric image above row `top`.
+        # Returns the derivative and its transpose (adj += g d(dz)/df, with atomics).
         c = STAGGERED_DERIVATIVE[2 * mr]
         h = 1 if half_in else 0
 
@@ -103,30 +123,153 @@ def build(order: int, dtype, free_surface: bool):
                 acc += dtype(wp.static(c[m])) * (hi - lo)
             return acc
 
-        return dz
+        @wp.func
+        def spread(adj: arr3, s: int, z: int, x: int, top: int, g: dtype):
+            zz = z
+            gg = g
+            if wp.static(image and fs):
+                if z < top:
+                    zz = 2 * top - wp.static(h) - z
+                    gg = -g
+            wp.atomic_add(adj, s, zz, x, gg)
+
+        @wp.func
+        def dz_t(adj: arr3, s: int, z: int, x: int, top: int, g: dtype):
+            for m in range(wp.static(mr)):
+                cg = dtype(wp.static(c[m])) * g
+                spread(adj, s, z - m - wp.static(h), x, top, -cg)
+                spread(adj, s, z + m + wp.static(1 - h), x, top, cg)
+
+        return dz, dz_t
 
     def make_dx(half_in: bool):
-        c = STAGGERED_DERIVATIVE[order]
+        # d/dx (times dx) at integer (half_in) or half nodes on 3D and flat arrays, and its transpose
         h = 1 if half_in else 0
 
         @wp.func
         def dx(f: arr3, s: int, z: int, x: int) -> dtype:
             acc = dtype(0.0)
             for m in range(wp.static(M)):
-                acc += dtype(wp.static(c[m])) * (f[s, z, x + m + wp.static(1 - h)] - f[s, z, x - m - wp.static(h)])
+                acc += dtype(wp.static(C[m])) * (f[s, z, x + m + wp.static(1 - h)] - f[s, z, x - m - wp.static(h)])
             return acc
 
-        return dx
+        @wp.func
+        def dx_flat(f: arr1, i: int) -> dtype:
+            acc = dtype(0.0)
+            for m in range(wp.static(M)):
+                acc += dtype(wp.static(C[m])) * (f[i + m + wp.static(1 - h)] - f[i - m - wp.static(h)])
+            return acc
 
-    dx_of_int, dx_of_half = make_dx(False), make_dx(True)
-    dz_szz = make_dz(M, False, True)  # at vz nodes
-    dz_sxz = make_dz(M, True, True)  # at vx nodes
+        @wp.func
+        def dx_t(adj: arr3, s: int, z: int, x: int, g: dtype):
+            for m in range(wp.static(M)):
+                cg = dtype(wp.static(C[m])) * g
+                wp.atomic_add(adj, s, z, x - m - wp.static(h), -cg)
+                wp.atomic_add(adj, s, z, x + m + wp.static(1 - h), cg)
+
+        return dx, dx_flat, dx_t
+
+    def make_gather(half_in: bool):
+        # transpose of a full-order derivative as a gather: sum over the nodes whose stencil reads node i
+        # (flat index; step 1 along x, lx along z) of their adjoint t
+        h = 1 if half_in else 0
+
+        @wp.func
+        def gather(t: arr1, i: int, step: int) -> dtype:
+            acc = dtype(0.0)
+            for m in range(wp.static(M)):
+                acc += dtype(wp.static(C[m])) * (t[i + (wp.static(h - 1) - m) * step] - t[i + (m + wp.static(h)) * step])
+            return acc
+
+        return gather
+
+    dx_of_int, dxf_of_int, dxt_of_int = make_dx(False)
+    dx_of_half, dxf_of_half, dxt_of_half = make_dx(True)
+    gather_int, gather_half = make_gather(False), make_gather(True)
+    dz_szz, dzt_szz = make_dz(M, False, True)  # at vz nodes
+    dz_sxz, dzt_sxz = make_dz(M, True, True)  # at vx nodes
     # velocity z-derivatives in the stress update: full order, and orders 2, 4, 6 (m = 1, 2, 3 weights) for
     # the rows next to a free surface
-    dz_vz1, dz_vz2, dz_vz3 = (make_dz(m, True, False) for m in (1, 2, 3))
-    dz_vx1, dz_vx2, dz_vx3 = (make_dz(m, False, False) for m in (1, 2, 3))
-    dz_vz = make_dz(M, True, False)
-    dz_vx = make_dz(M, False, False)
+    dz_vz, dzt_vz = make_dz(M, True, False)
+    dz_vx, dzt_vx = make_dz(M, False, False)
+    (dz_vz1, dzt_vz1), (dz_vz2, dzt_vz2), (dz_vz3, dzt_vz3) = (make_dz(m, True, False) for m in (1, 2, 3))
+    (dz_vx1, dzt_vx1), (dz_vx2, dzt_vx2), (dz_vx3, dzt_vx3) = (make_dz(m, False, False) for m in (1, 2, 3))
+
+    @wp.func
+    def dvz_normal(vz: arr3, s: int, z: int, x: int, top: int) -> dtype:
+        # d(vz)/dz (times dz) at normal-stress node (z, x), order reduced next to a free surface
+        k = z - top
+        if wp.static(fs and M >= 2):
+            if k == 1:
+                return dz_vz1(vz, s, z, x, top)
+        if wp.static(fs and M >= 3):
+            if k == 2:
+                return dz_vz2(vz, s, z, x, top)
+        if wp.static(fs and M >= 4):
+            if k == 3:
+                return dz_vz3(vz, s, z, x, top)
+        return dz_vz(vz, s, z, x, top)
+
+    @wp.func
+    def dvz_normal_t(adj: arr3, s: int, z: int, x: int, top: int, g: dtype):
+        k = z - top
+        done = False
+        if wp.static(fs and M >= 2):
+            if k == 1:
+                dzt_vz1(adj, s, z, x, top, g)
+                done = True
+        if wp.static(fs and M >= 3):
+            if k == 2:
+                dzt_vz2(adj, s, z, x, top, g)
+                done = True
+        if wp.static(fs and M >= 4):
+            if k == 3:
+                dzt_vz3(adj, s, z, x, top, g)
+                done = True
+        if not done:
+            dzt_vz(adj, s, z, x, top, g)
+
+    @wp.func
+    def dvx_shear(vx: arr3, s: int, z: int, x: int, top: int) -> dtype:
+        # d(vx)/dz (times dz) at shear node (z + 1/2, x + 1/2), order reduced next to a free surface
+        k = z - top
+        if wp.static(fs):
+            if k == 0:
+                return dz_vx1(vx, s, z, x, top)
+        if wp.static(fs and M >= 3):
+            if k == 1:
+                return dz_vx2(vx, s, z, x, top)
+        if wp.static(fs and M >= 4):
+            if k == 2:
+                return dz_vx3(vx, s, z, x, top)
+        return dz_vx(vx, s, z, x, top)
+
+    @wp.func
+    def dvx_shear_t(adj: arr3, s: int, z: int, x: int, top: int, g: dtype):
+        k = z - top
+        done = False
+        if wp.static(fs):
+            if k == 0:
+                dzt_vx1(adj, s, z, x, top, g)
+                done = True
+        if wp.static(fs and M >= 3):
+            if k == 1:
+                dzt_vx2(adj, s, z, x, top, g)
+                done = True
+        if wp.static(fs and M >= 4):
+            if k == 2:
+                dzt_vx3(adj, s, z, x, top, g)
+                done = True
+        if not done:
+            dzt_vx(adj, s, z, x, top, g)
+
+    @wp.func
+    def dwin(w: vecw) -> dtype:
+        # z-derivative from a window w[j] = f[z0 + j], j < 2M, centred between w[M - 1] and w[M]
+        acc = dtype(0.0)
+        for m in range(wp.static(M)):
+            acc += dtype(wp.static(C[m])) * (w[wp.static(M) + m] - w[wp.static(M - 1) - m])
+        return acc
 
     @wp.func
     def cpml(d: dtype, j: int, p: int, a: arr1, b: arr1, old: arr3, new: arr3, s: int, row: int, col: int) -> dtype:
@@ -137,99 +280,407 @@ def build(order: int, dtype, free_surface: bool):
         new[s, row, col] = psi
         return d + psi
 
-    @wp.kernel(module="unique")
-    def velocity(
-        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, rho: arr2,
+    @wp.func
+    def cpml_value(d: dtype, j: int, new: arr3, s: int, row: int, col: int) -> dtype:
+        # cpml's result recomputed from the psi it stored
+        if j < 0:
+            return d
+        return d + new[s, row, col]
+
+    @wp.func
+    def cpml_t(g: dtype, j: int, p: int, a: arr1, b: arr1, adj_old: arr3, adj_new: arr3, s: int, row: int, col: int) -> dtype:
+        # adjoint of cpml: g is the adjoint of its result; adds to adj_old, returns the adjoint of d
+        if j < 0:
+            return g
+        q = adj_new[s, row, col] + g
+        adj_old[s, row, col] = adj_old[s, row, col] + b[p] * q
+        return g + a[p] * q
+
+    @wp.func
+    def advance(f: dtype, dt: dtype, m: dtype, d: dtype) -> dtype:
+        return f + dt * m * d
+
+    @wp.func
+    def normal_rates(l2m: dtype, lam: dtype, dvx: dtype, dvz: dtype):
+        return l2m * dvx + lam * dvz, lam * dvx + l2m * dvz
+
+    @wp.func
+    def surface_modulus(l2m: dtype, lam: dtype, mu: dtype) -> dtype:
+        # dsxx/dt = this * dvx/dx on a free surface (szz = 0)
+        return dtype(4.0) * mu * (lam + mu) / l2m
+
+    @wp.func
+    def surface_row(z: int, top: int) -> bool:
+        # rows whose z-stencils fold (image) or shrink: scattered by the hand adjoints
+        if wp.static(fs):
+            return z < top + wp.static(M)
+        return False
+
+    # --- per-cell updates (reference kernels and the frame) -------------------------------------------
+
+    @wp.func
+    def velocity_cell(
+        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2,
         p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
         n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
-        vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, s: int, z: int, x: int,
     ):  # fmt: skip
-        s, zi, xi = wp.tid()
-        z = zi + wp.static(M)
-        x = xi + wp.static(M)
         jz = az.store[z]
         jx = ax.store[x]
         # vx at (z, x + 1/2)
         d1 = cpml(dx_of_int(sxx, s, z, x) * inv_dx, jx, x, ax.ah, ax.bh, p_vx_x, n_vx_x, s, z, jx)
         d2 = cpml(dz_sxz(sxz, s, z, x, top) * inv_dx, jz, z, az.a, az.b, p_vx_z, n_vx_z, s, jz, x)
-        bx = dtype(0.5) * (dtype(1.0) / rho[z, x] + dtype(1.0) / rho[z, x + 1])
-        vx_new[s, z, x] = vx[s, z, x] + dt * bx * (d1 + d2)
+        vx_new[s, z, x] = advance(vx[s, z, x], dt, bx[z, x], d1 + d2)
         # vz at (z + 1/2, x)
         d3 = cpml(dx_of_half(sxz, s, z, x) * inv_dx, jx, x, ax.a, ax.b, p_vz_x, n_vz_x, s, z, jx)
         d4 = cpml(dz_szz(szz, s, z, x, top) * inv_dx, jz, z, az.ah, az.bh, p_vz_z, n_vz_z, s, jz, x)
-        bz = dtype(0.5) * (dtype(1.0) / rho[z, x] + dtype(1.0) / rho[z + 1, x])
-        vz_new[s, z, x] = vz[s, z, x] + dt * bz * (d3 + d4)
+        vz_new[s, z, x] = advance(vz[s, z, x], dt, bz[z, x], d3 + d4)
 
     @wp.func
-    def shear_modulus(vs: arr2, rho: arr2, z: int, x: int) -> dtype:
-        v = vs[z, x]
-        return rho[z, x] * v * v
+    def stress_cell(
+        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2,
+        p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
+        n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
+        sxx_new: arr3, szz_new: arr3, sxz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        s: int, z: int, x: int,
+    ):  # fmt: skip
+        jz = az.store[z]
+        jx = ax.store[x]
+        # normal stresses at (z, x)
+        dvx = cpml(dx_of_half(vx, s, z, x) * inv_dx, jx, x, ax.a, ax.b, p_s_x, n_s_x, s, z, jx)
+        dvz = cpml(dvz_normal(vz, s, z, x, top) * inv_dx, jz, z, az.a, az.b, p_s_z, n_s_z, s, jz, x)
+        c1 = l2m[z, x]
+        c2 = lam[z, x]
+        sxx_rate, szz_rate = normal_rates(c1, c2, dvx, dvz)
+        surface = False
+        if wp.static(fs):
+            surface = z == top
+        if surface:
+            sxx_new[s, z, x] = sxx[s, z, x] + dt * (surface_modulus(c1, c2, mu[z, x]) * dvx)
+            szz_new[s, z, x] = dtype(0.0)
+        else:
+            sxx_new[s, z, x] = sxx[s, z, x] + dt * sxx_rate
+            szz_new[s, z, x] = szz[s, z, x] + dt * szz_rate
+        # shear stress at (z + 1/2, x + 1/2)
+        e1 = cpml(dvx_shear(vx, s, z, x, top) * inv_dx, jz, z, az.ah, az.bh, p_xz_z, n_xz_z, s, jz, x)
+        e2 = cpml(dx_of_int(vz, s, z, x) * inv_dx, jx, x, ax.ah, ax.bh, p_xz_x, n_xz_x, s, z, jx)
+        sxz_new[s, z, x] = advance(sxz[s, z, x], dt, muh[z, x], e1 + e2)
+
+    @wp.kernel(module="unique")
+    def velocity(
+        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2,
+        p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
+        n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
+        vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        s, zi, xi = wp.tid()
+        velocity_cell(vx, vz, sxx, szz, sxz, bx, bz, p_vx_x, p_vx_z, p_vz_x, p_vz_z, n_vx_x, n_vx_z, n_vz_x, n_vz_z,
+                      vx_new, vz_new, az, ax, dt, inv_dx, top, s, zi + wp.static(M), xi + wp.static(M))  # fmt: skip
 
     @wp.kernel(module="unique")
     def stress(
-        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, vp: arr2, vs: arr2, rho: arr2,
+        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2,
         p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
         n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
         sxx_new: arr3, szz_new: arr3, sxz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
     ):  # fmt: skip
         s, zi, xi = wp.tid()
-        z = zi + wp.static(M)
-        x = xi + wp.static(M)
+        stress_cell(vx, vz, sxx, szz, sxz, l2m, lam, mu, muh, p_s_x, p_s_z, p_xz_z, p_xz_x, n_s_x, n_s_z, n_xz_z, n_xz_x,
+                    sxx_new, szz_new, sxz_new, az, ax, dt, inv_dx, top, s, zi + wp.static(M), xi + wp.static(M))  # fmt: skip
+
+    # --- fast path: frame and core --------------------------------------------------------------------
+
+    @wp.func
+    def frame_cell(f: int, lz: int, lx: int, core: wp.vec4i):
+        # (z, x) of the f-th interior cell outside the core rows [core[0], core[1]) x columns
+        # [core[2], core[3]): first the full rows above and below the core, then the core rows' sides
+        nx = lx - wp.static(2 * M)
+        above = (core[0] - wp.static(M)) * nx
+        below = (lz - wp.static(M) - core[1]) * nx
+        z = int(0)
+        x = int(0)
+        if f < above:
+            z = wp.static(M) + f // nx
+            x = wp.static(M) + f % nx
+        elif f < above + below:
+            z = core[1] + (f - above) // nx
+            x = wp.static(M) + (f - above) % nx
+        else:
+            g = f - above - below
+            sides = core[2] - wp.static(M) + lx - wp.static(M) - core[3]
+            z = core[0] + g // sides
+            x = wp.static(M) + g % sides
+            if x >= core[2]:
+                x = x - core[2] + core[3]
+        return z, x
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def velocity_frame(
+        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2,
+        p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
+        n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
+        vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
+    ):  # fmt: skip
+        s, f = wp.tid()
+        z, x = frame_cell(f, vx.shape[1], vx.shape[2], core)
+        velocity_cell(vx, vz, sxx, szz, sxz, bx, bz, p_vx_x, p_vx_z, p_vz_x, p_vz_z, n_vx_x, n_vx_z, n_vz_x, n_vz_z,
+                      vx_new, vz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def stress_frame(
+        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2,
+        p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
+        n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
+        sxx_new: arr3, szz_new: arr3, sxz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
+    ):  # fmt: skip
+        s, f = wp.tid()
+        z, x = frame_cell(f, vx.shape[1], vx.shape[2], core)
+        stress_cell(vx, vz, sxx, szz, sxz, l2m, lam, mu, muh, p_s_x, p_s_z, p_xz_z, p_xz_x, n_s_x, n_s_z, n_xz_z, n_xz_x,
+                    sxx_new, szz_new, sxz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
+
+    @wp.func
+    def column(t: int, lz: int, lx: int, box: wp.vec4i, rows: int):
+        # thread t of a 1D launch over the rows [box[0], box[1]) x columns [box[2], box[3]) of every shot,
+        # `rows` cells along z each: flat field index of its first cell, flat model index, number of cells
+        nx = box[3] - box[2]
+        blocks = (box[1] - box[0] + rows - 1) // rows
+        q = t // nx
+        x = box[2] + t - q * nx
+        s = q // blocks
+        z = box[0] + (q - s * blocks) * rows
+        n = wp.min(rows, box[1] - z)
+        c = z * lx + x
+        return s * lz * lx + c, c, n
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def velocity_core(
+        vx: arr1, vz: arr1, sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, vx_new: arr1, vz_new: arr1,
+        lz: int, lx: int, core: wp.vec4i, rows: int, dt: dtype, inv_dx: dtype,
+    ):  # fmt: skip
+        # velocity_cell without CPML and surface on the flat arrays (fields S * Lz * Lx, models Lz * Lx)
+        i, c, n = column(wp.tid(), lz, lx, core, rows)
+        wa = vecw()  # sxz at z - M .. z + M - 1 (for vx)
+        wb = vecw()  # szz at z - M + 1 .. z + M (for vz)
+        for j in range(wp.static(2 * M)):
+            wa[j] = sxz[i + (j - wp.static(M)) * lx]
+            wb[j] = szz[i + (j - wp.static(M - 1)) * lx]
+        for k in range(n):
+            vx_new[i] = advance(vx[i], dt, bx[c], dxf_of_int(sxx, i) * inv_dx + dwin(wa) * inv_dx)
+            vz_new[i] = advance(vz[i], dt, bz[c], dxf_of_half(sxz, i) * inv_dx + dwin(wb) * inv_dx)
+            if k + 1 < n:
+                for j in range(wp.static(2 * M - 1)):
+                    wa[j] = wa[j + 1]
+                    wb[j] = wb[j + 1]
+                wa[wp.static(2 * M - 1)] = sxz[i + wp.static(M) * lx]
+                wb[wp.static(2 * M - 1)] = szz[i + wp.static(M + 1) * lx]
+            i += lx
+            c += lx
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def stress_core(
+        vx: arr1, vz: arr1, sxx: arr1, szz: arr1, sxz: arr1, l2m: arr1, lam: arr1, muh: arr1,
+        sxx_new: arr1, szz_new: arr1, sxz_new: arr1, lz: int, lx: int, core: wp.vec4i, rows: int,
+        dt: dtype, inv_dx: dtype,
+    ):  # fmt: skip
+        # stress_cell without CPML and surface on the flat arrays
+        i, c, n = column(wp.tid(), lz, lx, core, rows)
+        wa = vecw()  # vz at z - M .. z + M - 1 (for the normal stresses)
+        wb = vecw()  # vx at z - M + 1 .. z + M (for sxz)
+        for j in range(wp.static(2 * M)):
+            wa[j] = vz[i + (j - wp.static(M)) * lx]
+            wb[j] = vx[i + (j - wp.static(M - 1)) * lx]
+        for k in range(n):
+            sxx_rate, szz_rate = normal_rates(l2m[c], lam[c], dxf_of_half(vx, i) * inv_dx, dwin(wa) * inv_dx)
+            sxx_new[i] = sxx[i] + dt * sxx_rate
+            szz_new[i] = szz[i] + dt * szz_rate
+            sxz_new[i] = advance(sxz[i], dt, muh[c], dwin(wb) * inv_dx + dxf_of_int(vz, i) * inv_dx)
+            if k + 1 < n:
+                for j in range(wp.static(2 * M - 1)):
+                    wa[j] = wa[j + 1]
+                    wb[j] = wb[j + 1]
+                wa[wp.static(2 * M - 1)] = vz[i + wp.static(M) * lx]
+                wb[wp.static(2 * M - 1)] = vx[i + wp.static(M + 1) * lx]
+            i += lx
+            c += lx
+
+    # --- hand-written adjoints ------------------------------------------------------------------------
+    # Pass 1 (`*_adjoint`, thread per interior cell and all shots): adj(old field) += adj(new field), the
+    # materials' and CPML memory variables' adjoints, and t_k = adjoint of the k-th raw stencil sum into
+    # the scratch arrays (0 on surface rows, which scatter theirs). Pass 2 (`*_transpose`): adj(inputs)
+    # += transposed stencils of t_k, gathered.
+
+    @wp.func
+    def cell_of(t: int, lx: int):
+        # interior cell (z, x) of thread t, x fastest
+        nx = lx - wp.static(2 * M)
+        q = t // nx
+        return q + wp.static(M), t - q * nx + wp.static(M)
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def velocity_adjoint(
+        sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2, n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
+        g_vx_new: arr3, g_vz_new: arr3, g_vx: arr3, g_vz: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_bx: arr2, g_bz: arr2,
+        gp_vx_x: arr3, gp_vx_z: arr3, gp_vz_x: arr3, gp_vz_z: arr3, gn_vx_x: arr3, gn_vx_z: arr3, gn_vz_x: arr3, gn_vz_z: arr3,
+        t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        z, x = cell_of(wp.tid(), sxx.shape[2])
         jz = az.store[z]
         jx = ax.store[x]
-        k = z - top
-        # normal stresses at (z, x)
-        dvx = cpml(dx_of_half(vx, s, z, x) * inv_dx, jx, x, ax.a, ax.b, p_s_x, n_s_x, s, z, jx)
-        dvz_raw = dz_vz(vz, s, z, x, top)
-        if wp.static(fs and M >= 2):
-            if k == 1:
-                dvz_raw = dz_vz1(vz, s, z, x, top)
-        if wp.static(fs and M >= 3):
-            if k == 2:
-                dvz_raw = dz_vz2(vz, s, z, x, top)
-        if wp.static(fs and M >= 4):
-            if k == 3:
-                dvz_raw = dz_vz3(vz, s, z, x, top)
-        dvz = cpml(dvz_raw * inv_dx, jz, z, az.a, az.b, p_s_z, n_s_z, s, jz, x)
-        mu = shear_modulus(vs, rho, z, x)
-        vpp = vp[z, x]
-        l2m = rho[z, x] * vpp * vpp
-        lam = l2m - dtype(2.0) * mu
-        sxx_rate = l2m * dvx + lam * dvz
-        szz_rate = lam * dvx + l2m * dvz
+        b1 = bx[z, x]
+        b2 = bz[z, x]
+        acc1 = dtype(0.0)
+        acc2 = dtype(0.0)
+        scatter = surface_row(z, top)
+        for s in range(sxx.shape[0]):
+            ga = g_vx_new[s, z, x]
+            gb = g_vz_new[s, z, x]
+            g_vx[s, z, x] = g_vx[s, z, x] + ga
+            g_vz[s, z, x] = g_vz[s, z, x] + gb
+            d1 = cpml_value(dx_of_int(sxx, s, z, x) * inv_dx, jx, n_vx_x, s, z, jx)
+            d2 = cpml_value(dz_sxz(sxz, s, z, x, top) * inv_dx, jz, n_vx_z, s, jz, x)
+            d3 = cpml_value(dx_of_half(sxz, s, z, x) * inv_dx, jx, n_vz_x, s, z, jx)
+            d4 = cpml_value(dz_szz(szz, s, z, x, top) * inv_dx, jz, n_vz_z, s, jz, x)
+            acc1 += dt * ga * (d1 + d2)
+            acc2 += dt * gb * (d3 + d4)
+            ha = dt * b1 * ga
+            hb = dt * b2 * gb
+            a1 = cpml_t(ha, jx, x, ax.ah, ax.bh, gp_vx_x, gn_vx_x, s, z, jx) * inv_dx
+            a2 = cpml_t(ha, jz, z, az.a, az.b, gp_vx_z, gn_vx_z, s, jz, x) * inv_dx
+            a3 = cpml_t(hb, jx, x, ax.a, ax.b, gp_vz_x, gn_vz_x, s, z, jx) * inv_dx
+            a4 = cpml_t(hb, jz, z, az.ah, az.bh, gp_vz_z, gn_vz_z, s, jz, x) * inv_dx
+            if scatter:
+                dxt_of_int(g_sxx, s, z, x, a1)
+                dzt_sxz(g_sxz, s, z, x, top, a2)
+                dxt_of_half(g_sxz, s, z, x, a3)
+                dzt_szz(g_szz, s, z, x, top, a4)
+                a1 = dtype(0.0)
+                a2 = dtype(0.0)
+                a3 = dtype(0.0)
+                a4 = dtype(0.0)
+            t1[s, z, x] = a1
+            t2[s, z, x] = a2
+            t3[s, z, x] = a3
+            t4[s, z, x] = a4
+        g_bx[z, x] = g_bx[z, x] + acc1
+        g_bz[z, x] = g_bz[z, x] + acc2
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def velocity_transpose(t1: arr1, t2: arr1, t3: arr1, t4: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
+                           lz: int, lx: int, box: wp.vec4i, rows: int):  # fmt: skip
+        # t1 = adj of dx_of_int(sxx), t2 of dz_sxz (half nodes in), t3 of dx_of_half(sxz), t4 of dz_szz
+        i, c, n = column(wp.tid(), lz, lx, box, rows)
+        for k in range(n):
+            g_sxx[i] = g_sxx[i] + gather_int(t1, i, 1)
+            g_sxz[i] = g_sxz[i] + gather_half(t2, i, lx) + gather_half(t3, i, 1)
+            g_szz[i] = g_szz[i] + gather_int(t4, i, lx)
+            i += lx
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def stress_adjoint(
+        vx: arr3, vz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
+        g_sxx_new: arr3, g_szz_new: arr3, g_sxz_new: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_vx: arr3, g_vz: arr3,
+        g_l2m: arr2, g_lam: arr2, g_mu: arr2, g_muh: arr2,
+        gp_s_x: arr3, gp_s_z: arr3, gp_xz_z: arr3, gp_xz_x: arr3, gn_s_x: arr3, gn_s_z: arr3, gn_xz_z: arr3, gn_xz_x: arr3,
+        t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        z, x = cell_of(wp.tid(), vx.shape[2])
+        jz = az.store[z]
+        jx = ax.store[x]
+        c1 = l2m[z, x]
+        c2 = lam[z, x]
+        c3 = mu[z, x]
+        c4 = muh[z, x]
+        acc_l2m = dtype(0.0)
+        acc_lam = dtype(0.0)
+        acc_mu = dtype(0.0)
+        acc_muh = dtype(0.0)
+        scatter = surface_row(z, top)
+        surface = False
         if wp.static(fs):
-            if k == 0:
-                sxx_rate = dtype(4.0) * mu * (lam + mu) / l2m * dvx
-                szz_rate = dtype(0.0)
-        sxx_new[s, z, x] = sxx[s, z, x] + dt * sxx_rate
-        if wp.static(fs):
-            if k == 0:
-                szz_new[s, z, x] = dtype(0.0)
+            surface = z == top
+        for s in range(vx.shape[0]):
+            gxx = g_sxx_new[s, z, x]
+            gzz = g_szz_new[s, z, x]
+            gxz = g_sxz_new[s, z, x]
+            g_sxx[s, z, x] = g_sxx[s, z, x] + gxx
+            g_sxz[s, z, x] = g_sxz[s, z, x] + gxz
+            dvx = cpml_value(dx_of_half(vx, s, z, x) * inv_dx, jx, n_s_x, s, z, jx)
+            dvz = cpml_value(dvz_normal(vz, s, z, x, top) * inv_dx, jz, n_s_z, s, jz, x)
+            hxx = dt * gxx
+            hzz = dt * gzz
+            if surface:  # sxx += dt q dvx with q = 4 mu (lam + mu) / l2m; szz = 0
+                q = surface_modulus(c1, c2, c3)
+                gq = hxx * dvx
+                acc_mu += gq * dtype(4.0) * (c2 + dtype(2.0) * c3) / c1
+                acc_lam += gq * dtype(4.0) * c3 / c1
+                acc_l2m -= gq * q / c1
+                gdvx = q * hxx
+                gdvz = dtype(0.0)
             else:
-                szz_new[s, z, x] = szz[s, z, x] + dt * szz_rate
-        else:
-            szz_new[s, z, x] = szz[s, z, x] + dt * szz_rate
-        # shear stress at (z + 1/2, x + 1/2)
-        dvx_raw = dz_vx(vx, s, z, x, top)
-        if wp.static(fs):
-            if k == 0:
-                dvx_raw = dz_vx1(vx, s, z, x, top)
-        if wp.static(fs and M >= 3):
-            if k == 1:
-                dvx_raw = dz_vx2(vx, s, z, x, top)
-        if wp.static(fs and M >= 4):
-            if k == 2:
-                dvx_raw = dz_vx3(vx, s, z, x, top)
-        e1 = cpml(dvx_raw * inv_dx, jz, z, az.ah, az.bh, p_xz_z, n_xz_z, s, jz, x)
-        e2 = cpml(dx_of_int(vz, s, z, x) * inv_dx, jx, x, ax.ah, ax.bh, p_xz_x, n_xz_x, s, z, jx)
-        m1 = shear_modulus(vs, rho, z, x)
-        m2 = shear_modulus(vs, rho, z + 1, x)
-        m3 = shear_modulus(vs, rho, z, x + 1)
-        m4 = shear_modulus(vs, rho, z + 1, x + 1)
-        muh = dtype(0.0)
+                g_szz[s, z, x] = g_szz[s, z, x] + gzz
+                acc_l2m += hxx * dvx + hzz * dvz
+                acc_lam += hxx * dvz + hzz * dvx
+                gdvx, gdvz = normal_rates(c1, c2, hxx, hzz)
+            e1 = cpml_value(dvx_shear(vx, s, z, x, top) * inv_dx, jz, n_xz_z, s, jz, x)
+            e2 = cpml_value(dx_of_int(vz, s, z, x) * inv_dx, jx, n_xz_x, s, z, jx)
+            acc_muh += dt * gxz * (e1 + e2)
+            he = dt * c4 * gxz
+            a1 = cpml_t(gdvx, jx, x, ax.a, ax.b, gp_s_x, gn_s_x, s, z, jx) * inv_dx
+            a2 = cpml_t(gdvz, jz, z, az.a, az.b, gp_s_z, gn_s_z, s, jz, x) * inv_dx
+            a3 = cpml_t(he, jz, z, az.ah, az.bh, gp_xz_z, gn_xz_z, s, jz, x) * inv_dx
+            a4 = cpml_t(he, jx, x, ax.ah, ax.bh, gp_xz_x, gn_xz_x, s, z, jx) * inv_dx
+            if scatter:
+                dxt_of_half(g_vx, s, z, x, a1)
+                dvz_normal_t(g_vz, s, z, x, top, a2)
+                dvx_shear_t(g_vx, s, z, x, top, a3)
+                dxt_of_int(g_vz, s, z, x, a4)
+                a1 = dtype(0.0)
+                a2 = dtype(0.0)
+                a3 = dtype(0.0)
+                a4 = dtype(0.0)
+            t1[s, z, x] = a1
+            t2[s, z, x] = a2
+            t3[s, z, x] = a3
+            t4[s, z, x] = a4
+        g_l2m[z, x] = g_l2m[z, x] + acc_l2m
+        g_lam[z, x] = g_lam[z, x] + acc_lam
+        g_mu[z, x] = g_mu[z, x] + acc_mu
+        g_muh[z, x] = g_muh[z, x] + acc_muh
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def stress_transpose(t1: arr1, t2: arr1, t3: arr1, t4: arr1, g_vx: arr1, g_vz: arr1,
+                         lz: int, lx: int, box: wp.vec4i, rows: int):  # fmt: skip
+        # t1 = adj of dx_of_half(vx), t2 of dz_vz (half nodes in), t3 of dz_vx, t4 of dx_of_int(vz)
+        i, c, n = column(wp.tid(), lz, lx, box, rows)
+        for k in range(n):
+            g_vx[i] = g_vx[i] + gather_half(t1, i, 1) + gather_int(t3, i, lx)
+            g_vz[i] = g_vz[i] + gather_half(t2, i, lx) + gather_int(t4, i, 1)
+            i += lx
+
+    @wp.kernel(module="unique")
+    def materials(vp: arr2, vs: arr2, rho: arr2, bx: arr2, bz: arr2, l2m: arr2, lam: arr2, mu: arr2, muh: arr2):
+        # MATERIALS at the interior nodes: buoyancy at vx and vz nodes, lambda + 2 mu, lambda, mu at the
+        # normal-stress nodes, the harmonic mean of the 4 neighbouring mu at the shear nodes
+        zi, xi = wp.tid()
+        z = zi + wp.static(M)
+        x = xi + wp.static(M)
+        r = rho[z, x]
+        bx[z, x] = dtype(0.5) * (dtype(1.0) / r + dtype(1.0) / rho[z, x + 1])
+        bz[z, x] = dtype(0.5) * (dtype(1.0) / r + dtype(1.0) / rho[z + 1, x])
+        m1 = r * vs[z, x] * vs[z, x]
+        m2 = rho[z + 1, x] * vs[z + 1, x] * vs[z + 1, x]
+        m3 = rho[z, x + 1] * vs[z, x + 1] * vs[z, x + 1]
+        m4 = rho[z + 1, x + 1] * vs[z + 1, x + 1] * vs[z + 1, x + 1]
+        c = r * vp[z, x] * vp[z, x]
+        l2m[z, x] = c
+        lam[z, x] = c - dtype(2.0) * m1
+        mu[z, x] = m1
+        h = dtype(0.0)
         if m1 > dtype(0.0) and m2 > dtype(0.0) and m3 > dtype(0.0) and m4 > dtype(0.0):
-            muh = dtype(4.0) / (dtype(1.0) / m1 + dtype(1.0) / m2 + dtype(1.0) / m3 + dtype(1.0) / m4)
-        sxz_new[s, z, x] = sxz[s, z, x] + dt * muh * (e1 + e2)
+            h = dtype(4.0) / (dtype(1.0) / m1 + dtype(1.0) / m2 + dtype(1.0) / m3 + dtype(1.0) / m4)
+        muh[z, x] = h
+
+    # --- sources and receivers ------------------------------------------------------------------------
 
     @wp.func
     def hicks(d: dtype) -> dtype:
@@ -280,29 +731,29 @@ def build(order: int, dtype, free_surface: bool):
 
     @wp.kernel(module="unique")
     def inject_force(
-        vx: arr3, vz: arr3, rho: arr2, amp: arr3, comp: arr3, loc: arr3, n: int,
+        vx: arr3, vz: arr3, bx: arr2, bz: arr2, amp: arr3, comp: arr3, loc: arr3, n: int, clock: iarr1,
         origin: wp.vec2i, scale: dtype, inv_dx: dtype, top: int,
     ):  # fmt: skip
-        # v += dt b f(t_n) w / dx^2 (scale = dt / dx^2); comp (S, n_src, 2) = (f_z, f_x) direction weights
+        # v += dt b f(t_n) w / dx^2 (scale = dt / dx^2); comp (S, n_src, 2) = (f_z, f_x) direction weights.
+        # Here and in the other source/receiver kernels the sample is n + clock[0] (a device counter, for
+        # graph replays).
         s, src, q = wp.tid()
-        a = scale * amp[s, src, n]
+        a = scale * amp[s, src, n + clock[0]]
         i, w = pt_vx(loc, s, src, q, origin, inv_dx, top)
         if w != dtype(0.0):
-            b = dtype(0.5) * (dtype(1.0) / rho[i[0], i[1]] + dtype(1.0) / rho[i[0], i[1] + 1])
-            wp.atomic_add(vx, s, i[0], i[1], a * b * w * comp[s, src, 1])
+            wp.atomic_add(vx, s, i[0], i[1], a * bx[i[0], i[1]] * w * comp[s, src, 1])
         i, w = pt_vz(loc, s, src, q, origin, inv_dx, top)
         if w != dtype(0.0):
-            b = dtype(0.5) * (dtype(1.0) / rho[i[0], i[1]] + dtype(1.0) / rho[i[0] + 1, i[1]])
-            wp.atomic_add(vz, s, i[0], i[1], a * b * w * comp[s, src, 0])
+            wp.atomic_add(vz, s, i[0], i[1], a * bz[i[0], i[1]] * w * comp[s, src, 0])
 
     @wp.kernel(module="unique")
     def inject_moment(
-        sxx: arr3, szz: arr3, sxz: arr3, amp: arr3, comp: arr3, loc: arr3, n: int,
+        sxx: arr3, szz: arr3, sxz: arr3, amp: arr3, comp: arr3, loc: arr3, n: int, clock: iarr1,
         origin: wp.vec2i, scale: dtype, inv_dx: dtype, top: int,
     ):  # fmt: skip
         # s_ij -= (M(t_{n+1}) - M(t_n)) m_ij w / dx^2 (scale = 1 / dx^2); comp (S, n_src, 3) = (Mxx, Mzz, Mxz)
         s, src, q = wp.tid()
-        a = -scale * (amp[s, src, n + 1] - amp[s, src, n])
+        a = -scale * (amp[s, src, n + clock[0] + 1] - amp[s, src, n + clock[0]])
         i, w = pt_sxx(loc, s, src, q, origin, inv_dx, top)
         if w != dtype(0.0):
             wp.atomic_add(sxx, s, i[0], i[1], a * w * comp[s, src, 0])
@@ -314,23 +765,46 @@ def build(order: int, dtype, free_surface: bool):
             wp.atomic_add(sxz, s, i[0], i[1], a * w * comp[s, src, 2])
 
     @wp.kernel(module="unique")
+    def weights(loc: arr3, origin: wp.vec2i, inv_dx: dtype, top: int, idx: wp.array4d(dtype=wp.vec2i), w: arr4):
+        # receiver operators, computed once per run: node and weight of point q of receiver r for vx, vz,
+        # sxx, szz (first index)
+        s, r, q = wp.tid()
+        i, wq = pt_vx(loc, s, r, q, origin, inv_dx, top)
+        idx[0, s, r, q] = i
+        w[0, s, r, q] = wq
+        i, wq = pt_vz(loc, s, r, q, origin, inv_dx, top)
+        idx[1, s, r, q] = i
+        w[1, s, r, q] = wq
+        i, wq = pt_sxx(loc, s, r, q, origin, inv_dx, top)
+        idx[2, s, r, q] = i
+        w[2, s, r, q] = wq
+        i, wq = pt_szz(loc, s, r, q, origin, inv_dx, top)
+        idx[3, s, r, q] = i
+        w[3, s, r, q] = wq
+
+    @wp.kernel(module="unique")
     def record(
-        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, loc: arr3, n: int,
-        origin: wp.vec2i, inv_dx: dtype, top: int,
+        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3,
+        idx: wp.array4d(dtype=wp.vec2i), w: arr4, n: int, clock: iarr1,
     ):  # fmt: skip
         s, r, q = wp.tid()
-        i, w = pt_vx(loc, s, r, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            wp.atomic_add(d_vx, s, r, n, w * vx[s, i[0], i[1]])
-        i, w = pt_vz(loc, s, r, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            wp.atomic_add(d_vz, s, r, n, w * vz[s, i[0], i[1]])
-        i, w = pt_sxx(loc, s, r, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            wp.atomic_add(d_p, s, r, n, dtype(-0.5) * w * sxx[s, i[0], i[1]])
-        i, w = pt_szz(loc, s, r, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            wp.atomic_add(d_p, s, r, n, dtype(-0.5) * w * szz[s, i[0], i[1]])
+        t = n + clock[0]
+        wq = w[0, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[0, s, r, q]
+            wp.atomic_add(d_vx, s, r, t, wq * vx[s, i[0], i[1]])
+        wq = w[1, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[1, s, r, q]
+            wp.atomic_add(d_vz, s, r, t, wq * vz[s, i[0], i[1]])
+        wq = w[2, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[2, s, r, q]
+            wp.atomic_add(d_p, s, r, t, dtype(-0.5) * wq * sxx[s, i[0], i[1]])
+        wq = w[3, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[3, s, r, q]
+            wp.atomic_add(d_p, s, r, t, dtype(-0.5) * wq * szz[s, i[0], i[1]])
 
     @wp.kernel(module="unique")
     def pad_model(v: arr2, vpad: arr2, origin: wp.vec2i):
@@ -338,19 +812,13 @@ def build(order: int, dtype, free_surface: bool):
         z, x = wp.tid()
         vpad[z, x] = v[wp.clamp(z - origin[0], 0, v.shape[0] - 1), wp.clamp(x - origin[1], 0, v.shape[1] - 1)]
 
-    @wp.kernel(module="unique")
-    def monitor(u: arr3, stats: arr1):
-        # stats[0] = max |u|, stats[1] = number of non-finite values
-        s, z, x = wp.tid()
-        val = u[s, z, x]
-        if wp.isfinite(val):
-            wp.atomic_max(stats, 0, wp.abs(val))
-        else:
-            wp.atomic_add(stats, 1, dtype(1.0))
-
     return _Kernels(
-        Axis=Axis, velocity=velocity, stress=stress, inject_force=inject_force, inject_moment=inject_moment,
-        record=record, pad_model=pad_model, monitor=monitor, halo=M, operator_points=NPTS,
+        Axis=Axis, materials=materials, velocity=velocity, stress=stress, velocity_frame=velocity_frame,
+        stress_frame=stress_frame, velocity_core=velocity_core, stress_core=stress_core,
+        velocity_adjoint=velocity_adjoint, velocity_transpose=velocity_transpose, stress_adjoint=stress_adjoint,
+        stress_transpose=stress_transpose, inject_force=inject_force, inject_moment=inject_moment, weights=weights,
+        record=record, pad_model=pad_model, monitor=acoustic_build(2, order, dtype, False).monitor, halo=M,
+        operator_points=NPTS,
     )  # fmt: skip
 
 
@@ -433,9 +901,22 @@ class Elastic:
                 setattr(axis, name, wp.array(val, dtype=dtype, device=device))
             self.axes.append(axis)
             self.strip_width.append(width)
-        self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * R)
+        Lz, Lx = self.padded
+        # the core (padded rows core[0]:core[1], columns core[2]:core[3]) needs neither CPML (cpml_axis's
+        # strips) nor the free surface's folded or shortened stencils (rows top .. top + R - 1)
+        z0 = 2 * R if free_surface else R + nb
+        self.core = wp.vec4i(z0, Lz - R - nb - 1, R + nb, Lx - R - nb - 1)
+        core_cells = max(self.core[1] - self.core[0], 0) * max(self.core[3] - self.core[2], 0)
+        self.frame_cells = (Lz - 2 * R) * (Lx - 2 * R) - core_cells
+        self.has_core = core_cells > 0 and self.n_shots * Lz * Lx < 2**31  # int32 flat indices
+        self.box = wp.vec4i(R, Lz - R, R, Lx - R)  # the interior
+        self.rows, self.block = GPU_CORE_ROWS, GPU_CORE_THREADS
+        self.interior = (self.n_shots, Lz - 2 * R, Lx - 2 * R)
         self.inv_dx = dtype(1.0 / dx)
         self.dt_device = dtype(dt)
+        self.cuda = wp.get_device(device).is_cuda
+        self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
+        self._scratch = None
 
     def psi_shape(self, name):
         axis = PSI[name]
@@ -456,41 +937,108 @@ class Elastic:
         wp.launch(self.k.pad_model, dim=self.padded, inputs=[m, out, self.origin], device=self.device)
         return out
 
-    def step(self, st: State, model, sources, n: int, out: State | None = None) -> State:
-        """Advance st (level n) to level n + 1 with source sample n. model: padded (vp, vs, rho);
-        sources: (kind, amplitudes (S, n_src, nt), components, locations (S, n_src, 2) m) with kind
-        "force" or "moment", or None. With out=None the step is done in place (forward only); with
-        `out` (fresh arrays, e.g. under a tape) st is left unchanged and out is returned."""
-        vp, vs, rho = model
+    def materials(self, vp, vs, rho, requires_grad=False):
+        """MATERIALS (padded (Lz, Lx) arrays, interior nodes set) from the padded vp, vs, rho."""
+        out = [wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS]
+        wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, vs, rho, *out], device=self.device)
+        return tuple(out)
+
+    def _threads(self, box):
+        return self.n_shots * -(-(box[1] - box[0]) // self.rows) * (box[3] - box[2])
+
+    def _flat_launch(self, kernel, box, arrays, *extra):
+        wp.launch(kernel, dim=self._threads(box), inputs=[*(a.flatten() for a in arrays), *self.padded, box, self.rows, *extra],
+                  block_dim=self.block, device=self.device, record_tape=False)  # fmt: skip
+
+    def _update(self, reference, frame, core, args, core_arrays, generated):
+        # one half step: Warp-differentiable reference kernel under a tape without hand adjoints, else
+        # core and frame
+        if generated:
+            wp.launch(reference, dim=self.interior, inputs=args, device=self.device)
+            return
+        if self.has_core:
+            self._flat_launch(core, self.core, core_arrays, self.dt_device, self.inv_dx)
+            wp.launch(frame, dim=(self.n_shots, self.frame_cells), inputs=[*args, self.core], device=self.device, record_tape=False)
+        else:
+            wp.launch(reference, dim=self.interior, inputs=args, device=self.device, record_tape=False)
+
+    def scratch(self):
+        """The hand adjoints' four scratch fields (allocated on first use)."""
+        if self._scratch is None:
+            self._scratch = [wp.zeros((self.n_shots, *self.padded), dtype=self.dtype, device=self.device) for _ in range(4)]
+        return self._scratch
+
+    def step(self, st: State, mat, sources, n: int, out: State | None = None, tape=None, clock=None) -> State:
+        """Advance st (level n) to level n + 1 with source sample n (+ clock[0], an int32 device array
+        (1,), for graph replays). mat: MATERIALS (Elastic.materials); sources: (kind, amplitudes
+        (S, n_src, nt), components, locations (S, n_src, 2) m) with kind "force" or "moment", or None.
+        With out=None the step is done in place (forward only); with `out` (fresh arrays, e.g. under a
+        tape) st is left unchanged and out is returned. With `tape` (the active wp.Tape, out given) the
+        hand-written adjoints are recorded instead of Warp's generated ones."""
         out = st if out is None else out
+        clock = self.clock if clock is None else clock
         P, Q = st.psi, out.psi
-        wp.launch(self.k.velocity, dim=self.interior,
-                  inputs=[st.vx, st.vz, st.sxx, st.szz, st.sxz, rho,
-                          P["vx_x"], P["vx_z"], P["vz_x"], P["vz_z"], Q["vx_x"], Q["vx_z"], Q["vz_x"], Q["vz_z"],
-                          out.vx, out.vz, self.axes[0], self.axes[1], self.dt_device, self.inv_dx, self.top],
-                  device=self.device)  # fmt: skip
+        bx, bz, l2m, lam, mu, muh = mat
+        dev, dt, inv_dx, top = self.device, self.dt_device, self.inv_dx, self.top
+        generated = tape is None and wp._src.context.runtime.tape is not None
+        self._update(self.k.velocity, self.k.velocity_frame, self.k.velocity_core,
+                     [st.vx, st.vz, st.sxx, st.szz, st.sxz, bx, bz, *(P[k] for k in PSI_V), *(Q[k] for k in PSI_V),
+                      out.vx, out.vz, *self.axes, dt, inv_dx, top],
+                     [st.vx, st.vz, st.sxx, st.szz, st.sxz, bx, bz, out.vx, out.vz], generated)  # fmt: skip
+        if tape is not None:
+
+            def velocity_backward():
+                t = self.scratch()
+                wp.launch(self.k.velocity_adjoint, dim=math.prod(self.interior[1:]),
+                          inputs=[st.sxx, st.szz, st.sxz, bx, bz, *(Q[k] for k in PSI_V), out.vx.grad, out.vz.grad, st.vx.grad,
+                                  st.vz.grad, st.sxx.grad, st.szz.grad, st.sxz.grad, bx.grad, bz.grad, *(P[k].grad for k in PSI_V),
+                                  *(Q[k].grad for k in PSI_V), *t, *self.axes, dt, inv_dx, top], device=dev)  # fmt: skip
+                self._flat_launch(self.k.velocity_transpose, self.box, [*t, st.sxx.grad, st.szz.grad, st.sxz.grad])
+
+            tape.record_func(velocity_backward, arrays=[st.sxx, st.szz, st.sxz, st.vx, st.vz, out.vx, out.vz, bx, bz,
+                                                        *(P[k] for k in PSI_V), *(Q[k] for k in PSI_V)])  # fmt: skip
         if sources is not None and sources[0] == "force":
             _, amp, comp, loc = sources
             wp.launch(self.k.inject_force, dim=(self.n_shots, loc.shape[1], self.k.operator_points),
-                      inputs=[out.vx, out.vz, rho, amp, comp, loc, n, self.origin, self.dtype(self.dt / self.dx**2), self.inv_dx, self.top],
-                      device=self.device)  # fmt: skip
-        wp.launch(self.k.stress, dim=self.interior,
-                  inputs=[out.vx, out.vz, st.sxx, st.szz, st.sxz, vp, vs, rho,
-                          P["s_x"], P["s_z"], P["xz_z"], P["xz_x"], Q["s_x"], Q["s_z"], Q["xz_z"], Q["xz_x"],
-                          out.sxx, out.szz, out.sxz, self.axes[0], self.axes[1], self.dt_device, self.inv_dx, self.top],
-                  device=self.device)  # fmt: skip
+                      inputs=[out.vx, out.vz, bx, bz, amp, comp, loc, n, clock, self.origin, self.dtype(self.dt / self.dx**2), inv_dx, top],
+                      device=dev)  # fmt: skip
+        self._update(self.k.stress, self.k.stress_frame, self.k.stress_core,
+                     [out.vx, out.vz, st.sxx, st.szz, st.sxz, l2m, lam, mu, muh, *(P[k] for k in PSI_S), *(Q[k] for k in PSI_S),
+                      out.sxx, out.szz, out.sxz, *self.axes, dt, inv_dx, top],
+                     [out.vx, out.vz, st.sxx, st.szz, st.sxz, l2m, lam, muh, out.sxx, out.szz, out.sxz], generated)  # fmt: skip
+        if tape is not None:
+
+            def stress_backward():
+                t = self.scratch()
+                wp.launch(self.k.stress_adjoint, dim=math.prod(self.interior[1:]),
+                          inputs=[out.vx, out.vz, l2m, lam, mu, muh, *(Q[k] for k in PSI_S), out.sxx.grad, out.szz.grad,
+                                  out.sxz.grad, st.sxx.grad, st.szz.grad, st.sxz.grad, out.vx.grad, out.vz.grad, l2m.grad,
+                                  lam.grad, mu.grad, muh.grad, *(P[k].grad for k in PSI_S), *(Q[k].grad for k in PSI_S), *t,
+                                  *self.axes, dt, inv_dx, top], device=dev)  # fmt: skip
+                self._flat_launch(self.k.stress_transpose, self.box, [*t, out.vx.grad, out.vz.grad])
+
+            tape.record_func(stress_backward, arrays=[out.vx, out.vz, st.sxx, st.szz, st.sxz, out.sxx, out.szz, out.sxz,
+                                                      l2m, lam, mu, muh, *(P[k] for k in PSI_S), *(Q[k] for k in PSI_S)])  # fmt: skip
         if sources is not None and sources[0] == "moment":
             _, amp, comp, loc = sources
             wp.launch(self.k.inject_moment, dim=(self.n_shots, loc.shape[1], self.k.operator_points),
-                      inputs=[out.sxx, out.szz, out.sxz, amp, comp, loc, n, self.origin, self.dtype(1.0 / self.dx**2), self.inv_dx, self.top],
-                      device=self.device)  # fmt: skip
+                      inputs=[out.sxx, out.szz, out.sxz, amp, comp, loc, n, clock, self.origin, self.dtype(1.0 / self.dx**2), inv_dx, top],
+                      device=dev)  # fmt: skip
         return out
 
-    def record(self, st: State, data, locations, n: int):
-        """data = (vx, vz, pressure) arrays (S, n_rec, nt): add sample n at locations (S, n_rec, 2) m."""
-        wp.launch(self.k.record, dim=(self.n_shots, locations.shape[1], self.k.operator_points),
-                  inputs=[st.vx, st.vz, st.sxx, st.szz, *data, locations, n, self.origin, self.inv_dx, self.top],
-                  device=self.device)  # fmt: skip
+    def receivers(self, locations):
+        """The receiver operator at locations (S, n_rec, 2) m: node indices and weights (4, S, n_rec, points)."""
+        shape = (4, self.n_shots, locations.shape[1], self.k.operator_points)
+        idx = wp.zeros(shape, dtype=wp.vec2i, device=self.device)
+        w = wp.zeros(shape, dtype=self.dtype, device=self.device)
+        wp.launch(self.k.weights, dim=shape[1:], inputs=[locations, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
+        return idx, w
+
+    def record(self, st: State, data, op, n: int, clock=None):
+        """data = (vx, vz, pressure) arrays (S, n_rec, nt): add sample n (+ clock[0]) through the receiver
+        operator op (Elastic.receivers)."""
+        clock = self.clock if clock is None else clock
+        wp.launch(self.k.record, dim=op[1].shape[1:], inputs=[st.vx, st.vz, st.sxx, st.szz, *data, *op, n, clock], device=self.device)
 
     def physical(self, a):
         """View of the physical grid (nz, nx) of a padded model-shaped array."""
@@ -498,7 +1046,17 @@ class Elastic:
         return a[o[0] : o[0] + self.shape[0], o[1] : o[1] + self.shape[1]]
 
     def monitor(self, fields, stats):
-        """stats (2,) <- [max |u| over the given fields, count of non-finite values]."""
+        """stats (2,) <- [max |u| over the given fields, count of non-finite values] (kernels/acoustic.py's
+        block-reduced monitor)."""
         stats.zero_()
         for u in fields:
-            wp.launch(self.k.monitor, dim=u.shape, inputs=[u, stats], device=self.device)
+            flat = u.flatten()
+            n = flat.shape[0]
+            if self.cuda:
+                lanes = MONITOR_BLOCK
+                threads = lanes * min(-(-n // lanes), 4 * wp.get_device(self.device).sm_count)
+                per, stride, iters = 1, threads, -(-n // threads)
+            else:
+                lanes, threads, stride = 1, min(n, 64), 1
+                per = iters = -(-n // threads)
+            wp.launch(self.k.monitor, dim=threads, inputs=[flat, stats, per, stride, iters, lanes], block_dim=lanes, device=self.device)
