@@ -18,13 +18,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 from tqdm.auto import tqdm
 
-from adseismic.kernels.acoustic import HICKS_RADIUS
-from adseismic.kernels.acoustic import tick
+from adseismic import graphs
+from adseismic.kernels.acoustic import HICKS_RADIUS, reduction_kernels
 from adseismic.kernels.elastic import PSI, Elastic
 from adseismic.misfits import misfit as named_misfit
 from adseismic.numerics import check_order, staggered_cfl_limit
@@ -41,7 +42,6 @@ from adseismic.propagate import (
 SOURCE_TYPES = {"force": 2, "moment": 3, "explosive": 3}
 COMPONENTS = ("vx", "vz", "pressure")
 WRT = ("vp", "vs", "rho", "source_amplitudes", "source_components", "source_locations")
-GRAPH_STEPS = 50  # time steps per captured CUDA graph in forward_elastic (rounded to a multiple of the checks)
 
 
 @dataclass
@@ -222,46 +222,50 @@ def run_elastic(su: ElasticSetup, st, mat, data, steps: range, next_state=None, 
     return st
 
 
-def graph_plan(prop: Elastic, nt: int, every: int):
-    """(K, graphs): K steps per captured graph (a multiple of `every`, the guard's interval), replayed
-    `graphs` times to cover the nt levels; graphs = 0 where none are used (CPU, or fewer than two replays)."""
-    K = every * max(1, GRAPH_STEPS // every)
-    graphs = -(-nt // K)
-    return K, graphs if prop.cuda and graphs >= 2 else 0
-
-
-def run_graphs(su: ElasticSetup, st, mat, data, guard: ElasticBlowupGuard, progress=None):
-    """The in-place time loop of run_elastic on a CUDA device as replays of one captured graph of K steps
-    (record, the guard's checks, step; see graph_plan), reading the guard's statistics after each replay.
-    Runs K * graphs >= nt levels: data must have that many samples (those past nt - 1 are padding)."""
+def capture(su: ElasticSetup, st, mat, data, every: int) -> graphs.Loop:
+    """The in-place time loop of run_elastic (record, the guard's checks, step) captured as a CUDA graph
+    (graphs.capture); data must have K * graphs samples (graphs.graph_plan)."""
     prop = su.prop
-    K, graphs = graph_plan(prop, su.nt, guard.every)
-    levels = K * graphs
-    amp = np.zeros((*su.amplitudes.shape[:2], levels + 1), dtype=wp.dtype_to_numpy(prop.dtype))  # zero samples past nt
-    amp[:, :, : su.nt] = su.amplitudes.numpy()
-    src = (su.kind, wp.array(amp, dtype=prop.dtype, device=prop.device), su.components, su.sources)
-    checks = K // guard.every
-    stats = wp.zeros((checks, 2), dtype=prop.dtype, device=prop.device)
-    clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
+    K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
+    amp = wp.array(graphs.padded_samples(su.amplitudes.numpy(), K * n_graphs + 1, prop.dtype), dtype=prop.dtype, device=prop.device)
+    src = (su.kind, amp, su.components, su.sources)
+
+    def step(n, clock, stats):
+        prop.record(st, data, su.receiver_op, n, clock)
+        if stats is not None:
+            prop.monitor((st.vx, st.vz), stats)
+        prop.step(st, mat, src, n, clock=clock)
+
     k = prop.k
-    for kernel in (k.monitor, k.velocity, k.stress, k.velocity_frame, k.stress_frame, k.velocity_core, k.stress_core,
-                   k.record, k.inject_force if su.kind == "force" else k.inject_moment, tick):  # fmt: skip
-        wp.load_module(kernel.module, device=prop.device)
-    with wp.ScopedCapture(device=prop.device, force_module_load=False) as capture:
-        for n in range(K):
-            prop.record(st, data, su.receiver_op, n, clock)
-            if n % guard.every == 0:
-                prop.monitor((st.vx, st.vz), stats[n // guard.every])
-            st = prop.step(st, mat, src, n, clock=clock)
-        wp.launch(tick, dim=1, inputs=[clock, K], device=prop.device)
-    for g in range(graphs):
-        wp.capture_launch(capture.graph)
-        for j, (amax, nonfinite) in enumerate(stats.numpy()):
-            if g * K + j * guard.every < su.nt:
-                guard.check(g * K + j * guard.every, float(amax), float(nonfinite))
-        if progress is not None:
-            progress.update(min(K, su.nt - g * K))
-    return st
+    kernels = (reduction_kernels(prop.dtype)[0], k.velocity, k.stress, k.velocity_frame, k.stress_frame, k.velocity_core, k.stress_core, k.record,
+               k.inject_force if su.kind == "force" else k.inject_moment)  # fmt: skip
+    kept = SimpleNamespace(su=su, st=st, mat=mat, data=data, amplitudes=amp)
+    return graphs.capture(_graph_key(su, every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept)
+
+
+def _graph_key(su: ElasticSetup, every: int) -> tuple:
+    p = su.prop
+    return ("elastic", p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, su.nt, su.amplitudes.shape, su.receivers.shape, su.kind, every)
+
+
+def _kept_loop(su: ElasticSetup, every: int) -> graphs.Loop:
+    """forward_elastic's time loop for su: the kept one refilled with su's inputs when the key matches, else
+    a new capture (which replaces it)."""
+    loop = graphs.kept(_graph_key(su, every))
+    prop = su.prop
+    if loop is None:
+        K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
+        return graphs.keep(capture(su, prop.new_state(), su.materials(), _new_data(su, K * n_graphs), every))
+    mine = loop.kept
+    pairs = [(getattr(a, f), getattr(b, f)) for a, b in zip(mine.su.prop.axes, prop.axes) for f in ("a", "b", "ah", "bh")]
+    pairs += list(zip(mine.mat, su.materials())) + list(zip(mine.su.receiver_op, su.receiver_op))
+    pairs += [(mine.su.components, su.components), (mine.su.sources, su.sources)]
+    for a, b in pairs:
+        wp.copy(a, b)
+    mine.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), loop.K * loop.graphs + 1, prop.dtype))
+    for a in (*mine.st.arrays(), *mine.data, loop.clock):
+        a.zero_()
+    return loop
 
 
 def _new_data(su, n, requires_grad=False):
@@ -285,17 +289,18 @@ def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
                        pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
                        precision=precision)  # fmt: skip
     guard = ElasticBlowupGuard(su.prop, np.asarray(source_amplitudes, dtype=float), check_every)
-    K, graphs = graph_plan(su.prop, su.nt, guard.every)
-    data = _new_data(su, max(su.nt, K * graphs))
     bar = tqdm(total=su.nt, desc="time steps", unit="step", disable=not progress, leave=False)
 
     def callback(st, n):
         guard(st, n)
         bar.update()
 
-    if graphs:
-        run_graphs(su, su.prop.new_state(), su.materials(), data, guard, bar)
+    if graphs.graph_plan(su.prop.cuda, su.nt, guard.every)[1]:
+        loop = _kept_loop(su, guard.every)
+        graphs.replay(loop, su.nt, guard, bar)
+        data = loop.kept.data
     else:
+        data = _new_data(su, su.nt)
         run_elastic(su, su.prop.new_state(), su.materials(), data, range(su.nt), callback=callback)
     bar.close()
     vx, vz, p = (d.numpy()[:, :, : su.nt].astype(float) for d in data)

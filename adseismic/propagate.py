@@ -15,12 +15,14 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 from tqdm.auto import tqdm
 
-from adseismic.kernels.acoustic import HICKS_RADIUS, Acoustic, tick, value_range
+from adseismic import graphs
+from adseismic.kernels.acoustic import HICKS_RADIUS, Acoustic, reduction_kernels, value_range
 from adseismic.numerics import cfl_limit, check_order
 
 log = logging.getLogger(__name__)
@@ -29,7 +31,6 @@ DTYPES = {"float32": wp.float32, "float64": wp.float64}
 DEFAULT_PML_WIDTH = 20
 DEFAULT_PML_REFLECTION = {2: 1e-3, 4: 1e-3, 8: 1e-5}  # reference.md section 3
 BLOWUP_FACTOR = 1e3  # max|u| after the source ends vs. its peak during injection
-GRAPH_STEPS = 50  # time steps per captured CUDA graph in forward (rounded to a multiple of the checks)
 
 
 class PropagationError(RuntimeError):
@@ -261,129 +262,66 @@ def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback
     return st
 
 
-def graph_plan(prop: Acoustic, nt: int, every: int):
-    """(K, graphs) for run_graphs: K steps per captured graph (even, as in-place steps swap u and u_prev,
-    and a multiple of `every`, the guard's interval), replayed `graphs` times to cover the nt levels (the
-    last replay runs up to K - 1 levels past them); graphs = 0 where none are used (CPU, or fewer than
-    two replays)."""
-    K = math.lcm(2, every)
-    K *= max(1, GRAPH_STEPS // K)
-    graphs = -(-nt // K)
-    return K, graphs if prop.cuda and graphs >= 2 else 0
-
-
-@dataclass
-class GraphRun:
-    """A CUDA time loop captured once (see graph_plan): K steps per graph, replayed `graphs` times, with the
-    arrays its launches read: the inputs of `su`, the state, the padded model, the traces data (n_shots,
-    n_rec, K * graphs), the source samples zero-padded to K * graphs, the guard's statistics and the
-    device clock. forward keeps the last one and refills it for a later call with the same geometry."""
-
-    key: tuple
-    su: Setup
-    st: object
-    vpad: wp.array
-    data: wp.array
-    amplitudes: wp.array
-    stats: wp.array
-    clock: wp.array
-    graph: object
-    K: int
-    graphs: int
-
-
-_RUNS: dict = {}  # forward's kept GraphRun (at most one: each holds a full set of wavefields)
-
-
-def release_graphs():
-    """Free the device memory of the time loop that forward keeps for reuse."""
-    _RUNS.clear()
-
-
-def _samples(amplitudes: np.ndarray, levels: int, dtype) -> np.ndarray:
-    """Source samples (S, n_src, nt) zero-padded to `levels` samples."""
-    out = np.zeros((*amplitudes.shape[:2], levels), dtype=wp.dtype_to_numpy(dtype))
-    out[:, :, : amplitudes.shape[2]] = amplitudes
-    return out
-
-
-def capture(su: Setup, st, vpad, data, every: int) -> GraphRun:
-    """Capture K steps of the untaped time loop of run_steps (record, the guard's check every `every`
-    levels, step, inject) as one CUDA graph; data must have K * graphs samples (graph_plan)."""
+def capture(su: Setup, st, vpad, data, every: int) -> graphs.Loop:
+    """The untaped time loop of run_steps (record, the guard's check every `every` levels, step, inject)
+    captured as a CUDA graph (graphs.capture); data must have K * graphs samples (graphs.graph_plan)."""
     prop = su.prop
-    K, graphs = graph_plan(prop, su.nt, every)
-    if data.shape[2] < K * graphs:
-        raise ValueError(f"data has {data.shape[2]} samples; the graph replays record {K * graphs}")
-    amplitudes = wp.array(_samples(su.amplitudes.numpy(), K * graphs, prop.dtype), dtype=prop.dtype, device=prop.device)
-    stats = wp.zeros((K // every, 2), dtype=prop.dtype, device=prop.device)
-    clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
-    kernels = [prop.k.monitor, prop.k.step, prop.k.step_frame, prop.core_kernel(), tick, *(prop.k.psi[a][0] for a in range(3))]
+    K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
+    if data.shape[2] < K * n_graphs:
+        raise ValueError(f"data has {data.shape[2]} samples; the graph replays record {K * n_graphs}")
+    amplitudes = wp.array(graphs.padded_samples(su.amplitudes.numpy(), K * n_graphs, prop.dtype), dtype=prop.dtype, device=prop.device)
+    state = [st]
+
+    def step(k, clock, stats):
+        prop.record(state[0].u, data, su.receiver_op, k, clock)
+        if stats is not None:
+            prop.monitor(state[0].u, stats)
+        state[0] = prop.step(state[0], vpad)
+        prop.inject(state[0].u, vpad, amplitudes, su.source_op, k, clock)
+
+    kernels = [reduction_kernels(prop.dtype)[0], prop.k.step, prop.k.step_frame, prop.core_kernel(), *(prop.k.psi[a][0] for a in range(3))]
     kernels += [prop.k.record_fixed if isinstance(su.receiver_op, tuple) else prop.k.record]
     kernels += [prop.k.inject_fixed if isinstance(su.source_op, tuple) else prop.k.inject]
-    for k in kernels:
-        wp.load_module(k.module, device=prop.device)
-    with wp.ScopedCapture(device=prop.device, force_module_load=False) as cap:
-        for k in range(K):
-            prop.record(st.u, data, su.receiver_op, k, clock)
-            if k % every == 0:
-                prop.monitor(st.u, stats[k // every])
-            st = prop.step(st, vpad)
-            prop.inject(st.u, vpad, amplitudes, su.source_op, k, clock)
-        wp.launch(tick, dim=1, inputs=[clock, K], device=prop.device)
-    return GraphRun(_graph_key(su, every), su, st, vpad, data, amplitudes, stats, clock, cap.graph, K, graphs)
-
-
-def replay(run: GraphRun, guard: BlowupGuard, progress=None):
-    """Run all levels to K * graphs >= nt by replaying the graph (the levels past nt - 1 are padding; the
-    guard ignores them), checking the guard's statistics after each replay."""
-    nt, K, every = run.su.nt, run.K, guard.every
-    for g in range(run.graphs):
-        wp.capture_launch(run.graph)
-        for j, (amax, nonfinite) in enumerate(run.stats.numpy()):
-            if g * K + j * every < nt:
-                guard.check(g * K + j * every, float(amax), float(nonfinite))
-        if progress is not None:
-            progress.update(min(K, nt - g * K))
+    kept = SimpleNamespace(su=su, st=st, vpad=vpad, data=data, amplitudes=amplitudes)
+    return graphs.capture(_graph_key(su, every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept)
 
 
 def run_graphs(su: Setup, st, vpad, data, guard: BlowupGuard, progress=None):
-    """The untaped time loop of run_steps on a CUDA device: capture, then replay (no reuse)."""
-    replay(capture(su, st, vpad, data, guard.every), guard, progress)
+    """The untaped time loop of run_steps on a CUDA device: capture, then replay (nothing kept)."""
+    graphs.replay(capture(su, st, vpad, data, guard.every), su.nt, guard, progress)
 
 
 def _graph_key(su: Setup, every: int) -> tuple:
     """What a captured time loop bakes in: kernels, grid, scalars, array shapes, operator kinds."""
     p = su.prop
-    return (p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, su.nt, su.amplitudes.shape, su.receivers.shape,
+    return ("acoustic", p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, su.nt, su.amplitudes.shape, su.receivers.shape,
             isinstance(su.source_op, tuple), isinstance(su.receiver_op, tuple), every)  # fmt: skip
 
 
-def _kept_run(su: Setup, every: int) -> GraphRun:
-    """forward's time loop for su: the kept one refilled with su's inputs when the geometry matches, else
-    a new capture (which replaces it)."""
-    key = _graph_key(su, every)
-    run = _RUNS.get(key)
-    if run is None:
-        _RUNS.clear()
+def _kept_loop(su: Setup, every: int) -> graphs.Loop:
+    """forward's time loop for su: the kept one refilled with su's inputs when the key matches, else a new
+    capture (which replaces it)."""
+    loop = graphs.kept(_graph_key(su, every))
+    if loop is None:
         prop = su.prop
-        K, graphs = graph_plan(prop, su.nt, every)
-        data = wp.zeros((prop.n_shots, su.receivers.shape[1], K * graphs), dtype=prop.dtype, device=prop.device)
-        run = _RUNS[key] = capture(su, prop.new_state(), prop.pad_model(su.velocity), data, every)
-        return run
-    prop = run.su.prop
-    for mine, new in zip(prop.axes, su.prop.axes):  # CPML coefficients depend on the model's maximum speed
-        wp.copy(mine.a, new.a)
-        wp.copy(mine.b, new.b)
-    run.amplitudes.assign(_samples(su.amplitudes.numpy(), run.K * run.graphs, prop.dtype))
-    for mine, locations in ((run.su.source_op, su.sources), (run.su.receiver_op, su.receivers)):
-        if isinstance(mine, tuple):
-            prop.operator(locations, out=mine)
+        K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
+        data = wp.zeros((prop.n_shots, su.receivers.shape[1], K * n_graphs), dtype=prop.dtype, device=prop.device)
+        return graphs.keep(capture(su, prop.new_state(), prop.pad_model(su.velocity), data, every))
+    mine = loop.kept
+    prop = mine.su.prop
+    for a, b in zip(prop.axes, su.prop.axes):  # CPML coefficients depend on the model's maximum speed
+        wp.copy(a.a, b.a)
+        wp.copy(a.b, b.b)
+    mine.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), loop.K * loop.graphs, prop.dtype))
+    for op, locations in ((mine.su.source_op, su.sources), (mine.su.receiver_op, su.receivers)):
+        if isinstance(op, tuple):
+            prop.operator(locations, out=op)
         else:
-            wp.copy(mine, locations)
-    prop.pad_model(su.velocity, out=run.vpad)
-    for a in (*run.st.arrays(), run.data, run.clock):
+            wp.copy(op, locations)
+    prop.pad_model(su.velocity, out=mine.vpad)
+    for a in (*mine.st.arrays(), mine.data, loop.clock):
         a.zero_()
-    return run
+    return loop
 
 
 def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4,
@@ -403,14 +341,14 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
     PropagationError if the run blows up.
     On a GPU the time loop is captured as a CUDA graph and kept (with its wavefields) for the next call
     with the same grid, time step, number of steps, shots, sources and receivers, which then only copies
-    its inputs in (release_graphs frees it).
+    its inputs in (graphs.release frees it).
     """
     su = setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order=order, pml_width=pml_width,
                pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
                free_surface=free_surface, device=device, precision=precision)  # fmt: skip
     prop = su.prop
     guard = BlowupGuard(prop, np.asarray(source_amplitudes), check_every)
-    graphs = graph_plan(prop, su.nt, guard.every)[1] if not snapshot_every else 0
+    use_graphs = graphs.graph_plan(prop.cuda, su.nt, guard.every)[1] > 0 and not snapshot_every
     snaps, snap_t = [], []
     o, ny = prop.origin, (prop.shape[1] if su.ndim == 3 else 1)
     phys = (slice(None), slice(o[0], o[0] + prop.shape[0]), slice(o[1], o[1] + ny), slice(o[2], o[2] + prop.shape[-1]))
@@ -424,10 +362,10 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
             snap_t.append(n * dt)
         bar.update()
 
-    if graphs:
-        run = _kept_run(su, guard.every)
-        replay(run, guard, bar)
-        data = run.data
+    if use_graphs:
+        loop = _kept_loop(su, guard.every)
+        graphs.replay(loop, su.nt, guard, bar)
+        data = loop.kept.data
     else:
         data = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
         run_steps(su, prop.new_state(), prop.pad_model(su.velocity), data, range(su.nt), callback=callback)

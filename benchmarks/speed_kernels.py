@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from speed import SCENES, scene  # noqa: E402
 
 import adseismic.propagate as P  # noqa: E402
+from adseismic.graphs import graph_plan  # noqa: E402
 from adseismic.kernels import acoustic as K  # noqa: E402
 
 CORE_VARIANTS = [(16, 1, 128), (8, 1, 128), (32, 1, 128), (16, 1, 256), (8, 2, 128), (16, 2, 128), (8, 4, 128), (16, 4, 64)]  # (rows, columns per thread, threads per block) of step_core
@@ -38,7 +39,7 @@ def loop(su, s):
     """forward's time loop (graphs on a GPU, else run_steps); returns (seconds, data)."""
     prop = su.prop
     guard = P.BlowupGuard(prop, s, 25)
-    K, graphs = P.graph_plan(prop, su.nt, guard.every)
+    K, graphs = graph_plan(prop.cuda, su.nt, guard.every)
     data = wp.zeros((prop.n_shots, su.receivers.shape[1], max(su.nt, K * graphs)), dtype=prop.dtype, device=prop.device)
     st, vpad = prop.new_state(), prop.pad_model(su.velocity)
     wp.synchronize_device(prop.device)

@@ -833,34 +833,11 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         val = u[s, z, y, x]
         wp.atomic_add(e, z, y, x, val * val)
 
-    @wp.kernel(module="unique")
-    def monitor(u: arr1, stats: arr1, per: int, stride: int, iters: int, lanes: int):
-        # stats[0] = max |u|, stats[1] += number of non-finite values (blow-up detection) over the flat
-        # field u. Thread t reads u[t * per + k * stride], k < iters: (per, stride) = (1, threads) on a GPU
-        # (coalesced), (iters, 1) on the CPU (contiguous chunks); a block reduces, then one atomic per block
-        # (`lanes` threads per block; 1 on the CPU).
-        t = wp.tid()
-        top = dtype(0.0)
-        bad = dtype(0.0)
-        for k in range(iters):
-            c = t * per + k * stride
-            if c < u.shape[0]:
-                val = u[c]
-                if wp.isfinite(val):
-                    top = wp.max(top, wp.abs(val))
-                else:
-                    bad += dtype(1.0)
-        block_top = wp.tile_max(wp.tile(top))
-        block_bad = wp.tile_sum(wp.tile(bad))
-        if t % lanes == 0:
-            wp.atomic_max(stats, 0, block_top[0])
-            wp.atomic_add(stats, 1, block_bad[0])
-
     return _Kernels(
         Axis=Axis, step=step, step_frame=step_frame, step_core=functools.lru_cache(maxsize=None)(make_step_core), step_rows=step_rows, step_core_rows=step_core_rows, psi=psi, inject=inject,
         step_adjoint={False: make_step_adjoint(False), True: make_step_adjoint(True)},
         psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
-        record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS), pad_model=pad_model, scatter=scatter, energy=energy, monitor=monitor, halo=R, operator_points=NPTS,
+        record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS), pad_model=pad_model, scatter=scatter, energy=energy, halo=R, operator_points=NPTS,
     )  # fmt: skip
 
 
@@ -871,16 +848,19 @@ def tick(clock: wp.array(dtype=wp.int32), steps: int):
 
 
 @functools.lru_cache(maxsize=None)
-def _extrema_kernel(dtype):
+def reduction_kernels(dtype):
+    """(monitor, extrema): block-reduced GPU kernels over a flat array v, thread t reading v[t + k stride]
+    for k < iters (coalesced), MONITOR_BLOCK threads per block reducing to one atomic each.
+    monitor: stats[0] = max(stats[0], max |v| of the finite values), stats[1] += count of non-finite ones.
+    extrema: stats = [min, max] of the finite values (stats starts at [+max, -max, 0]), stats[2] += count
+    of non-finite ones."""
     big = float(np.finfo(wp.dtype_to_numpy(dtype)).max)
 
-    @wp.kernel(module="unique")
-    def extrema(v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int, lanes: int):
-        # stats <- [min, max] of the finite values of the flat array v and += the number of non-finite ones
-        # (stats starts at [+max, -max, 0]); thread t reads v[t + k * stride], a block reduces, one atomic each
-        t = wp.tid()
+    @wp.func
+    def scan(v: wp.array(dtype=dtype), t: int, stride: int, iters: int):
         lo = dtype(wp.static(big))
         hi = -lo
+        top = dtype(0.0)
         bad = dtype(0.0)
         for k in range(iters):
             c = t + k * stride
@@ -889,28 +869,65 @@ def _extrema_kernel(dtype):
                 if wp.isfinite(val):
                     lo = wp.min(lo, val)
                     hi = wp.max(hi, val)
+                    top = wp.max(top, wp.abs(val))
                 else:
                     bad += dtype(1.0)
+        return lo, hi, top, bad
+
+    @wp.kernel(module="unique")
+    def monitor(v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int):
+        lo, hi, top, bad = scan(v, wp.tid(), stride, iters)
+        block_top = wp.tile_max(wp.tile(top))
+        block_bad = wp.tile_sum(wp.tile(bad))
+        if wp.tid() % wp.static(MONITOR_BLOCK) == 0:
+            wp.atomic_max(stats, 0, block_top[0])
+            wp.atomic_add(stats, 1, block_bad[0])
+
+    @wp.kernel(module="unique")
+    def extrema(v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int):
+        lo, hi, top, bad = scan(v, wp.tid(), stride, iters)
         block_lo = wp.tile_min(wp.tile(lo))
         block_hi = wp.tile_max(wp.tile(hi))
         block_bad = wp.tile_sum(wp.tile(bad))
-        if t % lanes == 0:
+        if wp.tid() % wp.static(MONITOR_BLOCK) == 0:
             wp.atomic_min(stats, 0, block_lo[0])
             wp.atomic_max(stats, 1, block_hi[0])
             wp.atomic_add(stats, 2, block_bad[0])
 
-    return extrema
+    return monitor, extrema
+
+
+def _reduce(kernel, v: wp.array, stats: wp.array):
+    flat = v.flatten()
+    n = flat.shape[0]
+    threads = MONITOR_BLOCK * min(-(-n // MONITOR_BLOCK), 4 * wp.get_device(v.device).sm_count)
+    wp.launch(kernel, dim=threads, inputs=[flat, stats, threads, -(-n // threads)], block_dim=MONITOR_BLOCK, device=v.device)
+
+
+def field_stats(fields, stats: wp.array):
+    """stats (2,) <- [max |u| over the fields' finite values, count of non-finite values] (blow-up checks):
+    on a GPU by launches only (graph-capturable), on the CPU by NumPy on zero-copy views (vectorised)."""
+    if not stats.device.is_cuda:
+        top, bad = 0.0, 0
+        for u in fields:
+            a = u.numpy()
+            t = max(a.max(), -a.min())  # NaN if any value is
+            if not np.isfinite(t):
+                ok = np.isfinite(a)
+                t, bad = np.abs(a[ok]).max(initial=0.0), bad + a.size - np.count_nonzero(ok)
+            top = max(top, float(t))
+        stats.assign(np.array([top, bad], dtype=wp.dtype_to_numpy(stats.dtype)))
+        return
+    stats.zero_()
+    for u in fields:
+        _reduce(reduction_kernels(u.dtype)[0], u, stats)
 
 
 def value_range(v: wp.array):
-    """(min, max, number of non-finite values) of a float32/float64 Warp array on its own device."""
-    dev = wp.get_device(v.device)
-    flat = v.flatten()
+    """(min, max, number of non-finite values) of a float32/float64 Warp array on a GPU."""
     big = float(np.finfo(wp.dtype_to_numpy(v.dtype)).max)
-    stats = wp.array([big, -big, 0.0], dtype=v.dtype, device=dev)
-    lanes = MONITOR_BLOCK if dev.is_cuda else 1
-    threads = lanes * min(-(-flat.shape[0] // lanes), 4 * (dev.sm_count if dev.is_cuda else 16))
-    wp.launch(_extrema_kernel(v.dtype), dim=threads, inputs=[flat, stats, threads, -(-flat.shape[0] // threads), lanes], block_dim=lanes, device=dev)
+    stats = wp.array([big, -big, 0.0], dtype=v.dtype, device=v.device)
+    _reduce(reduction_kernels(v.dtype)[1], v, stats)
     lo, hi, bad = stats.numpy()
     return float(lo), float(hi), int(bad)
 
@@ -1226,23 +1243,5 @@ class Acoustic:
         return a[o[0] : o[0] + self.shape[0], o[1] : o[1] + ny, o[2] : o[2] + self.shape[-1]]
 
     def monitor(self, u, stats):
-        """stats (2,) <- [max |u|, count of non-finite values]."""
-        if not self.cuda:  # numpy on the field's zero-copy view: vectorised, 15x the kernel's rate there
-            a = u.numpy()
-            top, bad = max(a.max(), -a.min()), 0  # NaN if any value is
-            if not np.isfinite(top):
-                ok = np.isfinite(a)
-                top, bad = np.abs(a[ok]).max(initial=0.0), a.size - np.count_nonzero(ok)
-            stats.assign(np.array([top, bad], dtype=stats.numpy().dtype))
-            return
-        stats.zero_()
-        flat = u.flatten()
-        n = flat.shape[0]
-        if self.cuda:
-            lanes = MONITOR_BLOCK
-            threads = lanes * min(-(-n // lanes), 4 * wp.get_device(self.device).sm_count)
-            per, stride, iters = 1, threads, -(-n // threads)
-        else:
-            lanes, threads, stride = 1, min(n, 64), 1
-            per = iters = -(-n // threads)
-        wp.launch(self.k.monitor, dim=threads, inputs=[flat, stats, per, stride, iters, lanes], block_dim=lanes, device=self.device)
+        """stats (2,) <- [max |u|, count of non-finite values] (field_stats)."""
+        field_stats([u], stats)

@@ -60,8 +60,7 @@ import math
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, MONITOR_BLOCK, _i0
-from adseismic.kernels.acoustic import build as acoustic_build
+from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _i0, field_stats
 from adseismic.numerics import STAGGERED_DERIVATIVE
 
 GPU_CORE_ROWS = 16  # cells per thread (along z) of the core kernels
@@ -817,7 +816,7 @@ def build(order: int, dtype, free_surface: bool):
         stress_frame=stress_frame, velocity_core=velocity_core, stress_core=stress_core,
         velocity_adjoint=velocity_adjoint, velocity_transpose=velocity_transpose, stress_adjoint=stress_adjoint,
         stress_transpose=stress_transpose, inject_force=inject_force, inject_moment=inject_moment, weights=weights,
-        record=record, pad_model=pad_model, monitor=acoustic_build(2, order, dtype, False).monitor, halo=M,
+        record=record, pad_model=pad_model, halo=M,
         operator_points=NPTS,
     )  # fmt: skip
 
@@ -1046,17 +1045,5 @@ class Elastic:
         return a[o[0] : o[0] + self.shape[0], o[1] : o[1] + self.shape[1]]
 
     def monitor(self, fields, stats):
-        """stats (2,) <- [max |u| over the given fields, count of non-finite values] (kernels/acoustic.py's
-        block-reduced monitor)."""
-        stats.zero_()
-        for u in fields:
-            flat = u.flatten()
-            n = flat.shape[0]
-            if self.cuda:
-                lanes = MONITOR_BLOCK
-                threads = lanes * min(-(-n // lanes), 4 * wp.get_device(self.device).sm_count)
-                per, stride, iters = 1, threads, -(-n // threads)
-            else:
-                lanes, threads, stride = 1, min(n, 64), 1
-                per = iters = -(-n // threads)
-            wp.launch(self.k.monitor, dim=threads, inputs=[flat, stats, per, stride, iters, lanes], block_dim=lanes, device=self.device)
+        """stats (2,) <- [max |u| over the given fields, count of non-finite values] (field_stats)."""
+        field_stats(fields, stats)

@@ -430,6 +430,25 @@ def test_optimised_forward_equals_reference_kernels(free_surface, source_type):
         assert np.abs(getattr(fast, name) - ref).max() <= limit * np.abs(ref).max(), name
 
 
+def test_kept_time_loop_is_refilled():
+    # forward_elastic keeps its captured time loop (GPU) for the next call with the same geometry: a call with
+    # another model, wavelet, source components, positions and receivers gives what a fresh capture gives
+    from adseismic import graphs
+
+    args, kw = small_problem(False, "force", nt=160)
+    vp, vs, rho, dx, dt, s, src, rec = args
+    other = (0.9 * vp, 1.1 * vs, rho[::-1].copy(), dx, dt, 1.5 * s[::-1].copy(), src + 10.0, rec + 5.0)
+    kw2 = dict(kw, source_components=kw["source_components"][::-1].copy(), pml_velocity=2600.0)
+    E.forward_elastic(*args, precision="float32", **kw)
+    reused = E.forward_elastic(*other, precision="float32", **kw2)
+    graphs.release()
+    fresh = E.forward_elastic(*other, precision="float32", **kw2)
+    limit = 0.0 if DEVICE == "cpu" else 1e-6
+    for name in E.COMPONENTS:
+        ref = getattr(fresh, name)
+        assert np.abs(getattr(reused, name) - ref).max() <= limit * np.abs(ref).max(), name
+
+
 @pytest.mark.parametrize("order, free_surface, source_type, shots", [(4, False, "force", 2), (4, True, "moment", 1), (8, True, "force", 1),
                                                                      (2, True, "moment", 1)])  # fmt: skip
 def test_hand_adjoint_matches_warp_generated(order, free_surface, source_type, shots):

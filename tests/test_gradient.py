@@ -101,15 +101,16 @@ def test_checkpointed_equals_all_steps_float32():
     kw = dict(KW, precision="float32")
     wrt = G.WRT
     every = G.gradient(v, DX, DT, s, src, rec, obs, wrt=wrt, segment_length=NT, **kw)
-    again = G.gradient(v, DX, DT, s, src, rec, obs, wrt=wrt, segment_length=NT, **kw)
+    repeats = [G.gradient(v, DX, DT, s, src, rec, obs, wrt=wrt, segment_length=NT, **kw) for _ in range(1 if DEVICE == "cpu" else 3)]
     ckpt = G.gradient(v, DX, DT, s, src, rec, obs, wrt=wrt, **kw)
     assert ckpt.n_segments > 4
     for k in wrt:
         # relative L2 <= 1e-6, or within twice the run-to-run spread of the all-steps gradient itself:
         # CUDA's float32 atomics add in a varying order (the source-position gradient sums ~16,000
-        # terms into two numbers; measured 1-2e-6 between runs); on the CPU repeated runs are equal.
-        a, b, c = getattr(every, k), getattr(ckpt, k), getattr(again, k)
-        spread = np.linalg.norm(a - c) / np.linalg.norm(a)
+        # terms into two numbers; measured 0.6-2e-6 between runs, so the spread is the largest of three
+        # repeats: one pair alone can understate it); on the CPU repeated runs are equal.
+        a, b = getattr(every, k), getattr(ckpt, k)
+        spread = max(np.linalg.norm(a - getattr(r, k)) for r in repeats) / np.linalg.norm(a)
         assert np.linalg.norm(a - b) <= max(1e-6, 2.0 * spread) * np.linalg.norm(a)
 
 

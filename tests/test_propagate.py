@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import adseismic.propagate as propagate
+from adseismic import graphs
 from adseismic.analytic import acoustic_2d, acoustic_3d
 from adseismic.numerics import cfl_limit
 from adseismic.propagate import PropagationError
@@ -244,7 +245,7 @@ def test_kept_time_loop_is_refilled():
     s2 = 1.7 * s2
     forward(*small_scene())
     reused = forward(v2, dx, dt, s2, src2, rec2).receiver_amplitudes
-    propagate.release_graphs()
+    graphs.release()
     fresh = forward(v2, dx, dt, s2, src2, rec2).receiver_amplitudes
     on_device = forward(wp.array(v2, dtype=wp.float32, device=DEVICE), dx, dt, s2, src2, rec2).receiver_amplitudes
     for got in (reused, on_device):

@@ -1,0 +1,101 @@
+"""CUDA-graph time loops, shared by the acoustic and elastic forward runs.
+
+Without a tape a time step launches the same few kernels every step, so on a GPU K steps are captured
+once as a CUDA graph and replayed to cover the nt levels; the source and receiver kernels read the
+time index from a device clock that each replay advances. A blow-up guard's statistics (max |u| and
+the count of non-finite values, every `every` levels) are read after each replay. The last captured
+loop is kept, with the arrays its launches read, for the next call with the same key (grid, time step,
+steps, shots, sources, receivers), which copies its inputs into those arrays and replays: no capture,
+no allocation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from adseismic.kernels.acoustic import tick
+
+GRAPH_STEPS = 50  # time steps per captured graph (rounded to a multiple of the guard's interval)
+
+
+def graph_plan(cuda: bool, nt: int, every: int) -> tuple[int, int]:
+    """(K, graphs): K steps per graph (even, as in-place steps swap buffers, and a multiple of `every`),
+    replayed `graphs` times to cover the nt levels (the last replay runs up to K - 1 levels past them,
+    into padding); graphs = 0 where none are used (CPU, or fewer than two replays)."""
+    K = math.lcm(2, every)
+    K *= max(1, GRAPH_STEPS // K)
+    graphs = -(-nt // K)
+    return K, graphs if cuda and graphs >= 2 else 0
+
+
+def padded_samples(amplitudes: np.ndarray, levels: int, dtype) -> np.ndarray:
+    """Source samples (S, n_src, nt) zero-padded to `levels` samples (the replays' levels past nt)."""
+    out = np.zeros((*amplitudes.shape[:2], levels), dtype=wp.dtype_to_numpy(dtype))
+    out[:, :, : amplitudes.shape[2]] = amplitudes
+    return out
+
+
+@dataclass
+class Loop:
+    """A captured time loop: the graph of K steps, replayed `graphs` times, the guard's statistics
+    (K // every, 2), the device clock, and `kept`: the arrays its launches read (physics-specific)."""
+
+    key: tuple
+    graph: object
+    K: int
+    graphs: int
+    every: int
+    stats: wp.array
+    clock: wp.array
+    kept: object
+
+
+def capture(key, device, dtype, K: int, graphs: int, every: int, step, kernels, kept) -> Loop:
+    """Capture step(k, clock, stats) for k < K, stats being the guard's row (2,) at levels k % every == 0
+    and None otherwise, then the clock's advance; kernels: every kernel the steps launch (loaded first,
+    as a capture cannot compile)."""
+    stats = wp.zeros((K // every, 2), dtype=dtype, device=device)
+    clock = wp.zeros(1, dtype=wp.int32, device=device)
+    for k in (*kernels, tick):
+        wp.load_module(k.module, device=device)
+    with wp.ScopedCapture(device=device, force_module_load=False) as cap:
+        for k in range(K):
+            step(k, clock, stats[k // every] if k % every == 0 else None)
+        wp.launch(tick, dim=1, inputs=[clock, K], device=device)
+    return Loop(key, cap.graph, K, graphs, every, stats, clock, kept)
+
+
+def replay(loop: Loop, nt: int, guard, progress=None):
+    """Run the levels up to K * graphs >= nt; guard.check(n, max, nonfinite) for each checked level n < nt
+    after each replay (the levels past nt - 1 are padding)."""
+    K, every = loop.K, loop.every
+    for g in range(loop.graphs):
+        wp.capture_launch(loop.graph)
+        for j, (amax, nonfinite) in enumerate(loop.stats.numpy()):
+            if g * K + j * every < nt:
+                guard.check(g * K + j * every, float(amax), float(nonfinite))
+        if progress is not None:
+            progress.update(min(K, nt - g * K))
+
+
+_KEPT: dict = {}  # the last captured loop (at most one: each holds a full set of wavefields)
+
+
+def kept(key) -> Loop | None:
+    """The kept loop captured under `key`, or None."""
+    return _KEPT.get(key)
+
+
+def keep(loop: Loop) -> Loop:
+    _KEPT.clear()
+    _KEPT[loop.key] = loop
+    return loop
+
+
+def release():
+    """Free the device memory of the kept time loop."""
+    _KEPT.clear()
