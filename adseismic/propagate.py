@@ -153,17 +153,17 @@ def upload_velocity(velocity, dtype, device: str, requires_grad=False):
 
 
 def make_propagator(shape, vmax, dx, dt, n_shots, order, pml_width, pml_reflection, pml_frequency,
-                    free_surface, device, precision, pml_velocity=None) -> Acoustic:  # fmt: skip
-    """The Acoustic launch helper for a grid of `shape` cells, with defaults filled in (pml_velocity: the CPML
-    damping's reference speed, default vmax, the model's maximum; fix it when the model changes between runs)."""
-    dtype = precision_dtype(precision)
+                    free_surface, device, dtype, pml_velocity=None) -> Acoustic:  # fmt: skip
+    """The Acoustic launch helper for a grid of `shape` cells on a resolved device, with defaults filled in
+    (pml_velocity: the CPML damping's reference speed, default vmax, the model's maximum; fix it when the
+    model changes between runs)."""
     width = DEFAULT_PML_WIDTH if pml_width is None else int(pml_width)
     if width < HICKS_RADIUS:
         raise ValueError(f"pml_width = {width} cells is below the source/receiver operator's half-width {HICKS_RADIUS}; use >= {HICKS_RADIUS}")
     refl = DEFAULT_PML_REFLECTION[order] if pml_reflection is None else float(pml_reflection)
     vref = float(vmax) if pml_velocity is None else float(pml_velocity)
     return Acoustic(shape, dx, dt, order, n_shots, width, refl, pml_frequency, vref,
-                    free_surface=free_surface, dtype=dtype, device=resolve_device(device))  # fmt: skip
+                    free_surface=free_surface, dtype=dtype, device=device)  # fmt: skip
 
 
 def velocity_3d(velocity) -> np.ndarray:
@@ -232,7 +232,7 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
     vel, shape, vrange = upload_velocity(velocity, dtype, device, requires_grad="velocity" in requires_grad)
     ndim, vmax = check_inputs(shape, vrange, dx, dt, amp, source_locations, receiver_locations, order)
     f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
-    prop = make_propagator(shape, vmax, dx, dt, amp.shape[0], order, pml_width, pml_reflection, f_pml, free_surface, device, precision, pml_velocity)
+    prop = make_propagator(shape, vmax, dx, dt, amp.shape[0], order, pml_width, pml_reflection, f_pml, free_surface, device, dtype, pml_velocity)
 
     def put(x, name):
         return wp.array(x, dtype=prop.dtype, device=prop.device, requires_grad=name in requires_grad)
@@ -309,15 +309,14 @@ def _kept_loop(su: Setup, every: int) -> graphs.Loop:
         return graphs.keep(capture(su, prop.new_state(), prop.pad_model(su.velocity), data, every))
     mine = loop.kept
     prop = mine.su.prop
-    for a, b in zip(prop.axes, su.prop.axes):  # CPML coefficients depend on the model's maximum speed
-        wp.copy(a.a, b.a)
-        wp.copy(a.b, b.b)
+
+    def inputs(s):  # CPML coefficients (they depend on the model's maximum speed) and the operators' arrays
+        ops = [a for op in (s.source_op, s.receiver_op) for a in (op if isinstance(op, tuple) else (op,))]
+        return [a for ax in s.prop.axes for a in (ax.a, ax.b)] + ops
+
+    for a, b in zip(inputs(mine.su), inputs(su)):
+        wp.copy(a, b)
     mine.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), loop.K * loop.graphs, prop.dtype))
-    for op, locations in ((mine.su.source_op, su.sources), (mine.su.receiver_op, su.receivers)):
-        if isinstance(op, tuple):
-            prop.operator(locations, out=op)
-        else:
-            wp.copy(op, locations)
     prop.pad_model(su.velocity, out=mine.vpad)
     for a in (*mine.st.arrays(), mine.data, loop.clock):
         a.zero_()

@@ -1197,14 +1197,15 @@ class Acoustic:
         for f in pending:
             f.result()
 
-    def operator(self, locations, differentiable=False, out=None):
+    def operator(self, locations, differentiable=False):
         """The source/receiver operator at locations (wp.array (S, n, 3), metres): the locations
         themselves when they are to be differentiated (weights recomputed every step), else the
-        precomputed node indices and weights (S, n, points), written into `out` (such a pair) if given."""
+        precomputed node indices and weights (S, n, points)."""
         if differentiable:
             return locations
         shape = (self.n_shots, locations.shape[1], self.k.operator_points)
-        idx, w = out or (wp.empty(shape, dtype=wp.vec3i, device=self.device), wp.empty(shape, dtype=self.dtype, device=self.device))
+        idx = wp.empty(shape, dtype=wp.vec3i, device=self.device)
+        w = wp.empty(shape, dtype=self.dtype, device=self.device)
         wp.launch(self.k.weights, dim=shape, inputs=[locations, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
         return (idx, w)
 
