@@ -25,8 +25,8 @@ import warp as wp
 from tqdm.auto import tqdm
 
 from adseismic import graphs
-from adseismic.kernels.acoustic import HICKS_RADIUS, reduction_kernels
-from adseismic.kernels.elastic import PSI, Elastic
+from adseismic.kernels.acoustic import HICKS_RADIUS, reduction_kernels, value_range
+from adseismic.kernels.elastic import PSI, Elastic, shear_ratio
 from adseismic.misfits import misfit as named_misfit
 from adseismic.numerics import check_order, staggered_cfl_limit
 from adseismic.propagate import (
@@ -73,27 +73,64 @@ class ElasticGradient:
     n_segments: int = 0
 
 
-def check_elastic_inputs(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, order,
-                         source_type, source_components):  # fmt: skip
-    """Shape, value and stability checks; returns the components (n_shots, n_src, 2|3). Raises ValueError."""
-    check_order(order)
-    vp, vs, rho = (np.asarray(a, dtype=float) for a in (vp, vs, rho))
-    if vp.ndim != 2 or vs.shape != vp.shape or rho.shape != vp.shape:
-        raise ValueError(f"vp, vs, rho must be (nz, nx) arrays of one shape; got {vp.shape}, {vs.shape}, {rho.shape}")
+def check_model_values(vp, vs, rho, tolerance=1e-12):
+    """Raise ValueError at the first bad value of the NumPy models (nz, nx): each finite, vp, rho > 0,
+    0 <= vs <= vp / sqrt(2) (1 + tolerance) (lambda >= 0)."""
     for name, a, ok in (("vp", vp, vp > 0), ("rho", rho, rho > 0), ("vs", vs, vs >= 0)):
         bad = ~np.isfinite(a) | ~ok
         if bad.any():
             raise ValueError(f"{name} has {int(bad.sum())} non-finite or out-of-range values (first at index {tuple(np.argwhere(bad)[0])}); vp, rho > 0 and vs >= 0")
-    neg = vs > vp / math.sqrt(2.0) * (1.0 + 1e-12)
+    neg = (vs / vp).astype(float) > (1.0 + tolerance) / math.sqrt(2.0)  # as the device check forms it
     if neg.any():
         i = tuple(np.argwhere(neg)[0])
         raise ValueError(f"vs > vp / sqrt(2) at index {i} (vp {vp[i]:g}, vs {vs[i]:g} m/s) gives a negative Lame lambda; use vs <= {vp[i] / math.sqrt(2):g} m/s")
+
+
+def upload_models(vp, vs, rho, dtype, device: str, requires_grad=()):
+    """vp, vs (m/s), rho (kg/m^3): NumPy or Warp arrays (nz, nx), as new Warp arrays of dtype on device, checked
+    (check_model_values). A Warp array of dtype is copied device to device, so a model already on the GPU never
+    visits the host: on a GPU the checks run there (Warp reductions, in dtype, vs / vp with a tolerance of 4 dtype
+    epsilons) and the host only locates a bad value; on the CPU they run in float64. requires_grad: the names
+    (of "vp", "vs", "rho") to differentiate. Returns ((vp, vs, rho), max(vp))."""
+    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, vs, rho)]
+    if len(shapes[0]) != 2 or shapes[1] != shapes[0] or shapes[2] != shapes[0]:
+        raise ValueError(f"vp, vs, rho must be (nz, nx) arrays of one shape; got {shapes[0]}, {shapes[1]}, {shapes[2]}")
+    arrays, host = [], []
+    for name, a in zip(("vp", "vs", "rho"), (vp, vs, rho)):
+        grad = name in requires_grad
+        if isinstance(a, wp.array) and a.dtype == dtype:
+            arrays.append(wp.empty(a.shape, dtype=dtype, device=device, requires_grad=grad))
+            wp.copy(arrays[-1], a)
+            host.append(None)
+        else:
+            host.append(np.ascontiguousarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float))
+            arrays.append(wp.array(host[-1], dtype=dtype, device=device, requires_grad=grad))
+    if not wp.get_device(device).is_cuda:
+        host = [a.numpy().astype(float) if h is None else h for a, h in zip(arrays, host)]
+        check_model_values(*host)
+        return tuple(arrays), float(host[0].max())
+    (vp_min, vp_max, vp_bad), (vs_min, _, vs_bad), (rho_min, _, rho_bad) = (value_range(a) for a in arrays)
+    ratio = wp.empty(arrays[0].size, dtype=dtype, device=device)
+    wp.launch(shear_ratio(dtype), dim=ratio.size, inputs=[arrays[0].flatten(), arrays[1].flatten(), ratio], device=device)
+    tolerance = max(1e-12, 4.0 * float(np.finfo(wp.dtype_to_numpy(dtype)).eps))
+    ok = not (vp_bad or vs_bad or rho_bad) and vp_min > 0 and rho_min > 0 and vs_min >= 0
+    if not (ok and value_range(ratio)[1] <= (1.0 + tolerance) / math.sqrt(2.0)):
+        check_model_values(*(a.numpy() for a in arrays), tolerance)
+        raise ValueError("vp, vs, rho fail the value checks (non-finite, vp or rho <= 0, vs < 0, or vs > vp / sqrt(2))")
+    return tuple(arrays), vp_max
+
+
+def check_elastic_inputs(shape, vmax, dx, dt, source_amplitudes, source_locations, receiver_locations, order, source_type,
+                         source_components):  # fmt: skip
+    """Shape and stability checks of everything but the model values (upload_models); shape: the models' (nz, nx),
+    vmax: max(vp) (m/s). Returns the components (n_shots, n_src, 2|3). Raises ValueError."""
+    check_order(order)
     if source_type not in SOURCE_TYPES:
         raise ValueError(f"source_type {source_type!r} is not one of {sorted(SOURCE_TYPES)}")
     amp = np.asarray(source_amplitudes)
     if amp.ndim != 3:
         raise ValueError(f"source_amplitudes must be (n_shots, n_sources, nt); got shape {amp.shape}")
-    extent = (np.array(vp.shape) - 1) * dx
+    extent = (np.array(shape) - 1) * dx
     for name, loc in (("source_locations", np.asarray(source_locations)), ("receiver_locations", np.asarray(receiver_locations))):
         if loc.ndim != 3 or loc.shape[0] != amp.shape[0] or loc.shape[2] != 2:
             raise ValueError(f"{name} must be (n_shots={amp.shape[0]}, n, 2) metres (z, x); got shape {loc.shape}")
@@ -115,11 +152,11 @@ def check_elastic_inputs(vp, vs, rho, dx, dt, source_amplitudes, source_location
         if comp.shape != (*amp.shape[:2], nc):
             raise ValueError(f"source_components must be (n_shots, n_src, {nc}) for source_type {source_type!r}; got {comp.shape}")
     limit = staggered_cfl_limit(order, 2)
-    courant = float(vp.max()) * dt / dx
+    courant = vmax * dt / dx
     if courant > limit:
         raise ValueError(
             f"dt = {dt:.6g} s is unstable: Courant number vp_max dt/dx = {courant:.4f} exceeds the staggered-grid limit "
-            f"{limit:.4f} of order {order} in 2D; use dt <= {limit * dx / vp.max():.6g} s"
+            f"{limit:.4f} of order {order} in 2D; use dt <= {limit * dx / vmax:.6g} s"
         )
     return np.ascontiguousarray(comp)
 
@@ -149,28 +186,32 @@ class ElasticSetup:
 def setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, source_type="force",
                   source_components=None, order=4, pml_width=None, pml_reflection=None, pml_frequency=None,
                   pml_velocity=None, free_surface=False, device="cpu", precision="float32", requires_grad=()) -> ElasticSetup:  # fmt: skip
-    """Validate the inputs and move them to the device; requires_grad names the arrays (WRT) to differentiate."""
+    """Validate the inputs and move them to the device (vp, vs, rho: NumPy or Warp arrays, see upload_models);
+    requires_grad names the arrays (WRT) to differentiate."""
     amp = np.asarray(source_amplitudes, dtype=float)
-    comp = check_elastic_inputs(vp, vs, rho, dx, dt, amp, source_locations, receiver_locations, order, source_type, source_components)
     if precision not in DTYPES:
         raise ValueError(f"precision {precision!r} is not one of {sorted(DTYPES)}")
+    dtype = DTYPES[precision]
+    device = resolve_device(device)
+    check_order(order)
+    model, vmax = upload_models(vp, vs, rho, dtype, device, requires_grad)
+    comp = check_elastic_inputs(model[0].shape, vmax, dx, dt, amp, source_locations, receiver_locations, order, source_type, source_components)
     width = DEFAULT_PML_WIDTH if pml_width is None else int(pml_width)
     if width < HICKS_RADIUS:
         raise ValueError(f"pml_width = {width} cells is below the source/receiver operator's half-width {HICKS_RADIUS}; use >= {HICKS_RADIUS}")
     refl = DEFAULT_PML_REFLECTION[order] if pml_reflection is None else float(pml_reflection)
     f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
-    vref = float(np.max(vp)) if pml_velocity is None else float(pml_velocity)
-    dtype = DTYPES[precision]
-    prop = Elastic(np.shape(vp), dx, dt, order, amp.shape[0], width, refl, f_pml, vref, free_surface=free_surface,
-                   dtype=dtype, device=resolve_device(device))  # fmt: skip
+    vref = vmax if pml_velocity is None else float(pml_velocity)
+    prop = Elastic(model[0].shape, dx, dt, order, amp.shape[0], width, refl, f_pml, vref, free_surface=free_surface, dtype=dtype,
+                   device=device)  # fmt: skip
 
     def put(x, name):
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)
 
     kind = "force" if source_type == "force" else "moment"
     receivers = put(receiver_locations, "receiver_locations")
-    return ElasticSetup(prop, amp.shape[2], kind, (put(vp, "vp"), put(vs, "vs"), put(rho, "rho")), put(amp, "source_amplitudes"),
-                        put(comp, "source_components"), put(source_locations, "source_locations"), receivers, prop.receivers(receivers))  # fmt: skip
+    return ElasticSetup(prop, amp.shape[2], kind, model, put(amp, "source_amplitudes"), put(comp, "source_components"),
+                        put(source_locations, "source_locations"), receivers, prop.receivers(receivers))  # fmt: skip
 
 
 class ElasticBlowupGuard:
@@ -237,7 +278,7 @@ def capture(su: ElasticSetup, st, mat, data, every: int) -> graphs.Loop:
         prop.step(st, mat, src, n, clock=clock)
 
     k = prop.k
-    kernels = (reduction_kernels(prop.dtype)[0], k.velocity, k.stress, k.velocity_frame, k.stress_frame, k.velocity_core, k.stress_core, k.record,
+    kernels = (reduction_kernels(prop.dtype)[0], k.velocity, k.stress, *prop.update_kernels(), k.record,
                k.inject_force if su.kind == "force" else k.inject_moment)  # fmt: skip
     kept = SimpleNamespace(su=su, st=st, mat=mat, data=data, amplitudes=amp)
     return graphs.capture(_graph_key(su, every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept)
@@ -245,7 +286,8 @@ def capture(su: ElasticSetup, st, mat, data, every: int) -> graphs.Loop:
 
 def _graph_key(su: ElasticSetup, every: int) -> tuple:
     p = su.prop
-    return ("elastic", p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, su.nt, su.amplitudes.shape, su.receivers.shape, su.kind, every)
+    return ("elastic", p.k, p.layout, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, su.nt, su.amplitudes.shape, su.receivers.shape, su.kind,
+            every)  # fmt: skip
 
 
 def _kept_loop(su: ElasticSetup, every: int) -> graphs.Loop:

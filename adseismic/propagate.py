@@ -244,12 +244,11 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
     return su
 
 
-def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback=None, tape=None):
+def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback=None):
     """Record u[n] into data[:, :, n - steps.start] and advance one step, for n in steps; returns the
     state at steps.stop (or at nt - 1). next_state: callable returning the arrays of the next level
     (each level needs its own under wp.Tape); None updates the state in place. callback(state, n)
-    runs at each level n after recording. tape: the active wp.Tape, to record the hand-written
-    adjoint of the time step (else Warp differentiates the step kernels itself)."""
+    runs at each level n after recording."""
     prop = su.prop
     for n in steps:
         prop.record(st.u, data, su.receiver_op, n - steps.start)
@@ -257,7 +256,7 @@ def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback
             callback(st, n)
         if n == su.nt - 1:
             break
-        st = prop.step(st, vpad, next_state() if next_state is not None else None, tape=tape)
+        st = prop.step(st, vpad, next_state() if next_state is not None else None)
         prop.inject(st.u, vpad, su.amplitudes, su.source_op, n)
     return st
 

@@ -435,6 +435,25 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         else:
             core_row(u, u_prev, u_next, v, i, c, core[3] - core[2], lx, dt2, inv_dx * inv_dx)
 
+    @wp.func
+    def frame_cell(f: int, lz: int, lx: int, box: wp.vec4i) -> wp.vec2i:
+        # (z, x) of the f-th interior cell outside the rows [box[0], box[1]) x columns [box[2], box[3])
+        # (padded indices) of a 2D grid (lz, lx): first the full rows above and below the box, then the
+        # left and right parts of its rows
+        nx = lx - wp.static(2 * R)
+        above = (box[0] - wp.static(R)) * nx
+        below = (lz - wp.static(R) - box[1]) * nx
+        if f < above:
+            return wp.vec2i(wp.static(R) + f // nx, wp.static(R) + f % nx)
+        if f < above + below:
+            return wp.vec2i(box[1] + (f - above) // nx, wp.static(R) + (f - above) % nx)
+        g = f - above - below
+        sides = box[2] - wp.static(R) + lx - wp.static(R) - box[3]
+        x = wp.static(R) + g % sides
+        if x >= box[2]:
+            x = x - box[2] + box[3]
+        return wp.vec2i(box[0] + g // sides, x)
+
     @wp.kernel(module="unique", grid_stride=False)
     def step_frame(
         u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
@@ -444,32 +463,13 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         az: Axis, ay: Axis, ax: Axis,
         dt2: dtype, inv_dx: dtype, top: int, core: wp.vec4i, cells: int,
     ):  # fmt: skip
-        # 2D GPU step of the interior cells outside the core rows [core[0], core[1]) x columns
-        # [core[2], core[3]) (padded indices): the CPML strips and free-surface rows, as the reference
-        # step does them. `cells` per shot; cell f of a shot: first the full rows above and below the
-        # core, then the left and right parts of the core rows. A 1D launch (see step_core).
+        # 2D GPU step of the interior cells outside the core (frame_cell): the CPML strips and free-surface
+        # rows, as the reference step does them; `cells` per shot, a 1D launch (see step_core)
         t = wp.tid()
         s = t // cells
-        f = t - s * cells
-        nx = u.shape[3] - wp.static(2 * R)
-        above = (core[0] - wp.static(R)) * nx
-        below = (u.shape[1] - wp.static(R) - core[1]) * nx
-        left = core[2] - wp.static(R)
-        if f < above:
-            z = wp.static(R) + f // nx
-            x = wp.static(R) + f % nx
-        elif f < above + below:
-            z = core[1] + (f - above) // nx
-            x = wp.static(R) + (f - above) % nx
-        else:
-            g = f - above - below
-            sides = left + u.shape[3] - wp.static(R) - core[3]
-            z = core[0] + g // sides
-            x = wp.static(R) + g % sides
-            if x >= core[2]:
-                x = x - core[2] + core[3]
+        zx = frame_cell(t - s * cells, u.shape[1], u.shape[3], core)
         cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
-             az, ay, ax, dt2, inv_dx, top, s, z, 0, x)  # fmt: skip
+             az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
 
     def make_step_core(rows: int, cols: int):
         # 2D GPU step of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded indices), where
@@ -518,9 +518,11 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
         return step_core
 
-    # --- Hand-written adjoints of psi_kernel and step. They match Warp's generated adjoints
-    # (tests/test_gradient.py) and are what the taped steps use. The step's adjoint gathers: the
-    # Laplacian is symmetric, so adj_u at a cell sums the weights of the cells whose stencils read it.
+    # --- Hand-written adjoints of psi_kernel and step, run by adseismic.gradient's backward sweep; they
+    # match Warp's generated adjoints (tests/test_gradient.py). The step's adjoint gathers: the Laplacian
+    # is symmetric, so the adjoint at a cell sums the weights of the cells whose stencils read it. Going
+    # back in time, the adjoint of u[n] = 2 lam[n+1] + (gathered terms) - adjoint of u[n+2] is written over
+    # the latter, an in-place time step like the forward one.
 
     def make_psi_adjoint(axis: int):
         deriv_t = d1t[axis]
@@ -647,61 +649,139 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     @wp.func
     def adjoint_cell(
         u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-        adj_u: arr4, adj_u_prev: arr4, adj_u_next: arr4, adj_v: arr3,
+        lam: arr4, adj: arr4, g: arr4,
         adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
         adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
         adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
         az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, s: int, z: int, y: int, x: int,
     ):  # fmt: skip
-        # Adjoint of the step at interior cell (s, z, y, x). Writes adj_u, adj_u_prev of this cell only.
+        # Adjoint of step n at interior cell (s, z, y, x). u: u[n]; psi: psi[n+1]; zeta: zeta[n];
+        # lam: the adjoint of u[n+1]; adj holds the adjoint of u[n+2] and gets that of u[n] (in place: this
+        # cell's value only, all but the psi and receiver terms, which are added after); g += lam times the
+        # stretched Laplacian of u[n] (the model gradient is 2 v dt^2 sum_n of it); the CPML variables'
+        # adjoints are scattered (atomics: the strips are thin).
         lo_z = wp.static(R)
         if wp.static(fs):
             lo_z = top + 1  # the surface row is set to 0, not updated
         inv_dx2 = inv_dx * inv_dx
-        acc = gather_z(adj_u_next, v, adj_zeta_z_new, az, dt2, s, z, y, x, lo_z, u.shape[1] - wp.static(R), top)
-        acc += gather_x(adj_u_next, v, adj_zeta_x_new, ax, dt2, s, z, y, x, wp.static(R), u.shape[3] - wp.static(R), top)
+        acc = gather_z(lam, v, adj_zeta_z_new, az, dt2, s, z, y, x, lo_z, u.shape[1] - wp.static(R), top)
+        acc += gather_x(lam, v, adj_zeta_x_new, ax, dt2, s, z, y, x, wp.static(R), u.shape[3] - wp.static(R), top)
         if wp.static(three):
-            acc += gather_y(adj_u_next, v, adj_zeta_y_new, ay, dt2, s, z, y, x, wp.static(R), u.shape[2] - wp.static(R), top)
+            acc += gather_y(lam, v, adj_zeta_y_new, ay, dt2, s, z, y, x, wp.static(R), u.shape[2] - wp.static(R), top)
         acc = acc * inv_dx2
         if z >= lo_z:
-            lam = adj_u_next[s, z, y, x]
+            lc = lam[s, z, y, x]
             vv = v[z, y, x]
-            q = vv * vv * dt2 * lam
-            acc += dtype(2.0) * lam
-            adj_u_prev[s, z, y, x] = adj_u_prev[s, z, y, x] - lam
+            q = vv * vv * dt2 * lc
+            acc += dtype(2.0) * lc
+            acc -= adj[s, z, y, x]
             total = sadj_z(d2z(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_z, zeta_z, adj_psi_z, adj_zeta_z, adj_zeta_z_new, az, inv_dx)
             total += sadj_x(d2x(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_x, zeta_x, adj_psi_x, adj_zeta_x, adj_zeta_x_new, ax, inv_dx)
             if wp.static(three):
                 total += sadj_y(d2y(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_y, zeta_y, adj_psi_y, adj_zeta_y, adj_zeta_y_new, ay, inv_dx)
-            wp.atomic_add(adj_v, z, y, x, dtype(2.0) * vv * dt2 * lam * total)
-        adj_u[s, z, y, x] = adj_u[s, z, y, x] + acc
+            g[s, z, y, x] = g[s, z, y, x] + lc * total
+        adj[s, z, y, x] = acc
 
-    def make_step_adjoint(rows: bool):
-        # one thread per interior cell (GPU) or per interior row, looping over x (CPU)
+    @wp.kernel(module="unique", grid_stride=False)
+    def adjoint_step(
+        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        lam: arr4, adj: arr4, g: arr4,
+        adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
+        adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
+        adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        # adjoint_cell at every interior cell (3D, or 2D without a core; one thread per cell)
+        s, zi, yi, xi = wp.tid()
+        y = yi
+        if wp.static(three):
+            y = yi + wp.static(R)
+        adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_psi_z, adj_psi_y, adj_psi_x,
+                     adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
+                     az, ay, ax, dt2, inv_dx, top, s, zi + wp.static(R), y, xi + wp.static(R))  # fmt: skip
+
+    @wp.kernel(module="unique", grid_stride=False)
+    def adjoint_frame(
+        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        lam: arr4, adj: arr4, g: arr4,
+        adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
+        adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
+        adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, box: wp.vec4i, cells: int,
+    ):  # fmt: skip
+        # 2D: adjoint_cell at the interior cells outside `box` (adjoint_core does those inside); a 1D
+        # launch of `cells` threads per shot, as step_frame
+        t = wp.tid()
+        s = t // cells
+        zx = frame_cell(t - s * cells, u.shape[1], u.shape[3], box)
+        adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_psi_z, adj_psi_y, adj_psi_x,
+                     adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
+                     az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
+
+    def make_adjoint_core(rows: int, cols: int):
+        # adjoint_cell on the flat 2D arrays (u, lam, adj, g: S * Lz * Lx; w = v^2 dt^2: Lz * Lx) inside `box`,
+        # the cells whose stencil neighbours all lie in step_core's core (no CPML, no surface image): the
+        # layout of step_core, with windows of q = w lam (gathered) and of u (the model gradient's Laplacian)
+        win = wp.types.matrix(shape=(cols, 2 * R + 1), dtype=dtype)
+        line = wp.types.vector(length=cols + 2 * R, dtype=dtype)
+
         @wp.kernel(module="unique", grid_stride=False)
-        def step_adjoint(
-            u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-            adj_u: arr4, adj_u_prev: arr4, adj_u_next: arr4, adj_v: arr3,
-            adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
-            adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
-            adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
-            az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
-        ):  # fmt: skip
-            s, zi, yi, xi = wp.tid()
-            z = zi + wp.static(R)
-            y = yi
-            if wp.static(three):
-                y = yi + wp.static(R)
-            n = 1
-            if wp.static(rows):
-                n = u.shape[3] - wp.static(2 * R)
-            for k in range(n):
-                adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, adj_u, adj_u_prev, adj_u_next, adj_v,
-                             adj_psi_z, adj_psi_y, adj_psi_x, adj_zeta_z, adj_zeta_y, adj_zeta_x,
-                             adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new, az, ay, ax, dt2, inv_dx, top,
-                             s, z, y, xi + k + wp.static(R))  # fmt: skip
+        def adjoint_core(u: arr1, lam: arr1, adj: arr1, g: arr1, w: arr1, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
+            t = wp.tid()
+            nxc = (box[3] - box[2] + wp.static(cols - 1)) // wp.static(cols)
+            blocks = (box[1] - box[0] + wp.static(rows - 1)) // wp.static(rows)
+            q = t // nxc
+            x = box[2] + (t - q * nxc) * wp.static(cols)
+            s = q // blocks
+            z = box[0] + (q - s * blocks) * wp.static(rows)
+            ncol = wp.min(wp.static(cols), box[3] - x)
+            c = z * lx + x
+            i = s * lz * lx + c
+            wq = win()
+            wu = win()
+            for j in range(wp.static(cols)):
+                for m in range(wp.static(2 * R + 1)):
+                    if j < ncol:
+                        o = j + (m - wp.static(R)) * lx
+                        wq[j, m] = w[c + o] * lam[i + o]
+                        wu[j, m] = u[i + o]
+            inv_dx2 = inv_dx * inv_dx
+            for k in range(wp.static(rows)):
+                if z + k < box[1]:
+                    rq = line()
+                    ru = line()
+                    for p in range(wp.static(cols + 2 * R)):
+                        if p < ncol + wp.static(2 * R):
+                            rq[p] = w[c + p - wp.static(R)] * lam[i + p - wp.static(R)]
+                            ru[p] = u[i + p - wp.static(R)]
+                    for j in range(wp.static(cols)):
+                        if j < ncol:
+                            # the order of gather_z + gather_x (from the far neighbour to the near one)
+                            acz = dtype(0.0)
+                            acx = dtype(0.0)
+                            for m in range(wp.static(2 * R + 1)):
+                                acz += dtype(wp.static(A[abs(m - R)])) * wq[j, wp.static(2 * R) - m]
+                            for m in range(wp.static(2 * R + 1)):
+                                acx += dtype(wp.static(A[abs(m - R)])) * rq[j + wp.static(2 * R) - m]
+                            acc = (acz + acx) * inv_dx2
+                            lc = lam[i + j]
+                            acc += dtype(2.0) * lc
+                            acc -= adj[i + j]
+                            adj[i + j] = acc
+                            dxx = dtype(wp.static(A[0])) * ru[j + wp.static(R)]
+                            for m in range(wp.static(R)):
+                                dxx += dtype(wp.static(A[m + 1])) * (ru[j + wp.static(R + 1) + m] + ru[j + wp.static(R - 1) - m])
+                            g[i + j] = g[i + j] + lc * (d2w(wu[j]) * inv_dx2 + dxx * inv_dx2)
+                            for m in range(wp.static(2 * R)):
+                                wq[j, m] = wq[j, m + 1]
+                                wu[j, m] = wu[j, m + 1]
+                            o = j + wp.static(R + 1) * lx
+                            wq[j, wp.static(2 * R)] = w[c + o] * lam[i + o]
+                            wu[j, wp.static(2 * R)] = u[i + o]
+                    i += lx
+                    c += lx
 
-        return step_adjoint
+        return adjoint_core
 
     psi = [make_psi(a) for a in range(3)]
 
@@ -827,16 +907,34 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         du_next[s, z, y, x] = du_next[s, z, y, x] + dtype(2.0) * dv[z, y, x] / v[z, y, x] * inc
 
     @wp.kernel(module="unique")
-    def energy(u: arr4, e: arr3):
-        # e += sum over shots of u^2 (illumination, for the pseudo-Hessian preconditioner)
+    def energy(u: arr4, e: arr3, n: int, clock: iarr1, levels: int):
+        # e += sum over shots of u^2 (illumination, for the pseudo-Hessian preconditioner) at level
+        # n + clock[0] if it is below `levels`
         s, z, y, x = wp.tid()
-        val = u[s, z, y, x]
-        wp.atomic_add(e, z, y, x, val * val)
+        if n + clock[0] < levels:
+            val = u[s, z, y, x]
+            wp.atomic_add(e, z, y, x, val * val)
+
+    @wp.kernel(module="unique")
+    def squared(v: arr3, dt2: dtype, w: arr3):
+        # w = v^2 dt^2, the factor of the Laplacian in the update (read by adjoint_core)
+        z, y, x = wp.tid()
+        vv = v[z, y, x]
+        w[z, y, x] = vv * vv * dt2
+
+    @wp.kernel(module="unique")
+    def model_gradient(v: arr3, g: arr4, dt2: dtype, grad: arr3):
+        # grad += 2 v dt^2 sum over shots of g (g: the sums of adjoint_cell)
+        z, y, x = wp.tid()
+        acc = dtype(0.0)
+        for s in range(g.shape[0]):
+            acc += g[s, z, y, x]
+        grad[z, y, x] = grad[z, y, x] + dtype(2.0) * v[z, y, x] * dt2 * acc
 
     return _Kernels(
         Axis=Axis, step=step, step_frame=step_frame, step_core=functools.lru_cache(maxsize=None)(make_step_core), step_rows=step_rows, step_core_rows=step_core_rows, psi=psi, inject=inject,
-        step_adjoint={False: make_step_adjoint(False), True: make_step_adjoint(True)},
-        psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
+        adjoint_step=adjoint_step, adjoint_frame=adjoint_frame, adjoint_core=functools.lru_cache(maxsize=None)(make_adjoint_core),
+        squared=squared, model_gradient=model_gradient, psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
         record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS), pad_model=pad_model, scatter=scatter, energy=energy, halo=R, operator_points=NPTS,
     )  # fmt: skip
 
@@ -930,6 +1028,13 @@ def value_range(v: wp.array):
     _reduce(reduction_kernels(v.dtype)[1], v, stats)
     lo, hi, bad = stats.numpy()
     return float(lo), float(hi), int(bad)
+
+
+def _adjoint_launch(kernel, dim, inputs, adjoints: dict, device):
+    """Launch Warp's generated adjoint of `kernel`: adjoints maps input positions to their adjoint arrays;
+    the other arrays accumulate into their own .grad, if they have one."""
+    adj = [adjoints.get(i, type(a)() if wp.types.is_value(a) and not isinstance(a, (int, float)) else None) for i, a in enumerate(inputs)]
+    wp.launch(kernel, dim=dim, inputs=inputs, adj_inputs=adj, adjoint=True, device=device, record_tape=False)
 
 
 def _rows(n: int, i: int, parts: int):
@@ -1046,6 +1151,11 @@ class Acoustic:
         core_rows, core_cols = self.core[1] - self.core[0], self.core[3] - self.core[2]
         self.frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - max(core_rows, 0) * max(core_cols, 0)
         self.has_core = self.ndim == 2 and core_rows > 0 and core_cols > 0 and self.n_shots * self.padded[0] * self.padded[2] < 2**31  # int32 indices
+        # the adjoint's core: the cells whose stencil neighbours are all core cells (else an empty box)
+        c = self.core
+        self.adjoint_box = wp.vec4i(c[0] + R, c[1] - R, c[2] + R, c[3] - R) if self.has_core and min(core_rows, core_cols) > 2 * R else wp.vec4i(R, R, R, R)
+        box = self.adjoint_box
+        self.adjoint_frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - (box[1] - box[0]) * (box[3] - box[2])
         self.core_frame = self.has_core and wp.get_device(device).is_cuda  # the 2D GPU step: psi, core and frame kernels
         self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * halo[1], self.padded[2] - 2 * R)
         self.inv_dx = dtype(1.0 / dx)
@@ -1082,11 +1192,10 @@ class Acoustic:
         wp.launch(self.k.pad_model, dim=self.padded, inputs=[v, vpad, self.origin], device=self.device)
         return vpad
 
-    def step(self, st: State, vpad, out: State | None = None, tape=None) -> State:
+    def step(self, st: State, vpad, out: State | None = None) -> State:
         """Advance st (level n) to level n+1. With out=None the step is done in place (forward only);
-        with `out` (fresh arrays, e.g. under a tape) st is left unchanged and out is returned. With
-        `tape` (the active wp.Tape, out given) the hand-written adjoint is recorded for this step
-        instead of Warp's generated one."""
+        with `out` (fresh arrays, e.g. under a tape or kept for the adjoint) st is left unchanged and out
+        is returned."""
         if out is None:
             out = State(st.u, st.u_prev, st.psi, st.zeta)  # u[n+1] overwrites u[n-1]; psi, zeta in place
             u_next = st.u_prev
@@ -1094,37 +1203,43 @@ class Acoustic:
             out = State(st.u, out.u, out.psi, out.zeta)
             u_next = out.u
         axes = [a for a in range(3) if self.strip_width[a]]
-        S, nz, ny, _ = self.interior
         step_args = [st.u, st.u_prev, u_next, vpad, *out.psi, *st.zeta, *out.zeta, *self.axes, self.dt2, self.inv_dx, self.top]
-        # A wp.Tape without our adjoint (adjoint="warp") replays the per-cell reference kernels; a GPU
-        # runs the 2D step as the core and frame kernels (3D: the reference kernel); a CPU runs rows,
+        # Under a wp.Tape (Warp's generated adjoints, adjoint="warp") the per-cell reference kernels run; a
+        # GPU runs the 2D step as the core and frame kernels (3D: the reference kernel); a CPU runs rows,
         # split among threads.
-        generated = tape is None and wp._src.context.runtime.tape is not None
+        generated = wp._src.context.runtime.tape is not None
         if generated or self.cuda or self.core_frame:
             for a in axes:
                 wp.launch(self.k.psi[a][0], dim=self.strip_shape(a), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx],
                           device=self.device, record_tape=generated)  # fmt: skip
             if self.core_frame and not generated:
                 self.step_core(st.u, st.u_prev, u_next, vpad)
-                wp.launch(self.k.step_frame, dim=S * self.frame_cells, inputs=[*step_args, self.core, self.frame_cells], device=self.device, record_tape=False)
+                wp.launch(self.k.step_frame, dim=self.n_shots * self.frame_cells, inputs=[*step_args, self.core, self.frame_cells], device=self.device, record_tape=False)
             else:
                 wp.launch(self.k.step, dim=self.interior, inputs=step_args, device=self.device, record_tape=generated)
         else:
             self._cpu_step(st, out, u_next, vpad, step_args)
-        if tape is not None:
-            shape = self.interior if self.cuda else (S, nz, ny, 1)
-
-            def backward():
-                wp.launch(self.k.step_adjoint[not self.cuda], dim=shape,
-                          inputs=[st.u, vpad, *out.psi, *st.zeta, st.u.grad, st.u_prev.grad, u_next.grad, vpad.grad,
-                                  *(p.grad for p in out.psi), *(z.grad for z in st.zeta), *(z.grad for z in out.zeta),
-                                  *self.axes, self.dt2, self.inv_dx, self.top], device=self.device)  # fmt: skip
-                for a in axes:
-                    wp.launch(self.k.psi_adjoint[a], dim=self.strip_shape(a),
-                              inputs=[st.u.grad, st.psi[a].grad, out.psi[a].grad, self.axes[a], self.inv_dx], device=self.device)  # fmt: skip
-
-            tape.record_func(backward, arrays=[*st.arrays(), *out.arrays(), vpad])
         return out
+
+    def adjoint_step(self, st: State, nxt: State, vpad, w, lam, adj, g, adj_psi, adj_zeta):
+        """Adjoint of the step from st (level n) to nxt (level n+1; only its psi is read): lam is the
+        adjoint of u[n+1]; adj (the adjoint of u[n+2]) becomes that of u[n] but for the receiver terms; g
+        (S, Lz, Ly, Lx) += lam times the stretched Laplacian of u[n]; adj_psi = (of psi[n+1], of psi[n]),
+        adj_zeta = (of zeta[n+1], of zeta[n]), each a list over the axes; the first ones are consumed
+        (left for the caller to zero). w = v^2 dt^2 (pad_model's shape)."""
+        args = [st.u, vpad, *nxt.psi, *st.zeta, lam, adj, g, *adj_psi[0], *adj_zeta[1], *adj_zeta[0], *self.axes, self.dt2, self.inv_dx, self.top]
+        if not self.has_core:
+            wp.launch(self.k.adjoint_step, dim=self.interior, inputs=args, device=self.device)
+        else:
+            box = self.adjoint_box
+            if box[1] > box[0]:
+                threads = self.n_shots * -(-(box[1] - box[0]) // self.core_rows) * -(-(box[3] - box[2]) // self.core_cols)
+                wp.launch(self.k.adjoint_core(self.core_rows, self.core_cols), dim=threads, inputs=[st.u.flatten(), lam.flatten(), adj.flatten(), g.flatten(),
+                          w.flatten(), self.padded[0], self.padded[2], box, self.inv_dx], block_dim=self.core_threads, device=self.device)  # fmt: skip
+            wp.launch(self.k.adjoint_frame, dim=self.n_shots * self.adjoint_frame_cells, inputs=[*args, box, self.adjoint_frame_cells], device=self.device)
+        for a in range(3):
+            if self.strip_width[a]:
+                wp.launch(self.k.psi_adjoint[a], dim=self.strip_shape(a), inputs=[adj, adj_psi[1][a], adj_psi[0][a], self.axes[a], self.inv_dx], device=self.device)
 
     def core_kernel(self):
         return self.k.step_core(self.core_rows, self.core_cols)
@@ -1209,33 +1324,49 @@ class Acoustic:
         wp.launch(self.k.weights, dim=shape, inputs=[locations, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
         return (idx, w)
 
-    def inject(self, u, vpad, amplitudes, op, n: int, clock=None):
-        """Add source samples n (amplitudes (S, n_src, nt)) through the operator op into u; with `clock`
-        (int32 device array (1,)) the sample n + clock[0], read when the kernel runs (graph replays)."""
+    def _inject_launch(self, u, vpad, amplitudes, op, n: int, clock):
         clock = self.clock if clock is None else clock
         if isinstance(op, tuple):
-            wp.launch(self.k.inject_fixed, dim=op[1].shape, inputs=[u, vpad, amplitudes, op[0], op[1], n, clock, self.src_scale], device=self.device)
-        else:
-            wp.launch(self.k.inject, dim=(self.n_shots, op.shape[1], self.k.operator_points),
-                      inputs=[u, vpad, amplitudes, op, n, clock, self.origin, self.src_scale, self.inv_dx, self.top], device=self.device)  # fmt: skip
+            return self.k.inject_fixed, op[1].shape, [u, vpad, amplitudes, op[0], op[1], n, clock, self.src_scale]
+        dim = (self.n_shots, op.shape[1], self.k.operator_points)
+        return self.k.inject, dim, [u, vpad, amplitudes, op, n, clock, self.origin, self.src_scale, self.inv_dx, self.top]
 
-    def record(self, u, data, op, n: int, clock=None):
-        """data[:, :, n] += receiver samples of u through the operator op (clock as in inject)."""
+    def _record_launch(self, u, data, op, n: int, clock):
         clock = self.clock if clock is None else clock
         if isinstance(op, tuple):
             kernel, per = (self.k.record_fixed, 1) if self.cuda else (self.k.record_summed, op[1].shape[2])
-            wp.launch(kernel, dim=(*op[1].shape[:2], op[1].shape[2] // per), inputs=[u, data, op[0], op[1], n, clock], device=self.device)
-        else:
-            wp.launch(self.k.record, dim=(self.n_shots, op.shape[1], self.k.operator_points),
-                      inputs=[u, data, op, n, clock, self.origin, self.inv_dx, self.top], device=self.device)  # fmt: skip
+            return kernel, (*op[1].shape[:2], op[1].shape[2] // per), [u, data, op[0], op[1], n, clock]
+        return self.k.record, (self.n_shots, op.shape[1], self.k.operator_points), [u, data, op, n, clock, self.origin, self.inv_dx, self.top]
+
+    def inject(self, u, vpad, amplitudes, op, n: int, clock=None):
+        """Add source samples n (amplitudes (S, n_src, nt)) through the operator op into u; with `clock`
+        (int32 device array (1,)) the sample n + clock[0], read when the kernel runs (graph replays)."""
+        kernel, dim, inputs = self._inject_launch(u, vpad, amplitudes, op, n, clock)
+        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    def record(self, u, data, op, n: int, clock=None):
+        """data[:, :, n] += receiver samples of u through the operator op (clock as in inject)."""
+        kernel, dim, inputs = self._record_launch(u, data, op, n, clock)
+        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    def inject_adjoint(self, adj_u, vpad, amplitudes, op, n: int, clock=None):
+        """Adjoint of inject (Warp's generated one): from adj_u, the adjoint of the u it added into, add
+        into the gradients (.grad) of vpad, amplitudes and, for a differentiable operator, the locations."""
+        kernel, dim, inputs = self._inject_launch(adj_u, vpad, amplitudes, op, n, clock)
+        _adjoint_launch(kernel, dim, inputs, {0: adj_u}, self.device)
+
+    def record_adjoint(self, adj_u, residual, op, n: int, clock=None):
+        """Adjoint of record: adj_u += the receiver operator's transpose applied to residual[:, :, n]."""
+        kernel, dim, inputs = self._record_launch(adj_u, residual, op, n, clock)
+        _adjoint_launch(kernel, dim, inputs, {0: adj_u, 1: residual}, self.device)
 
     def scatter(self, du_next, u_next, u, u_prev, vpad, dvpad):
         """du_next += 2 dv/v (u_next - 2 u + u_prev): the Born (tangent-linear) source term."""
         wp.launch(self.k.scatter, dim=self.interior, inputs=[du_next, u_next, u, u_prev, vpad, dvpad], device=self.device)
 
-    def accumulate_energy(self, u, e):
-        """e (padded model shape) += sum over shots of u^2; never recorded on a tape."""
-        wp.launch(self.k.energy, dim=u.shape, inputs=[u, e], device=self.device, record_tape=False)
+    def accumulate_energy(self, u, e, n: int, clock, levels: int):
+        """e (padded model shape) += sum over shots of u^2 if n + clock[0] < levels; never recorded on a tape."""
+        wp.launch(self.k.energy, dim=u.shape, inputs=[u, e, n, clock, levels], device=self.device, record_tape=False)
 
     def physical(self, a):
         """View of the physical grid (nz, ny, nx) of a padded model-shaped array."""

@@ -56,6 +56,7 @@ atomics instead.
 
 import functools
 import math
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
@@ -63,15 +64,46 @@ import warp as wp
 from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _i0, field_stats
 from adseismic.numerics import STAGGERED_DERIVATIVE
 
-GPU_CORE_ROWS = 16  # cells per thread (along z) of the core kernels
-GPU_CORE_THREADS = 128  # threads per block of the core kernels
+
+
+class Layout(NamedTuple):
+    """How the fast path's core is launched: each thread updates a tile of `rows` consecutive rows (z) x `cols`
+    adjacent columns (x), `threads` per block. lean: the core reads 1/rho at the normal-stress nodes instead of
+    bx, bz, and lambda + 2 mu, mu instead of lambda + 2 mu, lambda, mu at the shear nodes (derived in the kernel as
+    `materials` derives them: 4 bytes fewer per cell in each half step). merged: the core and the frame in one
+    launch instead of two."""
+
+    rows: int
+    cols: int
+    threads: int = 128
+    lean: bool = True
+    merged: bool = True
+
+
+# Provisional (not yet timed on a GPU): pick from `benchmarks/speed_elastic.py --variants`, which times LAYOUTS.
+CORE_LAYOUT = Layout(8, 2, 128, lean=True, merged=True)
+LAYOUTS = (
+    Layout(16, 1, 128, False, False),  # the tile of the previous core kernels
+    Layout(8, 1, 128, False, False),
+    Layout(8, 2, 128, False, False),
+    Layout(16, 2, 128, False, False),
+    Layout(8, 2, 128, False, True),
+    Layout(8, 1, 128, True, False),
+    Layout(8, 2, 128, True, False),
+    Layout(16, 2, 128, True, False),
+    Layout(8, 4, 128, True, False),
+    Layout(8, 2, 256, True, False),
+    Layout(8, 2, 128, True, True),
+    Layout(16, 2, 128, True, True),
+)
+TRANSPOSE_ROWS, TRANSPOSE_THREADS = 16, 128  # cells per thread along z, threads per block of the hand adjoints' gathers
 
 # CPML memory variables: name -> axis of their derivative and strip (0 = z, 1 = x). vx_x is d(sxx)/dx at
 # vx nodes, vx_z d(sxz)/dz at vx nodes, s_x d(vx)/dx at normal-stress nodes, xz_z d(vx)/dz at sxz nodes...
 PSI = {"vx_x": 1, "vx_z": 0, "vz_x": 1, "vz_z": 0, "s_x": 1, "s_z": 0, "xz_z": 0, "xz_x": 1}
 PSI_V = ("vx_x", "vx_z", "vz_x", "vz_z")  # of the velocity update
 PSI_S = ("s_x", "s_z", "xz_z", "xz_x")  # of the stress update
-MATERIALS = ("bx", "bz", "l2m", "lam", "mu", "muh")  # see build's `materials`
+MATERIALS = ("bx", "bz", "l2m", "lam", "mu", "muh", "b")  # see build's `materials`
 
 
 @functools.lru_cache(maxsize=None)
@@ -387,7 +419,7 @@ def build(order: int, dtype, free_surface: bool):
         stress_cell(vx, vz, sxx, szz, sxz, l2m, lam, mu, muh, p_s_x, p_s_z, p_xz_z, p_xz_x, n_s_x, n_s_z, n_xz_z, n_xz_x,
                     sxx_new, szz_new, sxz_new, az, ax, dt, inv_dx, top, s, zi + wp.static(M), xi + wp.static(M))  # fmt: skip
 
-    # --- fast path: frame and core --------------------------------------------------------------------
+    # --- fast path: core tiles and frame --------------------------------------------------------------
 
     @wp.func
     def frame_cell(f: int, lz: int, lx: int, core: wp.vec4i):
@@ -413,29 +445,210 @@ def build(order: int, dtype, free_surface: bool):
                 x = x - core[2] + core[3]
         return z, x
 
-    @wp.kernel(module="unique", grid_stride=False)
-    def velocity_frame(
-        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2,
-        p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
-        n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
-        vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
-    ):  # fmt: skip
-        s, f = wp.tid()
-        z, x = frame_cell(f, vx.shape[1], vx.shape[2], core)
-        velocity_cell(vx, vz, sxx, szz, sxz, bx, bz, p_vx_x, p_vx_z, p_vz_x, p_vz_z, n_vx_x, n_vx_z, n_vz_x, n_vz_z,
-                      vx_new, vz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
+    def make_updates(rows: int, cols: int, lean: bool):
+        # The fast path's (velocity, stress) kernels for core tiles of rows x cols cells (see Layout). One 1D launch
+        # (unravelling a multi-dimensional thread index costs 64-bit divisions) covers threads offset + tid: those
+        # below `tiles` update a core tile each, on the flat arrays (fields S * Lz * Lx, models Lz * Lx), those from
+        # `frame` on (a block boundary) one frame cell each with the reference's per-cell code. A tile keeps the
+        # z-stencil's values in sliding windows w[j, m] (column j, row m) and loads each value of a row along x once
+        # into a line r[p], sharing it between the tile's columns; the loop over rows is unrolled. Every sum is
+        # formed in the reference's order, so a tile reproduces the per-cell kernels bit for bit where the compiler
+        # contracts no multiply-adds (the CPU).
+        win = wp.types.matrix(shape=(cols, 2 * M), dtype=dtype)
+        line = wp.types.vector(length=cols + 2 * M - 1, dtype=dtype)
+        nodes = wp.types.vector(length=cols + 1, dtype=dtype)  # lean: a model row at the tile's columns and the next
+        ALONE = -cols  # load_line's centre when no window holds the line's values
 
-    @wp.kernel(module="unique", grid_stride=False)
-    def stress_frame(
-        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2,
-        p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
-        n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
-        sxx_new: arr3, szz_new: arr3, sxz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
-    ):  # fmt: skip
-        s, f = wp.tid()
-        z, x = frame_cell(f, vx.shape[1], vx.shape[2], core)
-        stress_cell(vx, vz, sxx, szz, sxz, l2m, lam, mu, muh, p_s_x, p_s_z, p_xz_z, p_xz_x, n_s_x, n_s_z, n_xz_z, n_xz_x,
-                    sxx_new, szz_new, sxz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
+        @wp.func
+        def dline(r: line, j: int) -> dtype:
+            # x-derivative (times dx) at column j of a tile from a line centred between r[j + M - 1] and r[j + M]
+            acc = dtype(0.0)
+            for m in range(wp.static(M)):
+                acc += dtype(wp.static(C[m])) * (r[j + wp.static(M) + m] - r[j + wp.static(M - 1) - m])
+            return acc
+
+        @wp.func
+        def tile(t: int, lz: int, lx: int, core: wp.vec4i):
+            # tile t of the core (x fastest, then rows, then shots): flat field and model indices of its first cell,
+            # its first row and its number of columns (< cols at the core's right edge)
+            nxc = (core[3] - core[2] + wp.static(cols - 1)) // wp.static(cols)
+            blocks = (core[1] - core[0] + wp.static(rows - 1)) // wp.static(rows)
+            q = t // nxc
+            x = core[2] + (t - q * nxc) * wp.static(cols)
+            s = q // blocks
+            z = core[0] + (q - s * blocks) * wp.static(rows)
+            c = z * lx + x
+            return s * lz * lx + c, c, z, wp.min(wp.static(cols), core[3] - x)
+
+        @wp.func
+        def load_window(f: arr1, i: int, lx: int, first: int) -> win:
+            # f at rows first .. first + 2M - 1 (relative to flat index i) of the tile's columns
+            w = win()
+            for j in range(wp.static(cols)):
+                for m in range(wp.static(2 * M)):
+                    w[j, m] = f[i + j + (first + m) * lx]
+            return w
+
+        @wp.func
+        def slide(w: win, f: arr1, i: int, lx: int, newest: int) -> win:
+            # the window one row further down: f at row `newest` (relative to i) enters
+            for j in range(wp.static(cols)):
+                for m in range(wp.static(2 * M - 1)):
+                    w[j, m] = w[j, m + 1]
+                w[j, wp.static(2 * M - 1)] = f[i + j + newest * lx]
+            return w
+
+        @wp.func
+        def load_line(f: arr1, i: int, first: int, w: win, m: int, centre: int) -> line:
+            # f at columns first .. first + cols + 2M - 2 (relative to i); r[centre + j], the tile's own columns, are
+            # taken from the window's row m (centre = ALONE: none are)
+            r = line()
+            for p in range(wp.static(cols + 2 * M - 1)):
+                if p >= centre and p < centre + wp.static(cols):
+                    r[p] = w[p - centre, m]
+                else:
+                    r[p] = f[i + first + p]
+            return r
+
+        @wp.func
+        def load_nodes(f: arr1, c: int) -> nodes:
+            r = nodes()
+            for p in range(wp.static(cols + 1)):
+                r[p] = f[c + p]
+            return r
+
+        @wp.func
+        def reciprocals(u: nodes) -> nodes:
+            r = nodes()
+            for p in range(wp.static(cols + 1)):
+                r[p] = dtype(1.0) / u[p]
+            return r
+
+        @wp.func
+        def velocity_tile(
+            vx: arr1, vz: arr1, sxx: arr1, szz: arr1, sxz: arr1, m1: arr1, m2: arr1, vx_new: arr1, vz_new: arr1,
+            t: int, lz: int, lx: int, core: wp.vec4i, dt: dtype, inv_dx: dtype,
+        ):  # fmt: skip
+            # velocity_cell without CPML and surface; m1, m2 = bx, bz, or (lean) m1 = 1/rho and bx, bz its means
+            i, c, z, ncol = tile(t, lz, lx, core)
+            wa = load_window(sxz, i, lx, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (for vx)
+            wb = load_window(szz, i, lx, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (for vz)
+            b0 = nodes()  # lean: 1/rho at row z and z + 1, columns x .. x + cols
+            b1 = nodes()
+            if wp.static(lean):
+                b1 = load_nodes(m1, c)
+            for k in range(wp.static(rows)):
+                if z + k < core[1]:
+                    ra = load_line(sxx, i, wp.static(1 - M), wa, 0, wp.static(ALONE))  # sxx at x - M + 1 ..
+                    rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M), wp.static(M))  # sxz at x - M ..
+                    if wp.static(lean):
+                        b0 = b1
+                        b1 = load_nodes(m1, c + lx)
+                    for j in range(wp.static(cols)):
+                        if j < ncol:
+                            if wp.static(lean):
+                                mx = dtype(0.5) * (b0[j] + b0[j + 1])
+                                mz = dtype(0.5) * (b0[j] + b1[j])
+                            else:
+                                mx = m1[c + j]
+                                mz = m2[c + j]
+                            vx_new[i + j] = advance(vx[i + j], dt, mx, dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
+                            vz_new[i + j] = advance(vz[i + j], dt, mz, dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
+                    if wp.static(k + 1 < rows):
+                        wa = slide(wa, sxz, i, lx, wp.static(M))
+                        wb = slide(wb, szz, i, lx, wp.static(M + 1))
+                    i += lx
+                    c += lx
+
+        @wp.func
+        def stress_tile(
+            vx: arr1, vz: arr1, sxx: arr1, szz: arr1, sxz: arr1, m1: arr1, m2: arr1, m3: arr1,
+            sxx_new: arr1, szz_new: arr1, sxz_new: arr1, t: int, lz: int, lx: int, core: wp.vec4i, dt: dtype, inv_dx: dtype,
+        ):  # fmt: skip
+            # stress_cell without CPML and surface; m1, m2, m3 = l2m, lam, muh, or (lean) m1 = l2m, m2 = mu with
+            # lam = l2m - 2 mu and muh the harmonic mean of mu at the shear node's four neighbours (0 if one is 0)
+            i, c, z, ncol = tile(t, lz, lx, core)
+            wa = load_window(vz, i, lx, wp.static(-M))  # vz at rows z - M .. z + M - 1 (normal stresses)
+            wb = load_window(vx, i, lx, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (sxz)
+            u0 = nodes()  # lean: mu and 1/mu at rows z and z + 1, columns x .. x + cols
+            u1 = nodes()
+            q0 = nodes()
+            q1 = nodes()
+            if wp.static(lean):
+                u1 = load_nodes(m2, c)
+                q1 = reciprocals(u1)
+            for k in range(wp.static(rows)):
+                if z + k < core[1]:
+                    ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1), wp.static(M))  # vx at x - M ..
+                    rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M), wp.static(M - 1))  # vz at x - M + 1 ..
+                    if wp.static(lean):
+                        u0 = u1
+                        q0 = q1
+                        u1 = load_nodes(m2, c + lx)
+                        q1 = reciprocals(u1)
+                    for j in range(wp.static(cols)):
+                        if j < ncol:
+                            c1 = m1[c + j]
+                            if wp.static(lean):
+                                c2 = c1 - dtype(2.0) * u0[j]
+                                h = dtype(0.0)
+                                if u0[j] > dtype(0.0) and u1[j] > dtype(0.0) and u0[j + 1] > dtype(0.0) and u1[j + 1] > dtype(0.0):
+                                    h = dtype(4.0) / (q0[j] + q1[j] + q0[j + 1] + q1[j + 1])
+                            else:
+                                c2 = m2[c + j]
+                                h = m3[c + j]
+                            sxx_rate, szz_rate = normal_rates(c1, c2, dline(ra, j) * inv_dx, dwin(wa[j]) * inv_dx)
+                            sxx_new[i + j] = sxx[i + j] + dt * sxx_rate
+                            szz_new[i + j] = szz[i + j] + dt * szz_rate
+                            sxz_new[i + j] = advance(sxz[i + j], dt, h, dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
+                    if wp.static(k + 1 < rows):
+                        wa = slide(wa, vz, i, lx, wp.static(M))
+                        wb = slide(wb, vx, i, lx, wp.static(M + 1))
+                    i += lx
+                    c += lx
+
+        @wp.kernel(module="unique", grid_stride=False)
+        def velocity_update(
+            vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2,
+            p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
+            n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
+            vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
+            f_vx: arr1, f_vz: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1, m1: arr1, m2: arr1, f_vx_new: arr1, f_vz_new: arr1,
+            tiles: int, frame: int, frame_cells: int, offset: int,
+        ):  # fmt: skip
+            # f_*: flat views of the fields; m1, m2: the core's model arrays (see velocity_tile)
+            t = wp.tid() + offset
+            lz = vx.shape[1]
+            lx = vx.shape[2]
+            if t < tiles:
+                velocity_tile(f_vx, f_vz, f_sxx, f_szz, f_sxz, m1, m2, f_vx_new, f_vz_new, t, lz, lx, core, dt, inv_dx)
+            elif t >= frame:
+                s = (t - frame) // frame_cells
+                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, core)
+                velocity_cell(vx, vz, sxx, szz, sxz, bx, bz, p_vx_x, p_vx_z, p_vz_x, p_vz_z, n_vx_x, n_vx_z, n_vz_x, n_vz_z,
+                              vx_new, vz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
+
+        @wp.kernel(module="unique", grid_stride=False)
+        def stress_update(
+            vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2,
+            p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
+            n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
+            sxx_new: arr3, szz_new: arr3, sxz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
+            f_vx: arr1, f_vz: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1, m1: arr1, m2: arr1, m3: arr1,
+            f_sxx_new: arr1, f_szz_new: arr1, f_sxz_new: arr1, tiles: int, frame: int, frame_cells: int, offset: int,
+        ):  # fmt: skip
+            t = wp.tid() + offset
+            lz = vx.shape[1]
+            lx = vx.shape[2]
+            if t < tiles:
+                stress_tile(f_vx, f_vz, f_sxx, f_szz, f_sxz, m1, m2, m3, f_sxx_new, f_szz_new, f_sxz_new, t, lz, lx, core, dt, inv_dx)
+            elif t >= frame:
+                s = (t - frame) // frame_cells
+                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, core)
+                stress_cell(vx, vz, sxx, szz, sxz, l2m, lam, mu, muh, p_s_x, p_s_z, p_xz_z, p_xz_x, n_s_x, n_s_z, n_xz_z, n_xz_x,
+                            sxx_new, szz_new, sxz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
+
+        return velocity_update, stress_update
 
     @wp.func
     def column(t: int, lz: int, lx: int, box: wp.vec4i, rows: int):
@@ -450,57 +663,6 @@ def build(order: int, dtype, free_surface: bool):
         n = wp.min(rows, box[1] - z)
         c = z * lx + x
         return s * lz * lx + c, c, n
-
-    @wp.kernel(module="unique", grid_stride=False)
-    def velocity_core(
-        vx: arr1, vz: arr1, sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, vx_new: arr1, vz_new: arr1,
-        lz: int, lx: int, core: wp.vec4i, rows: int, dt: dtype, inv_dx: dtype,
-    ):  # fmt: skip
-        # velocity_cell without CPML and surface on the flat arrays (fields S * Lz * Lx, models Lz * Lx)
-        i, c, n = column(wp.tid(), lz, lx, core, rows)
-        wa = vecw()  # sxz at z - M .. z + M - 1 (for vx)
-        wb = vecw()  # szz at z - M + 1 .. z + M (for vz)
-        for j in range(wp.static(2 * M)):
-            wa[j] = sxz[i + (j - wp.static(M)) * lx]
-            wb[j] = szz[i + (j - wp.static(M - 1)) * lx]
-        for k in range(n):
-            vx_new[i] = advance(vx[i], dt, bx[c], dxf_of_int(sxx, i) * inv_dx + dwin(wa) * inv_dx)
-            vz_new[i] = advance(vz[i], dt, bz[c], dxf_of_half(sxz, i) * inv_dx + dwin(wb) * inv_dx)
-            if k + 1 < n:
-                for j in range(wp.static(2 * M - 1)):
-                    wa[j] = wa[j + 1]
-                    wb[j] = wb[j + 1]
-                wa[wp.static(2 * M - 1)] = sxz[i + wp.static(M) * lx]
-                wb[wp.static(2 * M - 1)] = szz[i + wp.static(M + 1) * lx]
-            i += lx
-            c += lx
-
-    @wp.kernel(module="unique", grid_stride=False)
-    def stress_core(
-        vx: arr1, vz: arr1, sxx: arr1, szz: arr1, sxz: arr1, l2m: arr1, lam: arr1, muh: arr1,
-        sxx_new: arr1, szz_new: arr1, sxz_new: arr1, lz: int, lx: int, core: wp.vec4i, rows: int,
-        dt: dtype, inv_dx: dtype,
-    ):  # fmt: skip
-        # stress_cell without CPML and surface on the flat arrays
-        i, c, n = column(wp.tid(), lz, lx, core, rows)
-        wa = vecw()  # vz at z - M .. z + M - 1 (for the normal stresses)
-        wb = vecw()  # vx at z - M + 1 .. z + M (for sxz)
-        for j in range(wp.static(2 * M)):
-            wa[j] = vz[i + (j - wp.static(M)) * lx]
-            wb[j] = vx[i + (j - wp.static(M - 1)) * lx]
-        for k in range(n):
-            sxx_rate, szz_rate = normal_rates(l2m[c], lam[c], dxf_of_half(vx, i) * inv_dx, dwin(wa) * inv_dx)
-            sxx_new[i] = sxx[i] + dt * sxx_rate
-            szz_new[i] = szz[i] + dt * szz_rate
-            sxz_new[i] = advance(sxz[i], dt, muh[c], dwin(wb) * inv_dx + dxf_of_int(vz, i) * inv_dx)
-            if k + 1 < n:
-                for j in range(wp.static(2 * M - 1)):
-                    wa[j] = wa[j + 1]
-                    wb[j] = wb[j + 1]
-                wa[wp.static(2 * M - 1)] = vz[i + wp.static(M) * lx]
-                wb[wp.static(2 * M - 1)] = vx[i + wp.static(M + 1) * lx]
-            i += lx
-            c += lx
 
     # --- hand-written adjoints ------------------------------------------------------------------------
     # Pass 1 (`*_adjoint`, thread per interior cell and all shots): adj(old field) += adj(new field), the
@@ -657,13 +819,15 @@ def build(order: int, dtype, free_surface: bool):
             i += lx
 
     @wp.kernel(module="unique")
-    def materials(vp: arr2, vs: arr2, rho: arr2, bx: arr2, bz: arr2, l2m: arr2, lam: arr2, mu: arr2, muh: arr2):
+    def materials(vp: arr2, vs: arr2, rho: arr2, bx: arr2, bz: arr2, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, b: arr2):
         # MATERIALS at the interior nodes: buoyancy at vx and vz nodes, lambda + 2 mu, lambda, mu at the
-        # normal-stress nodes, the harmonic mean of the 4 neighbouring mu at the shear nodes
+        # normal-stress nodes, the harmonic mean of the 4 neighbouring mu at the shear nodes, and 1/rho at the
+        # normal-stress nodes (for the lean core, which forms bx, bz from it as here)
         zi, xi = wp.tid()
         z = zi + wp.static(M)
         x = xi + wp.static(M)
         r = rho[z, x]
+        b[z, x] = dtype(1.0) / r
         bx[z, x] = dtype(0.5) * (dtype(1.0) / r + dtype(1.0) / rho[z, x + 1])
         bz[z, x] = dtype(0.5) * (dtype(1.0) / r + dtype(1.0) / rho[z + 1, x])
         m1 = r * vs[z, x] * vs[z, x]
@@ -812,13 +976,24 @@ def build(order: int, dtype, free_surface: bool):
         vpad[z, x] = v[wp.clamp(z - origin[0], 0, v.shape[0] - 1), wp.clamp(x - origin[1], 0, v.shape[1] - 1)]
 
     return _Kernels(
-        Axis=Axis, materials=materials, velocity=velocity, stress=stress, velocity_frame=velocity_frame,
-        stress_frame=stress_frame, velocity_core=velocity_core, stress_core=stress_core,
+        Axis=Axis, materials=materials, velocity=velocity, stress=stress, updates=functools.lru_cache(maxsize=None)(make_updates),
         velocity_adjoint=velocity_adjoint, velocity_transpose=velocity_transpose, stress_adjoint=stress_adjoint,
         stress_transpose=stress_transpose, inject_force=inject_force, inject_moment=inject_moment, weights=weights,
         record=record, pad_model=pad_model, halo=M,
         operator_points=NPTS,
     )  # fmt: skip
+
+
+@functools.lru_cache(maxsize=None)
+def shear_ratio(dtype):
+    """Kernel r = vs / vp on flat arrays (the on-device check of vs <= vp / sqrt(2))."""
+
+    @wp.kernel(module="unique")
+    def ratio(vp: wp.array(dtype=dtype), vs: wp.array(dtype=dtype), r: wp.array(dtype=dtype)):
+        i = wp.tid()
+        r[i] = vs[i] / vp[i]
+
+    return ratio
 
 
 class _Kernels:
@@ -909,7 +1084,8 @@ class Elastic:
         self.frame_cells = (Lz - 2 * R) * (Lx - 2 * R) - core_cells
         self.has_core = core_cells > 0 and self.n_shots * Lz * Lx < 2**31  # int32 flat indices
         self.box = wp.vec4i(R, Lz - R, R, Lx - R)  # the interior
-        self.rows, self.block = GPU_CORE_ROWS, GPU_CORE_THREADS
+        self.rows, self.block = TRANSPOSE_ROWS, TRANSPOSE_THREADS  # of the hand adjoints' gathers (_flat_launch)
+        self.layout = CORE_LAYOUT
         self.interior = (self.n_shots, Lz - 2 * R, Lx - 2 * R)
         self.inv_dx = dtype(1.0 / dx)
         self.dt_device = dtype(dt)
@@ -949,17 +1125,43 @@ class Elastic:
         wp.launch(kernel, dim=self._threads(box), inputs=[*(a.flatten() for a in arrays), *self.padded, box, self.rows, *extra],
                   block_dim=self.block, device=self.device, record_tape=False)  # fmt: skip
 
-    def _update(self, reference, frame, core, args, core_arrays, generated):
-        # one half step: Warp-differentiable reference kernel under a tape without hand adjoints, else
-        # core and frame
-        if generated:
-            wp.launch(reference, dim=self.interior, inputs=args, device=self.device)
-            return
-        if self.has_core:
-            self._flat_launch(core, self.core, core_arrays, self.dt_device, self.inv_dx)
-            wp.launch(frame, dim=(self.n_shots, self.frame_cells), inputs=[*args, self.core], device=self.device, record_tape=False)
+    def update_kernels(self):
+        """The fast path's (velocity, stress) kernels of self.layout."""
+        return self.k.updates(self.layout.rows, self.layout.cols, self.layout.lean)
+
+    def update(self, kind: int, st: State, out: State, mat, generated=False, part=None):
+        """Half step `kind`: 0 = out's velocities from st's velocities and stresses, 1 = out's stresses from st's
+        stresses and out's velocities (in place where out is st). The per-cell reference kernel when `generated`
+        (recorded on the active tape) or without a core, else the core tiles and the frame (self.layout; part
+        "core" or "frame": only that part, for timing)."""
+        bx, bz, l2m, lam, mu, muh, b = mat
+        P, Q = st.psi, out.psi
+        common = [*self.axes, self.dt_device, self.inv_dx, self.top]
+        if kind == 0:
+            reference = self.k.velocity
+            args = [st.vx, st.vz, st.sxx, st.szz, st.sxz, bx, bz, *(P[k] for k in PSI_V), *(Q[k] for k in PSI_V), out.vx, out.vz, *common]
+            flat = [st.vx, st.vz, st.sxx, st.szz, st.sxz, *((b, b) if self.layout.lean else (bx, bz)), out.vx, out.vz]
         else:
-            wp.launch(reference, dim=self.interior, inputs=args, device=self.device, record_tape=False)
+            reference = self.k.stress
+            args = [out.vx, out.vz, st.sxx, st.szz, st.sxz, l2m, lam, mu, muh, *(P[k] for k in PSI_S), *(Q[k] for k in PSI_S),
+                    out.sxx, out.szz, out.sxz, *common]  # fmt: skip
+            flat = [out.vx, out.vz, st.sxx, st.szz, st.sxz, *((l2m, mu, mu) if self.layout.lean else (l2m, lam, muh)), out.sxx, out.szz, out.sxz]
+        if generated or not self.has_core:
+            wp.launch(reference, dim=self.interior, inputs=args, device=self.device, record_tape=generated)
+            return
+        lay, c = self.layout, self.core
+        tiles = self.n_shots * -(-(c[1] - c[0]) // lay.rows) * -(-(c[3] - c[2]) // lay.cols)
+        frame = -(-tiles // lay.threads) * lay.threads  # the frame's first thread, on a block boundary
+        cells = self.n_shots * self.frame_cells
+        inputs = [*args, c, *(a.flatten() for a in flat), tiles, frame, self.frame_cells]
+        launches = {"core": (tiles, 0), "frame": (cells, frame)}
+        if part is not None:
+            launches = {part: launches[part]}
+        elif lay.merged:
+            launches = {"all": (frame + cells, 0)}
+        for dim, offset in launches.values():
+            wp.launch(self.update_kernels()[kind], dim=dim, inputs=[*inputs, offset], block_dim=lay.threads, device=self.device,
+                      record_tape=False)  # fmt: skip
 
     def scratch(self):
         """The hand adjoints' four scratch fields (allocated on first use)."""
@@ -977,13 +1179,10 @@ class Elastic:
         out = st if out is None else out
         clock = self.clock if clock is None else clock
         P, Q = st.psi, out.psi
-        bx, bz, l2m, lam, mu, muh = mat
+        bx, bz, l2m, lam, mu, muh, _ = mat
         dev, dt, inv_dx, top = self.device, self.dt_device, self.inv_dx, self.top
         generated = tape is None and wp._src.context.runtime.tape is not None
-        self._update(self.k.velocity, self.k.velocity_frame, self.k.velocity_core,
-                     [st.vx, st.vz, st.sxx, st.szz, st.sxz, bx, bz, *(P[k] for k in PSI_V), *(Q[k] for k in PSI_V),
-                      out.vx, out.vz, *self.axes, dt, inv_dx, top],
-                     [st.vx, st.vz, st.sxx, st.szz, st.sxz, bx, bz, out.vx, out.vz], generated)  # fmt: skip
+        self.update(0, st, out, mat, generated)
         if tape is not None:
 
             def velocity_backward():
@@ -1001,10 +1200,7 @@ class Elastic:
             wp.launch(self.k.inject_force, dim=(self.n_shots, loc.shape[1], self.k.operator_points),
                       inputs=[out.vx, out.vz, bx, bz, amp, comp, loc, n, clock, self.origin, self.dtype(self.dt / self.dx**2), inv_dx, top],
                       device=dev)  # fmt: skip
-        self._update(self.k.stress, self.k.stress_frame, self.k.stress_core,
-                     [out.vx, out.vz, st.sxx, st.szz, st.sxz, l2m, lam, mu, muh, *(P[k] for k in PSI_S), *(Q[k] for k in PSI_S),
-                      out.sxx, out.szz, out.sxz, *self.axes, dt, inv_dx, top],
-                     [out.vx, out.vz, st.sxx, st.szz, st.sxz, l2m, lam, muh, out.sxx, out.szz, out.sxz], generated)  # fmt: skip
+        self.update(1, st, out, mat, generated)
         if tape is not None:
 
             def stress_backward():
