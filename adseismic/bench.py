@@ -14,11 +14,11 @@ Every scene runs "forward" (propagate.forward) and "gradient" (forward + gradien
 with respect to the velocity, default checkpointing). Rate = padded-grid cell updates per second:
 prod(n + 2 PML + order over the axes) x nt x shots / seconds, the unit of the Deepwave anchors.
 On the CPU the per-core rate divides the cell updates by the process CPU time (user + system)
-of the timed run instead of the wall time. On a GPU the acoustic model is passed as a device array
-(as Deepwave's benchmark passes CUDA tensors); sources, receivers and wavelets come from the host and
-the traces go back to it inside the timing. The best of the repeats is reported: forward then reuses
-the time loop it captured in the first (as in an inversion loop); the first repeat's time is in
-bench.json ("times").
+of the timed run instead of the wall time. On a GPU the model (acoustic velocity, elastic vp, vs, rho) is
+passed as device arrays (as Deepwave's benchmark passes CUDA tensors); sources, receivers and wavelets
+come from the host and the traces go back to it inside the timing. The best of the repeats is
+reported: forward then reuses the time loop it captured in the first (as in an inversion loop); the
+first repeat's time is in bench.json ("times").
 
 Memory: each (scene, device) runs in its own Python process unless --in-process, so the peak host
 resident size (getrusage ru_maxrss) and Warp's CUDA mempool high-water mark are that scene's own
@@ -202,8 +202,9 @@ def small_version(spec: SceneSpec) -> SceneSpec:
 
 def run_elastic(mode: str, a: SceneArrays, device: str, order: int, memory_budget, observed=None):
     """adseismic.elastic on an elastic scene: a vertical line force, vz recorded (the receiver data
-    and the gradient's misfit use vz only). Returns an object with receiver_amplitudes (forward) or
-    the ElasticGradient (gradient, wrt vp, vs, rho)."""
+    and the gradient's misfit use vz only). vp, vs, rho in a.model: NumPy or Warp arrays (run_job passes
+    float32 device arrays on a GPU, as for the acoustic velocity). Returns an object with
+    receiver_amplitudes (forward) or the ElasticGradient (gradient, wrt vp, vs, rho)."""
     from adseismic import elastic as api
 
     m = a.model
@@ -395,8 +396,8 @@ def run_job(job: BenchJob) -> list[BenchRow]:
 
     a = build_arrays(spec, job.nt)
     ours = a
-    if spec.kind == "acoustic" and device_kind(device) == "cuda":  # the model on the device, as Deepwave's tensors are
-        ours = replace(a, model={"velocity": wp.array(a.model["velocity"], dtype=wp.float32, device=device)})
+    if device_kind(device) == "cuda":  # the model (velocity; vp, vs, rho) on the device, as Deepwave's tensors are
+        ours = replace(a, model={k: wp.array(v, dtype=wp.float32, device=device) for k, v in a.model.items()})
     try:  # compile (or load from Warp's kernel cache) every kernel outside the timings
         w = build_arrays(small_version(spec))
         fw = engine("forward", w)

@@ -1,7 +1,8 @@
 """2D isotropic elastic propagation and its exact, memory-bounded gradients (kernels/elastic.py).
 
 Conventions (as adseismic.propagate; z depth, positive down):
-- vp, vs (m/s), rho (kg/m^3): (nz, nx) arrays on a regular grid of spacing dx (m); node (0, 0) at 0 m.
+- vp, vs (m/s), rho (kg/m^3): (nz, nx) NumPy or Warp arrays (a Warp array of the run's precision, e.g. already
+  on the GPU, is copied there without visiting the host) on a regular grid of spacing dx (m); node (0, 0) at 0 m.
   vs = 0 is a fluid; 0 <= vs <= vp / sqrt(2) (lambda >= 0).
 - locations: metres (z, x), shape (n_shots, n_per_shot, 2).
 - source_amplitudes (n_shots, n_src, nt): the source time function s(t) at t_k = k dt, and
@@ -79,10 +80,10 @@ def check_model_values(vp, vs, rho, tolerance=1e-12):
     for name, a, ok in (("vp", vp, vp > 0), ("rho", rho, rho > 0), ("vs", vs, vs >= 0)):
         bad = ~np.isfinite(a) | ~ok
         if bad.any():
-            raise ValueError(f"{name} has {int(bad.sum())} non-finite or out-of-range values (first at index {tuple(np.argwhere(bad)[0])}); vp, rho > 0 and vs >= 0")
+            raise ValueError(f"{name} has {int(bad.sum())} non-finite or out-of-range values (first at index {tuple(int(i) for i in np.argwhere(bad)[0])}); vp, rho > 0 and vs >= 0")
     neg = (vs / vp).astype(float) > (1.0 + tolerance) / math.sqrt(2.0)  # as the device check forms it
     if neg.any():
-        i = tuple(np.argwhere(neg)[0])
+        i = tuple(int(k) for k in np.argwhere(neg)[0])
         raise ValueError(f"vs > vp / sqrt(2) at index {i} (vp {vp[i]:g}, vs {vs[i]:g} m/s) gives a negative Lame lambda; use vs <= {vp[i] / math.sqrt(2):g} m/s")
 
 
@@ -193,7 +194,6 @@ def setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, rece
         raise ValueError(f"precision {precision!r} is not one of {sorted(DTYPES)}")
     dtype = DTYPES[precision]
     device = resolve_device(device)
-    check_order(order)
     model, vmax = upload_models(vp, vs, rho, dtype, device, requires_grad)
     comp = check_elastic_inputs(model[0].shape, vmax, dx, dt, amp, source_locations, receiver_locations, order, source_type, source_components)
     width = DEFAULT_PML_WIDTH if pml_width is None else int(pml_width)

@@ -54,17 +54,17 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
     """(segment_length, estimated peak bytes) for the checkpointed sweep.
 
     memory_budget (bytes) caps checkpoints + one segment's levels; None picks the memory minimum. The
-    hand-written sweep keeps one wavefield per level of a segment (T, see Sweep); Warp's tape keeps u and the
-    CPML strips and their adjoints. The hand-written sweep's segments have an even length (its buffers
-    alternate), and the last one runs past nt into zero sources and residuals.
+    hand-written sweep keeps, per level of a segment, u and the CPML strips (psi, zeta); Warp's tape keeps
+    their adjoints too. Its segments have an even length (the adjoint's buffers alternate), and the last one
+    runs past nt into zero sources and residuals.
     """
     item = 4 if prop.dtype == wp.float32 else 8
     cells = prop.n_shots * math.prod(prop.padded)
     strips = sum(math.prod(prop.strip_shape(a)) for a in range(3) if prop.strip_width[a])
     hand = adjoint == "hand"
-    per_level = item * cells if hand else 2 * item * (cells + 2 * strips)
+    per_level = item * (cells + 2 * strips) * (1 if hand else 2)
     per_ckpt = item * (2 * cells + 2 * strips)
-    fixed = item * (6 * cells + 6 * strips + 3 * math.prod(prop.padded)) if hand else 0  # state, b, g, lam; strips' adjoints; vpad, w
+    fixed = item * (3 * cells + 4 * strips + 3 * math.prod(prop.padded)) if hand else 0  # adjoint ring, g, strips' adjoints, vpad, w
     step = 2 if hand else 1
 
     def length(seg):
@@ -72,9 +72,7 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
 
     def total(seg):
         n_seg = math.ceil(nt / seg)
-        if hand:  # no checkpoint of the first and last segments' starts
-            return fixed + max(n_seg - 2, 0) * per_ckpt + seg * per_level
-        return (n_seg - 1) * per_ckpt + (seg + 1) * per_level
+        return fixed + (n_seg - 1) * per_ckpt + (seg + 1) * per_level
 
     if segment_length is not None:
         segment_length = length(int(segment_length))
@@ -185,13 +183,12 @@ def _taped_sweep(su, model_on_tape, seg: int, n_seg: int, loss_fn, energy, bar):
 
     data = wp.zeros((prop.n_shots, n_rec, nt), dtype=prop.dtype, device=prop.device)
     checkpoints = []
-    levels = wp.array([nt], dtype=wp.int32, device=prop.device)
 
     def keep(st, n):
         if n % seg == 0:
             checkpoints.append([wp.clone(a) for a in st.arrays()])
         if energy is not None:
-            prop.accumulate_energy(st.u, energy, 0, prop.clock, levels)
+            prop.accumulate_energy(st.u, energy, 0, prop.clock, nt)
 
     run_steps(su, prop.new_state(), model_on_tape(), data, range(nt), callback=keep)
     bar.update(n_seg)
@@ -238,39 +235,37 @@ def _hand_sweep(su, vpad, seg: int, n_seg: int, loss_fn, energy, bar):
 class Sweep:
     """The hand-written adjoint time loop of one geometry, with every array it reads.
 
-    Forward: in-place steps, segment by segment (`seg` steps each), storing the stretched Laplacian T[n]
-    of every level of the segment (`lap`) and each segment's start state as a checkpoint. Backward, the
-    segments last first: the forward steps again from the checkpoint (but for the last segment, whose T
-    are still there), then the adjoint steps back through them (Acoustic.adjoint_step), the adjoint
-    wavefield b = w lam in two buffers that alternate (`b`), those of psi and zeta likewise. Time indices
-    are k + clock[0] (the segment's first level), so on a GPU one captured graph per direction serves every
-    segment; nt is padded to n_seg * seg with zero source samples and residuals.
+    The forward sweep runs the segments of `seg` steps, each from levels[0] (its start state) into
+    levels[1..seg] (u[n], psi[n], zeta[n] of every level), and keeps each segment's start as a
+    checkpoint. The backward sweep runs the segments last first: the forward steps again from the
+    checkpoint (but for the last segment, still in `levels`), then the adjoint steps back through them,
+    the adjoint of u in two buffers that alternate (`lam`), of psi and zeta likewise. Time indices are
+    k + clock[0] (the segment's first level), so one captured graph per direction serves every segment;
+    nt is padded to n_seg * seg with zero source samples and residuals.
     """
 
     def __init__(self, key, su, seg: int, n_seg: int, illumination: bool):
         prop = su.prop
         self.key, self.su, self.seg, self.n_seg = key, su, seg, n_seg
         levels = seg * n_seg
-        self.state = prop.new_state()
-        self.lap = [wp.zeros_like(self.state.u) for _ in range(seg)]
-        self.checkpoints = [[wp.empty_like(a) for a in self.state.arrays()] for _ in range(n_seg - 2)]
-        self.amplitudes = wp.zeros((*su.amplitudes.shape[:2], levels), dtype=prop.dtype, device=prop.device, requires_grad=su.amplitudes.requires_grad)
+        self.levels = [prop.new_state()] + [prop.new_state(with_prev=False) for _ in range(seg)]
+        self.checkpoints = [[wp.empty_like(a) for a in self.levels[0].arrays()] for _ in range(n_seg - 2)]
+        grad = "source_amplitudes" if su.amplitudes.requires_grad else ()
+        self.amplitudes = wp.zeros((*su.amplitudes.shape[:2], levels), dtype=prop.dtype, device=prop.device, requires_grad=bool(grad))
         self.vpad = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device, requires_grad=True)
         self.w = wp.zeros_like(self.vpad)
         shape = (prop.n_shots, su.receivers.shape[1], levels)
         self.data = wp.zeros(shape, dtype=prop.dtype, device=prop.device)
         self.residual = wp.zeros(shape, dtype=prop.dtype, device=prop.device)
-        self.b = [wp.zeros_like(self.state.u) for _ in range(2)]
-        self.g = wp.zeros_like(self.state.u)
-        self.lam = wp.zeros_like(self.state.u)  # lam = b / w at the sources' nodes, for inject's adjoint
+        self.lam = [wp.zeros_like(self.levels[0].u) for _ in range(2)]
+        self.g = wp.zeros_like(self.levels[0].u)
         self.adj_psi = [prop.new_state(with_prev=False).psi for _ in range(2)]
         self.adj_zeta = [prop.new_state(with_prev=False).zeta for _ in range(2)]
         self.energy = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device) if illumination else None
         self.clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
-        self.limit = wp.zeros(1, dtype=wp.int32, device=prop.device)  # levels below it add to the illumination
         self.graphs = None
         if prop.cuda:
-            for k in kernels_of(prop):
+            for k in kernels_of(prop, su):
                 wp.load_module(k.module, device=prop.device)
             self.graphs = [self._capture(self._forward_segment), self._capture(self._adjoint_segment)]
 
@@ -287,42 +282,50 @@ class Sweep:
             wp.capture_launch(self.graphs[which])
 
     def _forward_segment(self):
-        su, prop, st = self.su, self.su.prop, self.state
+        su, prop, lv = self.su, self.su.prop, self.levels
+        st = lv[0]
         for j in range(self.seg):
             prop.record(st.u, self.data, su.receiver_op, j, self.clock)
-            if self.energy is not None:
-                prop.accumulate_energy(st.u, self.energy, j, self.clock, self.limit)
-            st = prop.step(st, self.vpad, lap=self.lap[j])
+            st = prop.step(st, self.vpad, out=lv[j + 1])
             prop.inject(st.u, self.vpad, self.amplitudes, su.source_op, j, self.clock)
 
     def _adjoint_segment(self):
-        su, prop = self.su, self.su.prop
+        su, prop, lv = self.su, self.su.prop, self.levels
         for j in reversed(range(self.seg)):
-            b, adj = self.b[(j + 1) % 2], self.b[j % 2]
+            lam, adj = self.lam[(j + 1) % 2], self.lam[j % 2]
             psi = (self.adj_psi[(j + 1) % 2], self.adj_psi[j % 2])
             zeta = (self.adj_zeta[(j + 1) % 2], self.adj_zeta[j % 2])
-            prop.inject_adjoint(b, self.w, self.lam, self.vpad, self.amplitudes, su.source_op, j, self.clock)
-            prop.adjoint_step(self.lap[j], b, adj, self.g, self.w, psi, zeta)
-            prop.record_adjoint(adj, self.w, self.residual, su.receiver_op, j, self.clock)
+            prop.inject_adjoint(lam, self.vpad, self.amplitudes, su.source_op, j, self.clock)
+            prop.adjoint_step(lv[j], lv[j + 1], self.vpad, self.w, lam, adj, self.g, psi, zeta)
+            prop.record_adjoint(adj, self.residual, su.receiver_op, j, self.clock)
+            if self.energy is not None:
+                prop.accumulate_energy(lv[j].u, self.energy, j, self.clock, su.nt)
+
+    def _start(self, k: int):
+        """levels[0] <- the state at level k * seg (zero for k = 0, else checkpoint k - 1)."""
+        for i, a in enumerate(self.levels[0].arrays()):
+            if k == 0:
+                a.zero_()
+            else:
+                wp.copy(a, self.checkpoints[k - 1][i])
 
     def forward_sweep(self, bar):
-        self.limit.fill_(self.su.nt)
+        last = self.levels[self.seg]
+        end = [self.levels[self.seg - 1].u, *last.arrays()]  # the state at the segment's end (u_prev, u, psi, zeta)
         for k in range(self.n_seg):
-            if 0 < k < self.n_seg - 1:
-                for dst, src in zip(self.checkpoints[k - 1], self.state.arrays()):
+            if k > 0:
+                for dst, src in zip(self.levels[0].arrays(), end):
                     wp.copy(dst, src)
+                if k < self.n_seg - 1:
+                    for dst, src in zip(self.checkpoints[k - 1], end):
+                        wp.copy(dst, src)
             self._run(0, k * self.seg)
             bar.update()
 
     def backward_sweep(self, bar):
-        self.limit.fill_(0)
         for k in reversed(range(self.n_seg)):
             if k < self.n_seg - 1:
-                for i, a in enumerate(self.state.arrays()):
-                    if k == 0:
-                        a.zero_()
-                    else:
-                        wp.copy(a, self.checkpoints[k - 1][i])
+                self._start(k)
                 self._run(0, k * self.seg)
             self._run(1, k * self.seg)
             bar.update()
@@ -337,7 +340,7 @@ class Sweep:
         self.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), self.seg * self.n_seg, prop.dtype))
         wp.copy(self.vpad, vpad)
         wp.launch(prop.k.squared, dim=prop.padded, inputs=[self.vpad, prop.dt2, self.w], device=prop.device)
-        zero = [*self.state.arrays(), self.data, self.g, *self.b, *(a for r in (self.adj_psi, self.adj_zeta) for p in r for a in p), self.vpad.grad]
+        zero = [self.data, self.g, *self.lam, *(a for r in (self.adj_psi, self.adj_zeta) for p in r for a in p), self.vpad.grad]
         zero += [a.grad for a in (self.amplitudes, mine.sources) if a.requires_grad]
         zero += [self.energy] if self.energy is not None else []
         for a in zero:
@@ -346,7 +349,7 @@ class Sweep:
     def collect(self, su, vpad, energy):
         """Move the results to su's arrays: dJ/dvpad into vpad.grad, dJ/d(locations), the illumination."""
         prop = su.prop
-        wp.launch(prop.k.model_gradient, dim=prop.padded, inputs=[self.vpad, self.g, self.vpad.grad], device=prop.device)
+        wp.launch(prop.k.model_gradient, dim=prop.padded, inputs=[self.vpad, self.g, prop.dt2, self.vpad.grad], device=prop.device)
         wp.copy(vpad.grad, self.vpad.grad)
         if su.sources.requires_grad and su.sources is not self.su.sources:
             wp.copy(su.sources.grad, self.su.sources.grad)
@@ -360,12 +363,12 @@ def _inputs(su):
     return [a for ax in su.prop.axes for a in (ax.a, ax.b)] + ops
 
 
-def kernels_of(prop):
+def kernels_of(prop, su):
     """Every kernel a Sweep launches (loaded before a capture, which cannot compile)."""
     k = prop.k
-    out = [k.step, k.step_frame, prop.core_kernel(True), *(k.psi[a][0] for a in range(3)), k.record, k.record_fixed, k.inject, k.inject_fixed]
-    out += [k.laplacian, k.laplacian_frame, k.adjoint_step, k.adjoint_frame, k.adjoint_core(prop.core_rows, prop.core_cols), *k.psi_adjoint, k.energy]
-    return out + [k.record_adjoint, k.unscale_fixed, k.unscale_points]
+    out = [k.step, k.step_frame, prop.core_kernel(), *(k.psi[a][0] for a in range(3)), k.record, k.record_fixed, k.inject, k.inject_fixed]
+    out += [k.adjoint_step, k.adjoint_frame, k.adjoint_core(prop.core_rows, prop.core_cols), *k.psi_adjoint, k.energy]
+    return out
 
 
 def _sweep_key(su, seg: int, n_seg: int, illumination: bool) -> tuple:
@@ -375,7 +378,7 @@ def _sweep_key(su, seg: int, n_seg: int, illumination: bool) -> tuple:
 
 
 def _kept_sweep(su, seg: int, n_seg: int, illumination: bool) -> Sweep:
-    """The kept Sweep for this geometry, else a new one (kept on a GPU, where it holds captured graphs)."""
+    """The kept Sweep for this geometry (CUDA), else a new one (kept on CUDA)."""
     key = _sweep_key(su, seg, n_seg, illumination)
     sw = graphs.kept(key)
     if sw is None:

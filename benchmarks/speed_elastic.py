@@ -1,15 +1,18 @@
 """Check and time the 2D elastic propagator on one device: per-kernel microseconds (CUDA-graph replays on
-a GPU, a synchronised loop on the CPU), one taped step's backward (hand-written vs Warp's generated
-adjoints), the whole forward_elastic / gradient_elastic calls as adseismic/bench.py runs them (best of
---repeat after a warm-up that compiles the kernels) in Gcell/s (padded cells x steps x shots / s), and
-the optimised traces against the per-cell reference kernels. One JSON line per measurement; a failing
-measurement prints its error and the others still run.
+a GPU, a synchronised loop on the CPU), with --variants every core layout of kernels/elastic.LAYOUTS (its
+half steps and whole step, and its step against the per-cell reference kernels on random fields), one
+taped step's backward (hand-written vs Warp's generated adjoints), the whole forward_elastic /
+gradient_elastic calls as adseismic/bench.py runs them (best of --repeat after a warm-up that compiles the
+kernels; the forward with the model on the host and on the device) in Gcell/s (padded cells x steps x
+shots / s), and the optimised traces against the per-cell reference kernels. One JSON line per
+measurement; a failing measurement prints its error and the others still run.
 
-    python benchmarks/speed_elastic.py --device cuda:0 [--scenes E2000 E600x16] [--modes forward gradient]
-    python benchmarks/speed_elastic.py --device cpu --size 200 --steps 100
+    python benchmarks/speed_elastic.py --device cuda:0 --scenes E2000 E600x16 --modes forward --variants
+    python benchmarks/speed_elastic.py --device cpu --size 60 --steps 20 --modes forward --variants
 """
 
 import argparse
+import dataclasses
 import json
 import time
 import traceback
@@ -19,7 +22,7 @@ import warp as wp
 
 import adseismic.elastic as E
 from adseismic import bench
-from adseismic.kernels.elastic import PSI_S, PSI_V
+from adseismic.kernels.elastic import CORE_LAYOUT, LAYOUTS
 
 ORDER = 4
 
@@ -60,6 +63,17 @@ def per_call_us(fn, device, reps):
     return (time.perf_counter() - t) / reps * 1e6
 
 
+def timings(jobs, device, reps):
+    """{name + "_us": per_call_us(fn)} for the jobs {name: fn}, a failure recorded in place of its time."""
+    out = {}
+    for name, fn in jobs.items():
+        try:
+            out[name + "_us"] = round(per_call_us(fn, device, reps), 2)
+        except Exception as exc:
+            out[name + "_us"] = f"failed: {type(exc).__name__}: {exc}"[:300]
+    return out
+
+
 def setup(a, device):
     force = np.broadcast_to([1.0, 0.0], (*a.sources.shape[:2], 2))
     m = a.model
@@ -68,37 +82,89 @@ def setup(a, device):
 
 
 def kernel_times(su, device, reps):
+    """The default layout's step and its parts, the reference kernels, and the step's other kernels."""
     prop, k = su.prop, su.prop.k
-    st, mat = prop.new_state(), su.materials()
+    st, other, mat = prop.new_state(), prop.new_state(), su.materials()
     data = E._new_data(su, su.nt)
     src = su.source_args()
-    P, (bx, bz, l2m, lam, mu, muh) = st.psi, mat
-    common = [*prop.axes, prop.dt_device, prop.inv_dx, prop.top]
-    pv, ps = [P[n] for n in PSI_V], [P[n] for n in PSI_S]
-    vel = [st.vx, st.vz, st.sxx, st.szz, st.sxz, bx, bz, *pv, *pv, st.vx, st.vz, *common]
-    sts = [st.vx, st.vz, st.sxx, st.szz, st.sxz, l2m, lam, mu, muh, *ps, *ps, st.sxx, st.szz, st.sxz, *common]
+    bx, bz = mat[0], mat[1]
     jobs = {
         "step_in_place": lambda: prop.step(st, mat, src, 0),
-        "velocity_reference": lambda: wp.launch(k.velocity, dim=prop.interior, inputs=vel, device=device),
-        "stress_reference": lambda: wp.launch(k.stress, dim=prop.interior, inputs=sts, device=device),
-        "velocity_core": lambda: prop._flat_launch(k.velocity_core, prop.core, [st.vx, st.vz, st.sxx, st.szz, st.sxz, bx, bz, st.vx, st.vz],
-                                                   prop.dt_device, prop.inv_dx),  # fmt: skip
-        "stress_core": lambda: prop._flat_launch(k.stress_core, prop.core, [st.vx, st.vz, st.sxx, st.szz, st.sxz, l2m, lam, muh, st.sxx, st.szz, st.sxz],
-                                                 prop.dt_device, prop.inv_dx),  # fmt: skip
-        "velocity_frame": lambda: wp.launch(k.velocity_frame, dim=(prop.n_shots, prop.frame_cells), inputs=[*vel, prop.core], device=device),
-        "stress_frame": lambda: wp.launch(k.stress_frame, dim=(prop.n_shots, prop.frame_cells), inputs=[*sts, prop.core], device=device),
+        "velocity_reference": lambda: prop.update(0, st, other, mat, generated=True),
+        "stress_reference": lambda: prop.update(1, st, other, mat, generated=True),
+        "velocity_update": lambda: prop.update(0, st, st, mat),
+        "stress_update": lambda: prop.update(1, st, st, mat),
+        "velocity_core": lambda: prop.update(0, st, st, mat, part="core"),
+        "stress_core": lambda: prop.update(1, st, st, mat, part="core"),
+        "velocity_frame": lambda: prop.update(0, st, st, mat, part="frame"),
+        "stress_frame": lambda: prop.update(1, st, st, mat, part="frame"),
         "record": lambda: prop.record(st, data, su.receiver_op, 3),
         "inject_force": lambda: wp.launch(k.inject_force, dim=(prop.n_shots, su.sources.shape[1], k.operator_points),
                                           inputs=[st.vx, st.vz, bx, bz, su.amplitudes, su.components, su.sources, 3, prop.clock, prop.origin,
                                                   prop.dtype(prop.dt / prop.dx**2), prop.inv_dx, prop.top], device=device),  # fmt: skip
         "monitor": lambda: prop.monitor((st.vx, st.vz), wp.zeros(2, dtype=prop.dtype, device=device)),
     }
-    out = {"core_cells": int((prop.core[1] - prop.core[0]) * (prop.core[3] - prop.core[2])), "frame_cells": prop.frame_cells}
-    for name, fn in jobs.items():
-        try:
-            out[name + "_us"] = round(per_call_us(fn, device, reps), 2)
-        except Exception as exc:
-            out[name + "_us"] = f"failed: {type(exc).__name__}: {exc}"[:300]
+    out = {"layout": CORE_LAYOUT._asdict(), "core_cells": int((prop.core[1] - prop.core[0]) * (prop.core[3] - prop.core[2])),
+           "frame_cells": prop.frame_cells, **timings(jobs, device, reps)}  # fmt: skip
+    if isinstance(out["step_in_place_us"], float):
+        out["step_gcells_per_s"] = round(prop.n_shots * np.prod(prop.padded) / out["step_in_place_us"] / 1e3, 3)
+    return out
+
+
+class VariantCheck:
+    """Random fields, CPML memory variables and model (with a fluid patch) on su's grid, and the per-cell
+    reference kernels' step from them (no source), for checking each layout's in-place step."""
+
+    def __init__(self, su, seed=11):
+        prop = self.prop = su.prop
+        rng = np.random.default_rng(seed)
+        shape = prop.padded
+        vp = 2000.0 + 400.0 * rng.random(shape)
+        vs = vp / 1.8 * (0.7 + 0.3 * rng.random(shape))
+        vs[: shape[0] // 3, : shape[1] // 3] = 0.0
+        rho = 1800.0 + 500.0 * rng.random(shape)
+        self.mat = prop.materials(*(wp.array(m, dtype=prop.dtype, device=prop.device) for m in (vp, vs, rho)))
+        self.start = prop.new_state()
+        for a in self.start.arrays():
+            a.assign(rng.standard_normal(a.shape, dtype=np.float32))
+        self.ref = prop.new_state()
+        self.copy(self.ref)  # cells the reference does not write (halo) keep their values, as in place
+        with wp.Tape():  # an active tape selects the reference kernels
+            prop.step(self.start, self.mat, None, 0, out=self.ref)
+        self.expected = [a.numpy() for a in self.ref.arrays()]
+        self.work = prop.new_state()
+
+    def copy(self, st):
+        for dst, src in zip(st.arrays(), self.start.arrays()):
+            wp.copy(dst, src)
+
+    def max_rel_diff(self):
+        """max over fields and memory variables of max |step - reference| / max |reference|, the step in place
+        with the propagator's current layout."""
+        self.copy(self.work)
+        self.prop.step(self.work, self.mat, None, 0)
+        return max(float(np.abs(a.numpy() - b).max() / max(np.abs(b).max(), 1e-30)) for a, b in zip(self.work.arrays(), self.expected))
+
+
+def variant_times(check, layout, device, reps):
+    """One layout: its half steps as launched, their core parts alone, its whole step, and its step's difference
+    from the reference kernels."""
+    prop, mat, st = check.prop, check.mat, check.work
+    prop.layout = layout
+    try:
+        out = {"layout": layout._asdict(), "max_rel_diff": check.max_rel_diff()}
+        jobs = {
+            "velocity": lambda: prop.update(0, st, st, mat),
+            "stress": lambda: prop.update(1, st, st, mat),
+            "velocity_core": lambda: prop.update(0, st, st, mat, part="core"),
+            "stress_core": lambda: prop.update(1, st, st, mat, part="core"),
+            "step": lambda: prop.step(st, mat, None, 0),
+        }
+        out.update(timings(jobs, device, reps))
+    finally:
+        prop.layout = CORE_LAYOUT
+    if isinstance(out["step_us"], float):
+        out["step_gcells_per_s"] = round(prop.n_shots * np.prod(prop.padded) / out["step_us"] / 1e3, 3)
     return out
 
 
@@ -139,8 +205,11 @@ def traces_vs_reference(su):
     return {"max_rel_diff": max(diffs.values()), **diffs}
 
 
-def whole(spec, a, mode, device, repeat):
+def whole(spec, a, mode, device, repeat, model_on_device=False):
+    """bench.run_elastic timed; model_on_device: vp, vs, rho passed as float32 Warp arrays on the device."""
     cells = bench.padded_cells(spec, ORDER) * spec.shots * a.amplitudes.shape[2]
+    if model_on_device:
+        a = dataclasses.replace(a, model={k: wp.array(v, dtype=wp.float32, device=device) for k, v in a.model.items()})
     observed = np.zeros((spec.shots, a.receivers.shape[1], a.amplitudes.shape[2]))
     fn = lambda: bench.run_elastic(mode, a, device, ORDER, None, observed)  # noqa: E731
     times = []
@@ -150,7 +219,8 @@ def whole(spec, a, mode, device, repeat):
         res = fn()
         sync(device)
         times.append(time.perf_counter() - t)
-    row = {"mode": mode, "seconds": min(times), "times": times, "gcells_per_s": cells / min(times) / 1e9}
+    row = {"mode": mode, "model": "device" if model_on_device else "host", "seconds": min(times), "times": times,
+           "gcells_per_s": cells / min(times) / 1e9}  # fmt: skip
     if mode == "gradient":
         row["segments"] = f"{res.n_segments} x {res.segment_length}"
     return row
@@ -164,6 +234,7 @@ def main():
     p.add_argument("--steps", type=int, help="time steps (default: the scene's)")
     p.add_argument("--shots", type=int, default=1, help="shots of the --size scene")
     p.add_argument("--modes", nargs="+", default=list(bench.MODES), choices=bench.MODES)
+    p.add_argument("--variants", action="store_true", help="time and check every layout of kernels/elastic.LAYOUTS")
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--reps", type=int, default=0, help="launches per kernel timing (default 200 on CUDA, 5 on the CPU)")
     args = p.parse_args()
@@ -179,16 +250,43 @@ def main():
         nt = args.steps or spec.nt
         a = bench.build_arrays(spec, nt)
         w = bench.build_arrays(bench.small_version(spec))
-        attempt(spec.name, "warm-up", lambda: {"forward": bench.run_elastic("forward", w, device, ORDER, None) is not None,
-                                               "gradient": bench.run_elastic("gradient", w, device, ORDER, None,
-                                                                             np.zeros((1, w.receivers.shape[1], w.amplitudes.shape[2]))) is not None})  # fmt: skip
+
+        def warm_up():
+            out = {"forward": bench.run_elastic("forward", w, device, ORDER, None) is not None}
+            if "gradient" in args.modes:
+                observed = np.zeros((1, w.receivers.shape[1], w.amplitudes.shape[2]))
+                out["gradient"] = bench.run_elastic("gradient", w, device, ORDER, None, observed) is not None
+            return out
+
+        attempt(spec.name, "warm-up", warm_up)
         su = setup(a, device)
         attempt(spec.name, "kernels", lambda: kernel_times(su, device, reps))
+        if args.variants:
+            checks, rows = [], []  # the VariantCheck, once made; the variants' rows
+
+            def make_check():
+                checks.append(VariantCheck(su))
+                return {"reference_step": "done"}
+
+            def variant(layout):
+                rows.append(variant_times(checks[0], layout, device, reps))
+                return rows[-1]
+
+            attempt(spec.name, "variant-check", make_check)
+            for layout in LAYOUTS if checks else ():
+                attempt(spec.name, "variant", lambda: variant(layout))
+            checks.clear()  # frees its fields before the whole runs
+            timed = [r for r in rows if isinstance(r.get("step_us"), float)]
+            if timed:
+                best = min(timed, key=lambda r: r["step_us"])
+                emit(scene=spec.name, what="variant-best", layout=best["layout"], step_us=best["step_us"], max_rel_diff=best["max_rel_diff"])
         if "gradient" in args.modes:
             attempt(spec.name, "backward", lambda: backward_times(su, device, max(reps // 10, 2)))
         attempt(spec.name, "reference", lambda: traces_vs_reference(su))
         for mode in args.modes:
             attempt(spec.name, "whole", lambda: whole(spec, a, mode, device, args.repeat))
+            if mode == "forward":
+                attempt(spec.name, "whole", lambda: whole(spec, a, mode, device, args.repeat, model_on_device=True))
 
 
 if __name__ == "__main__":

@@ -118,7 +118,7 @@ def kernel_times(su, reps):
             frame()
         prop.core_rows, prop.core_cols, prop.core_threads = K.GPU_CORE_ROWS, K.GPU_CORE_COLS, K.GPU_CORE_THREADS
     out["step_in_place"] = per_launch(lambda: prop.step(st, vpad), dev, reps)
-    out.update(adjoint_times(prop, reps, checks))
+    out.update(adjoint_times(prop, st, vpad, reps, checks))
     for a in (0, 2):
         out[f"psi_{a}"] = per_launch(lambda: wp.launch(prop.k.psi[a][0], dim=prop.strip_shape(a), inputs=[st.u, st.psi[a], st.psi[a], prop.axes[a], prop.inv_dx], device=dev), dev, reps)  # fmt: skip
     stats = wp.zeros(2, dtype=prop.dtype, device=dev)
@@ -133,17 +133,18 @@ def kernel_times(su, reps):
     return times
 
 
-def adjoint_times(prop, reps, checks):
+def adjoint_times(prop, st, vpad, reps, checks):
     """Per-launch seconds of the adjoint step (core variants on a GPU, each checked against the per-cell
     adjoint_step kernel on the same inputs) and of the whole adjoint step (core, frame, psi)."""
     dev, out = prop.device, {}
     rng = np.random.default_rng(1)
-    shape = (prop.n_shots, *prop.padded)
-    b, adj, g, lap = (wp.array(rng.standard_normal(shape).astype(np.float32) * 1e-3, device=dev) for _ in range(4))
-    w = wp.array(np.full(prop.padded, 0.1, dtype=np.float32), device=dev)
+    lam, adj, g = (wp.array(rng.standard_normal(st.u.shape).astype(np.float32) * 1e-3, device=dev) for _ in range(3))
+    w = wp.zeros_like(vpad)
+    wp.launch(prop.k.squared, dim=prop.padded, inputs=[vpad, prop.dt2, w], device=dev)
+    nxt = prop.new_state(with_prev=False)
     ap = [prop.new_state(with_prev=False).psi for _ in range(2)]
     az = [prop.new_state(with_prev=False).zeta for _ in range(2)]
-    args = lambda a, gg: [b, a, gg, lap, w, *ap[0], *az[1], *az[0], *prop.axes, prop.inv_dx, prop.top]  # noqa: E731
+    args = lambda a, gg: [st.u, vpad, *nxt.psi, *st.zeta, lam, a, gg, *ap[0], *az[1], *az[0], *prop.axes, prop.dt2, prop.inv_dx, prop.top]  # noqa: E731
     if prop.cuda and prop.has_core:
         ref_a, ref_g = wp.clone(adj), wp.clone(g)
         wp.launch(prop.k.adjoint_step, dim=prop.interior, inputs=args(ref_a, ref_g), device=dev)
@@ -154,7 +155,7 @@ def adjoint_times(prop, reps, checks):
             threads = prop.n_shots * -(-(box[1] - box[0]) // rows) * -(-(box[3] - box[2]) // cols)
 
             def core(a, gg):
-                wp.launch(kernel, dim=threads, inputs=[b.flatten(), a.flatten(), gg.flatten(), lap.flatten(), w.flatten(), prop.padded[0],
+                wp.launch(kernel, dim=threads, inputs=[st.u.flatten(), lam.flatten(), a.flatten(), gg.flatten(), w.flatten(), prop.padded[0],
                           prop.padded[2], box, prop.inv_dx], block_dim=block, device=dev)  # fmt: skip
 
             name = f"adjoint_core_r{rows}_c{cols}_b{block}"
@@ -165,9 +166,7 @@ def adjoint_times(prop, reps, checks):
             out[name] = per_launch(lambda: core(a2, g2), dev, reps)
         out["adjoint_frame"] = per_launch(lambda: wp.launch(prop.k.adjoint_frame, dim=prop.n_shots * prop.adjoint_frame_cells,
                                           inputs=[*args(adj, g), box, prop.adjoint_frame_cells], device=dev), dev, reps)  # fmt: skip
-    out["adjoint_step"] = per_launch(lambda: prop.adjoint_step(lap, b, adj, g, w, ap, az), dev, reps)
-    st = prop.new_state()
-    out["step_in_place_storing_T"] = per_launch(lambda: prop.step(st, w, lap=lap), dev, reps)  # (w as the model: any values time alike)
+    out["adjoint_step"] = per_launch(lambda: prop.adjoint_step(st, nxt, vpad, w, lam, adj, g, ap, az), dev, reps)
     return out
 
 
@@ -195,12 +194,11 @@ def adjoint_only(a):
     for name in a.scenes:
         su, _ = make(name, a.device, a.order)
         prop, checks = su.prop, {}
-        times = adjoint_times(prop, a.reps, checks)
         st, vpad = prop.new_state(), prop.pad_model(su.velocity, requires_grad=True)
-        w = wp.zeros_like(vpad)
+        times = adjoint_times(prop, st, vpad, a.reps, checks)
         res = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
-        times["record_adjoint"] = per_launch(lambda: prop.record_adjoint(st.u, w, res, su.receiver_op, 3), prop.device, a.reps)
-        times["inject_adjoint"] = per_launch(lambda: prop.inject_adjoint(st.u, w, st.u_prev, vpad, su.amplitudes, su.source_op, 3), prop.device, a.reps)
+        times["record_adjoint"] = per_launch(lambda: prop.record_adjoint(st.u, res, su.receiver_op, 3), prop.device, a.reps)
+        times["inject_adjoint"] = per_launch(lambda: prop.inject_adjoint(st.u, vpad, su.amplitudes, su.source_op, 3), prop.device, a.reps)
         print(json.dumps({"adjoint": name, **{k: round(v * 1e6, 1) for k, v in times.items()}, "checks": checks}), flush=True)
 
 

@@ -134,38 +134,26 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         return d1
 
     def make_d1_transpose(axis: int):
-        # adjoint of d1: adj[(i, j, k) +- m along axis] +-= B_m g (times w there: adjoints kept as w lam)
-        @wp.func
-        def offset(i: int, j: int, k: int, m: int):
-            if wp.static(axis == 0):
-                return wp.vec3i(i + m, j, k)
-            elif wp.static(axis == 1):
-                return wp.vec3i(i, j + m, k)
-            return wp.vec3i(i, j, k + m)
-
+        # adjoint of d1: adj[(i, j, k) +- m along axis] +-= B_m g
         @wp.func
         def d1t(adj: arr4, s: int, i: int, j: int, k: int, g: dtype):
             for m in range(wp.static(R)):
                 c = dtype(wp.static(B[m])) * g
-                p = offset(i, j, k, m + 1)
-                wp.atomic_add(adj, s, p[0], p[1], p[2], c)
-                p = offset(i, j, k, -m - 1)
-                wp.atomic_add(adj, s, p[0], p[1], p[2], -c)
+                if wp.static(axis == 0):
+                    wp.atomic_add(adj, s, i + m + 1, j, k, c)
+                    wp.atomic_add(adj, s, i - m - 1, j, k, -c)
+                elif wp.static(axis == 1):
+                    wp.atomic_add(adj, s, i, j + m + 1, k, c)
+                    wp.atomic_add(adj, s, i, j - m - 1, k, -c)
+                else:
+                    wp.atomic_add(adj, s, i, j, k + m + 1, c)
+                    wp.atomic_add(adj, s, i, j, k - m - 1, -c)
 
-        @wp.func
-        def d1t_scaled(adj: arr4, w: arr3, s: int, i: int, j: int, k: int, g: dtype):
-            for m in range(wp.static(R)):
-                c = dtype(wp.static(B[m])) * g
-                p = offset(i, j, k, m + 1)
-                wp.atomic_add(adj, s, p[0], p[1], p[2], c * w[p[0], p[1], p[2]])
-                p = offset(i, j, k, -m - 1)
-                wp.atomic_add(adj, s, p[0], p[1], p[2], -c * w[p[0], p[1], p[2]])
-
-        return d1t, d1t_scaled
+        return d1t
 
     d2z, d2y, d2x = make_d2(0), make_d2(1), make_d2(2)
     d1 = (make_d1(0), make_d1(1), make_d1(2))
-    d1t = (make_d1_transpose(0), make_d1_transpose(1), make_d1_transpose(2))  # (plain, scaled) per axis
+    d1t = (make_d1_transpose(0), make_d1_transpose(1), make_d1_transpose(2))
     vecw = wp.types.vector(length=2 * R + 1, dtype=dtype)
 
     @wp.func
@@ -483,18 +471,17 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
              az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
 
-    def make_step_core(rows: int, cols: int, store: bool = False):
+    def make_step_core(rows: int, cols: int):
         # 2D GPU step of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded indices), where
         # there is neither CPML nor a free surface, on the flat arrays (u: S * Lz * Lx, v: Lz * Lx). Thread t
         # updates `rows` consecutive rows of `cols` adjacent columns, with the stencil's values along z in
         # sliding windows and one load per value of a row along x; a 1D launch, since unravelling a
-        # multi-dimensional thread index costs 64-bit divisions; the loop over rows is unrolled. With `store`
-        # it also writes the Laplacian it used into lap (T of `stretched`, for the adjoint).
+        # multi-dimensional thread index costs 64-bit divisions; the loop over rows is unrolled.
         win = wp.types.matrix(shape=(cols, 2 * R + 1), dtype=dtype)
         line = wp.types.vector(length=cols + 2 * R, dtype=dtype)
 
         @wp.kernel(module="unique", grid_stride=False)
-        def step_core(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype, lap: arr1):
+        def step_core(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
             t = wp.tid()
             nxc = (core[3] - core[2] + wp.static(cols - 1)) // wp.static(cols)
             blocks = (core[1] - core[0] + wp.static(rows - 1)) // wp.static(rows)
@@ -522,10 +509,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                             dxx = dtype(wp.static(A[0])) * w[j, wp.static(R)]
                             for m in range(wp.static(R)):
                                 dxx += dtype(wp.static(A[m + 1])) * (row[j + wp.static(R + 1) + m] + row[j + wp.static(R - 1) - m])
-                            t = (d2w(w[j]) + dxx) * inv_dx2
-                            if wp.static(store):
-                                lap[i + j] = t
-                            u_next[i + j] = advance(w[j, wp.static(R)], u_prev[i + j], v[c + j], dt2, t)
+                            u_next[i + j] = advance(w[j, wp.static(R)], u_prev[i + j], v[c + j], dt2, (d2w(w[j]) + dxx) * inv_dx2)
                             for m in range(wp.static(2 * R)):
                                 w[j, m] = w[j, m + 1]
                             w[j, wp.static(2 * R)] = u[i + j + wp.static(R + 1) * lx]
@@ -534,21 +518,19 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
         return step_core
 
-    # --- Hand-written adjoint of the time step, run by adseismic.gradient's backward sweep; it matches
-    # Warp's generated adjoints (tests/test_gradient.py). The adjoint of u[n] is kept as b[n] = w lam[n]
-    # (w = v^2 dt^2 at the cell), which makes the adjoint step the forward one: in the core
-    #     b[n] = 2 b[n+1] - b[n+2] + w L b[n+1]
-    # (L is symmetric; elsewhere the gather below transposes the CPML terms and the surface image), written
-    # over b[n+2], in place. The model gradient is (2 / v) sum_n b[n+1] T[n], with T[n] the stretched
-    # Laplacian of u[n] that the forward step stored, so the adjoint reads no forward wavefield.
+    # --- Hand-written adjoints of psi_kernel and step, run by adseismic.gradient's backward sweep; they
+    # match Warp's generated adjoints (tests/test_gradient.py). The step's adjoint gathers: the Laplacian
+    # is symmetric, so the adjoint at a cell sums the weights of the cells whose stencils read it. Going
+    # back in time, the adjoint of u[n] = 2 lam[n+1] + (gathered terms) - adjoint of u[n+2] is written over
+    # the latter, an in-place time step like the forward one.
 
     def make_psi_adjoint(axis: int):
-        deriv_t = d1t[axis][1]
+        deriv_t = d1t[axis]
 
         @wp.kernel(module="unique", grid_stride=False)
-        def psi_adjoint(adj_u: arr4, adj_psi_old: arr4, adj_psi_new: arr4, adj_zeta_new: arr4, w: arr3, ax: Axis, inv_dx: dtype):
+        def psi_adjoint(adj_u: arr4, adj_psi_old: arr4, adj_psi_new: arr4, adj_zeta_new: arr4, ax: Axis, inv_dx: dtype):
             # consumes (and zeroes) the adjoints of psi[n+1] and zeta[n+1] at this strip cell: adds to those of
-            # psi[n] and u[n] (adj_u: b[n])
+            # psi[n] and u[n]
             s, i, j, k = wp.tid()
             lam = adj_psi_new[s, i, j, k]
             adj_psi_new[s, i, j, k] = dtype(0.0)
@@ -565,52 +547,42 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             wp.atomic_add(adj_psi_old, s, i, j, k, ax.b[p] * lam)
             f = a * lam * inv_dx
             if wp.static(axis == 0):
-                deriv_t(adj_u, w, s, p, j, k, f)
+                deriv_t(adj_u, s, p, j, k, f)
             elif wp.static(axis == 1):
-                deriv_t(adj_u, w, s, i, p, k, f)
+                deriv_t(adj_u, s, i, p, k, f)
             else:
-                deriv_t(adj_u, w, s, i, j, p, f)
+                deriv_t(adj_u, s, i, j, p, f)
 
         return psi_adjoint
 
-    def strip_index(axis: int):
+    def make_gather(axis: int):
         @wp.func
-        def index(ca: Axis, z: int, y: int, x: int) -> wp.vec4i:
-            # (strip index j or -1, and the cell's (z, y, x) in the strip arrays) along `axis`
+        def weight(lam: arr4, v: arr3, adj_zn: arr4, ca: Axis, dt2: dtype, s: int, z: int, y: int, x: int) -> dtype:
+            # adjoint of the stretched d2u/dx2 along `axis` at an updated cell, q = v^2 dt^2 lam (q + a (q +
+            # adj zeta_new) in the strip, since stretched = (1 + a) g + b zeta there)
+            vv = v[z, y, x]
+            q = vv * vv * dt2 * lam[s, z, y, x]
             p = z
             if wp.static(axis == 1):
                 p = y
             elif wp.static(axis == 2):
                 p = x
             j = ca.store[p]
-            if wp.static(axis == 0):
-                return wp.vec4i(j, j, y, x)
-            elif wp.static(axis == 1):
-                return wp.vec4i(j, z, j, x)
-            return wp.vec4i(j, z, y, j)
-
-        return index
-
-    def make_gather(axis: int):
-        index = strip_index(axis)
-
-        @wp.func
-        def weight(b: arr4, adj_zn: arr4, ca: Axis, s: int, z: int, y: int, x: int) -> dtype:
-            # adjoint of the stretched d2u/dx2 along `axis` at an updated cell, q = b (q + a (q + adj zeta_new)
-            # in the strip, since stretched = (1 + a) g + b zeta there)
-            q = b[s, z, y, x]
-            c = index(ca, z, y, x)
-            if c[0] >= 0:
-                p = z
-                if wp.static(axis == 1):
-                    p = y
-                elif wp.static(axis == 2):
-                    p = x
-                return q + ca.a[p] * (q + adj_zn[s, c[1], c[2], c[3]])
+            if j >= 0:
+                iz = z
+                iy = y
+                ix = x
+                if wp.static(axis == 0):
+                    iz = j
+                elif wp.static(axis == 1):
+                    iy = j
+                else:
+                    ix = j
+                return q + ca.a[p] * (q + adj_zn[s, iz, iy, ix])
             return q
 
         @wp.func
-        def gather(b: arr4, adj_zn: arr4, ca: Axis, s: int, z: int, y: int, x: int, lo: int, hi: int, top: int) -> dtype:
+        def gather(lam: arr4, v: arr3, adj_zn: arr4, ca: Axis, dt2: dtype, s: int, z: int, y: int, x: int, lo: int, hi: int, top: int) -> dtype:
             # sum of A_|d| weight(c - d) over the updated cells c - d (lo <= index < hi along `axis`) whose
             # stencil reads the cell c directly; along z with a free surface also the mirrored reads
             # (row 2 top - z + k reads the cell at offset -k when that lies above the surface, sign -)
@@ -630,12 +602,12 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                     ix = x - d
                     p = ix
                 if p >= lo and p < hi:
-                    acc += dtype(wp.static(A[abs(m - R)])) * weight(b, adj_zn, ca, s, iz, iy, ix)
+                    acc += dtype(wp.static(A[abs(m - R)])) * weight(lam, v, adj_zn, ca, dt2, s, iz, iy, ix)
             if wp.static(fs and axis == 0):
                 for k in range(1, wp.static(R + 1)):
                     zp = 2 * top - z + k
                     if z > top and k > z - top and zp < hi:
-                        acc -= dtype(wp.static(A[k])) * weight(b, adj_zn, ca, s, zp, y, x)
+                        acc -= dtype(wp.static(A[k])) * weight(lam, v, adj_zn, ca, dt2, s, zp, y, x)
             return acc
 
         return gather
@@ -643,22 +615,36 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     gather_z, gather_y, gather_x = make_gather(0), make_gather(1), make_gather(2)
 
     def make_strip_adjoint(axis: int):
-        # At an updated cell in the strip: the adjoints of zeta and psi, from q = b (scattered: the strips are thin)
-        index = strip_index(axis)
-        dpsi_t = d1t[axis][0]
+        # At an updated cell: the stretched d2u/dx2 along `axis` (recomputed, for the model gradient) and,
+        # in the strip, the adjoints of zeta and psi (scattered: the strips are thin).
+        dpsi = d1[axis]
+        dpsi_t = d1t[axis]
 
         @wp.func
-        def strip_adjoint(q: dtype, s: int, z: int, y: int, x: int, adj_psi: arr4, adj_zeta: arr4, adj_zeta_new: arr4, ca: Axis, inv_dx: dtype):
-            c = index(ca, z, y, x)
-            if c[0] >= 0:
-                p = z
-                if wp.static(axis == 1):
-                    p = y
-                elif wp.static(axis == 2):
-                    p = x
-                adj_zn = q + adj_zeta_new[s, c[1], c[2], c[3]]
-                wp.atomic_add(adj_zeta, s, c[1], c[2], c[3], ca.b[p] * adj_zn)
-                dpsi_t(adj_psi, s, c[1], c[2], c[3], (q + ca.a[p] * adj_zn) * inv_dx)
+        def strip_adjoint(t: dtype, q: dtype, s: int, z: int, y: int, x: int, psi: arr4, zeta: arr4, adj_psi: arr4,
+                          adj_zeta: arr4, adj_zeta_new: arr4, ca: Axis, inv_dx: dtype) -> dtype:  # fmt: skip
+            p = z
+            if wp.static(axis == 1):
+                p = y
+            elif wp.static(axis == 2):
+                p = x
+            j = ca.store[p]
+            if j >= 0:
+                iz = z
+                iy = y
+                ix = x
+                if wp.static(axis == 0):
+                    iz = j
+                elif wp.static(axis == 1):
+                    iy = j
+                else:
+                    ix = j
+                g = t + dpsi(psi, s, iz, iy, ix) * inv_dx
+                adj_zn = q + adj_zeta_new[s, iz, iy, ix]
+                wp.atomic_add(adj_zeta, s, iz, iy, ix, ca.b[p] * adj_zn)
+                dpsi_t(adj_psi, s, iz, iy, ix, (q + ca.a[p] * adj_zn) * inv_dx)
+                return g + ca.b[p] * zeta[s, iz, iy, ix] + ca.a[p] * g
+            return t
 
         return strip_adjoint
 
@@ -666,74 +652,85 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
     @wp.func
     def adjoint_cell(
-        b: arr4, adj: arr4, g: arr4, lap: arr4, w: arr3,
+        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        lam: arr4, adj: arr4, g: arr4,
         adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
         adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
         adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
-        az: Axis, ay: Axis, ax: Axis, inv_dx: dtype, top: int, s: int, z: int, y: int, x: int,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, s: int, z: int, y: int, x: int,
     ):  # fmt: skip
-        # Adjoint of step n at interior cell (s, z, y, x): b = b[n+1]; adj holds b[n+2] and gets b[n] (this
-        # cell only; the psi and receiver terms are added after); g += b[n+1] T[n] (lap: T[n]); the CPML
-        # variables' adjoints are scattered (adj_zeta: of zeta[n], adj_psi: of psi[n+1]).
+        # Adjoint of step n at interior cell (s, z, y, x). u: u[n]; psi: psi[n+1]; zeta: zeta[n];
+        # lam: the adjoint of u[n+1]; adj holds the adjoint of u[n+2] and gets that of u[n] (in place: this
+        # cell's value only, all but the psi and receiver terms, which are added after); g += lam times the
+        # stretched Laplacian of u[n] (the model gradient is 2 v dt^2 sum_n of it); the CPML variables'
+        # adjoints are scattered (atomics: the strips are thin).
         lo_z = wp.static(R)
         if wp.static(fs):
             lo_z = top + 1  # the surface row is set to 0, not updated
-        acc = gather_z(b, adj_zeta_z_new, az, s, z, y, x, lo_z, b.shape[1] - wp.static(R), top)
-        acc += gather_x(b, adj_zeta_x_new, ax, s, z, y, x, wp.static(R), b.shape[3] - wp.static(R), top)
+        inv_dx2 = inv_dx * inv_dx
+        acc = gather_z(lam, v, adj_zeta_z_new, az, dt2, s, z, y, x, lo_z, u.shape[1] - wp.static(R), top)
+        acc += gather_x(lam, v, adj_zeta_x_new, ax, dt2, s, z, y, x, wp.static(R), u.shape[3] - wp.static(R), top)
         if wp.static(three):
-            acc += gather_y(b, adj_zeta_y_new, ay, s, z, y, x, wp.static(R), b.shape[2] - wp.static(R), top)
-        acc = w[z, y, x] * (acc * (inv_dx * inv_dx))
+            acc += gather_y(lam, v, adj_zeta_y_new, ay, dt2, s, z, y, x, wp.static(R), u.shape[2] - wp.static(R), top)
+        acc = acc * inv_dx2
         if z >= lo_z:
-            q = b[s, z, y, x]
-            acc += dtype(2.0) * q
+            lc = lam[s, z, y, x]
+            vv = v[z, y, x]
+            q = vv * vv * dt2 * lc
+            acc += dtype(2.0) * lc
             acc -= adj[s, z, y, x]
-            sadj_z(q, s, z, y, x, adj_psi_z, adj_zeta_z, adj_zeta_z_new, az, inv_dx)
-            sadj_x(q, s, z, y, x, adj_psi_x, adj_zeta_x, adj_zeta_x_new, ax, inv_dx)
+            total = sadj_z(d2z(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_z, zeta_z, adj_psi_z, adj_zeta_z, adj_zeta_z_new, az, inv_dx)
+            total += sadj_x(d2x(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_x, zeta_x, adj_psi_x, adj_zeta_x, adj_zeta_x_new, ax, inv_dx)
             if wp.static(three):
-                sadj_y(q, s, z, y, x, adj_psi_y, adj_zeta_y, adj_zeta_y_new, ay, inv_dx)
-            g[s, z, y, x] = g[s, z, y, x] + q * lap[s, z, y, x]
+                total += sadj_y(d2y(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_y, zeta_y, adj_psi_y, adj_zeta_y, adj_zeta_y_new, ay, inv_dx)
+            g[s, z, y, x] = g[s, z, y, x] + lc * total
         adj[s, z, y, x] = acc
 
     @wp.kernel(module="unique", grid_stride=False)
     def adjoint_step(
-        b: arr4, adj: arr4, g: arr4, lap: arr4, w: arr3,
+        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        lam: arr4, adj: arr4, g: arr4,
         adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
         adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
         adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
-        az: Axis, ay: Axis, ax: Axis, inv_dx: dtype, top: int,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
     ):  # fmt: skip
         # adjoint_cell at every interior cell (3D, or 2D without a core; one thread per cell)
         s, zi, yi, xi = wp.tid()
         y = yi
         if wp.static(three):
             y = yi + wp.static(R)
-        adjoint_cell(b, adj, g, lap, w, adj_psi_z, adj_psi_y, adj_psi_x, adj_zeta_z, adj_zeta_y, adj_zeta_x,
-                     adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new, az, ay, ax, inv_dx, top, s, zi + wp.static(R), y, xi + wp.static(R))  # fmt: skip
+        adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_psi_z, adj_psi_y, adj_psi_x,
+                     adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
+                     az, ay, ax, dt2, inv_dx, top, s, zi + wp.static(R), y, xi + wp.static(R))  # fmt: skip
 
     @wp.kernel(module="unique", grid_stride=False)
     def adjoint_frame(
-        b: arr4, adj: arr4, g: arr4, lap: arr4, w: arr3,
+        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        lam: arr4, adj: arr4, g: arr4,
         adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
         adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
         adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
-        az: Axis, ay: Axis, ax: Axis, inv_dx: dtype, top: int, box: wp.vec4i, cells: int,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, box: wp.vec4i, cells: int,
     ):  # fmt: skip
         # 2D: adjoint_cell at the interior cells outside `box` (adjoint_core does those inside); a 1D
         # launch of `cells` threads per shot, as step_frame
         t = wp.tid()
         s = t // cells
-        zx = frame_cell(t - s * cells, b.shape[1], b.shape[3], box)
-        adjoint_cell(b, adj, g, lap, w, adj_psi_z, adj_psi_y, adj_psi_x, adj_zeta_z, adj_zeta_y, adj_zeta_x,
-                     adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new, az, ay, ax, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
+        zx = frame_cell(t - s * cells, u.shape[1], u.shape[3], box)
+        adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_psi_z, adj_psi_y, adj_psi_x,
+                     adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
+                     az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
 
     def make_adjoint_core(rows: int, cols: int):
-        # adjoint_cell on the flat 2D arrays (b, adj, g, lap: S * Lz * Lx; w: Lz * Lx) inside `box`, the cells
-        # whose stencil neighbours all lie in step_core's core (no CPML, no surface image): step_core's layout
+        # adjoint_cell on the flat 2D arrays (u, lam, adj, g: S * Lz * Lx; w = v^2 dt^2: Lz * Lx) inside `box`,
+        # the cells whose stencil neighbours all lie in step_core's core (no CPML, no surface image): the
+        # layout of step_core, with windows of q = w lam (gathered) and of u (the model gradient's Laplacian)
         win = wp.types.matrix(shape=(cols, 2 * R + 1), dtype=dtype)
         line = wp.types.vector(length=cols + 2 * R, dtype=dtype)
 
         @wp.kernel(module="unique", grid_stride=False)
-        def adjoint_core(b: arr1, adj: arr1, g: arr1, lap: arr1, w: arr1, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
+        def adjoint_core(u: arr1, lam: arr1, adj: arr1, g: arr1, w: arr1, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
             t = wp.tid()
             nxc = (box[3] - box[2] + wp.static(cols - 1)) // wp.static(cols)
             blocks = (box[1] - box[0] + wp.static(rows - 1)) // wp.static(rows)
@@ -744,86 +741,51 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             ncol = wp.min(wp.static(cols), box[3] - x)
             c = z * lx + x
             i = s * lz * lx + c
-            wb = win()
+            wq = win()
+            wu = win()
             for j in range(wp.static(cols)):
                 for m in range(wp.static(2 * R + 1)):
                     if j < ncol:
-                        wb[j, m] = b[i + j + (m - wp.static(R)) * lx]
+                        o = j + (m - wp.static(R)) * lx
+                        wq[j, m] = w[c + o] * lam[i + o]
+                        wu[j, m] = u[i + o]
             inv_dx2 = inv_dx * inv_dx
             for k in range(wp.static(rows)):
                 if z + k < box[1]:
-                    row = line()
+                    rq = line()
+                    ru = line()
                     for p in range(wp.static(cols + 2 * R)):
                         if p < ncol + wp.static(2 * R):
-                            row[p] = b[i + p - wp.static(R)]
+                            rq[p] = w[c + p - wp.static(R)] * lam[i + p - wp.static(R)]
+                            ru[p] = u[i + p - wp.static(R)]
                     for j in range(wp.static(cols)):
                         if j < ncol:
-                            # gather_z + gather_x, each from the far neighbour to the near one
+                            # the order of gather_z + gather_x (from the far neighbour to the near one)
                             acz = dtype(0.0)
                             acx = dtype(0.0)
                             for m in range(wp.static(2 * R + 1)):
-                                acz += dtype(wp.static(A[abs(m - R)])) * wb[j, wp.static(2 * R) - m]
-                                acx += dtype(wp.static(A[abs(m - R)])) * row[j + wp.static(2 * R) - m]
-                            qc = wb[j, wp.static(R)]
-                            acc = w[c + j] * ((acz + acx) * inv_dx2)
-                            acc += dtype(2.0) * qc
+                                acz += dtype(wp.static(A[abs(m - R)])) * wq[j, wp.static(2 * R) - m]
+                            for m in range(wp.static(2 * R + 1)):
+                                acx += dtype(wp.static(A[abs(m - R)])) * rq[j + wp.static(2 * R) - m]
+                            acc = (acz + acx) * inv_dx2
+                            lc = lam[i + j]
+                            acc += dtype(2.0) * lc
                             acc -= adj[i + j]
                             adj[i + j] = acc
-                            g[i + j] = g[i + j] + qc * lap[i + j]
+                            dxx = dtype(wp.static(A[0])) * ru[j + wp.static(R)]
+                            for m in range(wp.static(R)):
+                                dxx += dtype(wp.static(A[m + 1])) * (ru[j + wp.static(R + 1) + m] + ru[j + wp.static(R - 1) - m])
+                            g[i + j] = g[i + j] + lc * (d2w(wu[j]) * inv_dx2 + dxx * inv_dx2)
                             for m in range(wp.static(2 * R)):
-                                wb[j, m] = wb[j, m + 1]
-                            wb[j, wp.static(2 * R)] = b[i + j + wp.static(R + 1) * lx]
+                                wq[j, m] = wq[j, m + 1]
+                                wu[j, m] = wu[j, m + 1]
+                            o = j + wp.static(R + 1) * lx
+                            wq[j, wp.static(2 * R)] = w[c + o] * lam[i + o]
+                            wu[j, wp.static(2 * R)] = u[i + o]
                     i += lx
                     c += lx
 
         return adjoint_core
-
-    index_z, index_y, index_x = strip_index(0), strip_index(1), strip_index(2)
-    d1z, d1y, d1x = d1
-
-    @wp.func
-    def stretched(u: arr4, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-                  az: Axis, ay: Axis, ax: Axis, inv_dx: dtype, top: int, s: int, z: int, y: int, x: int) -> dtype:  # fmt: skip
-        # T: the stretched Laplacian that the step from u (level n) used, from u and the psi and zeta it wrote
-        # (psi[n+1], zeta[n+1]), summed in the order of `update`
-        inv_dx2 = inv_dx * inv_dx
-        dzz = d2z(u, s, z, y, x, top)
-        dxx = d2x(u, s, z, y, x, top)
-        if wp.static(three):
-            lap = (dzz + dxx + d2y(u, s, z, y, x, top)) * inv_dx2
-            c = index_y(ay, z, y, x)
-            if c[0] >= 0:
-                lap = lap + (d1y(psi_y, s, c[1], c[2], c[3]) * inv_dx + zeta_y[s, c[1], c[2], c[3]])
-        else:
-            lap = (dzz + dxx) * inv_dx2
-        c = index_z(az, z, y, x)
-        if c[0] >= 0:
-            lap = lap + (d1z(psi_z, s, c[1], c[2], c[3]) * inv_dx + zeta_z[s, c[1], c[2], c[3]])
-        c = index_x(ax, z, y, x)
-        if c[0] >= 0:
-            lap = lap + (d1x(psi_x, s, c[1], c[2], c[3]) * inv_dx + zeta_x[s, c[1], c[2], c[3]])
-        return lap
-
-    @wp.kernel(module="unique", grid_stride=False)
-    def laplacian(u: arr4, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-                  az: Axis, ay: Axis, ax: Axis, inv_dx: dtype, top: int, lap: arr4):  # fmt: skip
-        # T at every interior cell
-        s, zi, yi, xi = wp.tid()
-        y = yi
-        if wp.static(three):
-            y = yi + wp.static(R)
-        z = zi + wp.static(R)
-        x = xi + wp.static(R)
-        lap[s, z, y, x] = stretched(u, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, az, ay, ax, inv_dx, top, s, z, y, x)
-
-    @wp.kernel(module="unique", grid_stride=False)
-    def laplacian_frame(u: arr4, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-                        az: Axis, ay: Axis, ax: Axis, inv_dx: dtype, top: int, lap: arr4, box: wp.vec4i, cells: int):  # fmt: skip
-        # T at the 2D interior cells outside `box` (step_core stores the core's); a 1D launch, as step_frame
-        t = wp.tid()
-        s = t // cells
-        zx = frame_cell(t - s * cells, u.shape[1], u.shape[3], box)
-        lap[s, zx[0], 0, zx[1]] = stretched(u, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, az, ay, ax, inv_dx, top, s, zx[0], 0, zx[1])
 
     psi = [make_psi(a) for a in range(3)]
 
@@ -949,62 +911,34 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         du_next[s, z, y, x] = du_next[s, z, y, x] + dtype(2.0) * dv[z, y, x] / v[z, y, x] * inc
 
     @wp.kernel(module="unique")
-    def energy(u: arr4, e: arr3, n: int, clock: iarr1, levels: iarr1):
+    def energy(u: arr4, e: arr3, n: int, clock: iarr1, levels: int):
         # e += sum over shots of u^2 (illumination, for the pseudo-Hessian preconditioner) at level
-        # n + clock[0] if it is below levels[0]
+        # n + clock[0] if it is below `levels`
         s, z, y, x = wp.tid()
-        if n + clock[0] < levels[0]:
+        if n + clock[0] < levels:
             val = u[s, z, y, x]
             wp.atomic_add(e, z, y, x, val * val)
 
     @wp.kernel(module="unique")
     def squared(v: arr3, dt2: dtype, w: arr3):
-        # w = v^2 dt^2, the factor of the Laplacian in the update
+        # w = v^2 dt^2, the factor of the Laplacian in the update (read by adjoint_core)
         z, y, x = wp.tid()
         vv = v[z, y, x]
         w[z, y, x] = vv * vv * dt2
 
     @wp.kernel(module="unique")
-    def model_gradient(v: arr3, g: arr4, grad: arr3):
-        # grad += (2 / v) sum over shots of g (g: sum_n b[n+1] T[n], see adjoint_cell)
+    def model_gradient(v: arr3, g: arr4, dt2: dtype, grad: arr3):
+        # grad += 2 v dt^2 sum over shots of g (g: the sums of adjoint_cell)
         z, y, x = wp.tid()
         acc = dtype(0.0)
         for s in range(g.shape[0]):
             acc += g[s, z, y, x]
-        grad[z, y, x] = grad[z, y, x] + dtype(2.0) * acc / v[z, y, x]
-
-    @wp.kernel(module="unique")
-    def record_adjoint(b: arr4, res: arr3, idx: wp.array3d(dtype=wp.vec3i), wq: arr3, w: arr3, n: int, clock: iarr1):
-        # adjoint of record_fixed into b = w lam: b += w R^T res[:, :, n + clock[0]]
-        s, rec, q = wp.tid()
-        c = wq[s, rec, q]
-        if c != dtype(0.0):
-            i = idx[s, rec, q]
-            wp.atomic_add(b, s, i[0], i[1], i[2], w[i[0], i[1], i[2]] * c * res[s, rec, n + clock[0]])
-
-    @wp.func
-    def unscale(b: arr4, w: arr3, lam: arr4, s: int, i: wp.vec3i, c: dtype):
-        if c != dtype(0.0):
-            lam[s, i[0], i[1], i[2]] = b[s, i[0], i[1], i[2]] / w[i[0], i[1], i[2]]
-
-    @wp.kernel(module="unique")
-    def unscale_fixed(b: arr4, w: arr3, idx: wp.array3d(dtype=wp.vec3i), wq: arr3, lam: arr4):
-        # lam = b / w at the nodes of a precomputed operator (what the adjoint of inject reads)
-        s, src, q = wp.tid()
-        unscale(b, w, lam, s, idx[s, src, q], wq[s, src, q])
-
-    @wp.kernel(module="unique")
-    def unscale_points(b: arr4, w: arr3, loc: arr3, origin: wp.vec3i, inv_dx: dtype, top: int, lam: arr4):
-        # lam = b / w at the operator's nodes at loc
-        s, src, q = wp.tid()
-        i, c = point(loc, s, src, q, origin, inv_dx, top)
-        unscale(b, w, lam, s, i, c)
+        grad[z, y, x] = grad[z, y, x] + dtype(2.0) * v[z, y, x] * dt2 * acc
 
     return _Kernels(
         Axis=Axis, step=step, step_frame=step_frame, step_core=functools.lru_cache(maxsize=None)(make_step_core), step_rows=step_rows, step_core_rows=step_core_rows, psi=psi, inject=inject,
         adjoint_step=adjoint_step, adjoint_frame=adjoint_frame, adjoint_core=functools.lru_cache(maxsize=None)(make_adjoint_core),
-        squared=squared, model_gradient=model_gradient, record_adjoint=record_adjoint, unscale_fixed=unscale_fixed, unscale_points=unscale_points,
-        laplacian=laplacian, laplacian_frame=laplacian_frame, psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
+        squared=squared, model_gradient=model_gradient, psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
         record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS), pad_model=pad_model, scatter=scatter, energy=energy, halo=R, operator_points=NPTS,
     )  # fmt: skip
 
@@ -1262,10 +1196,10 @@ class Acoustic:
         wp.launch(self.k.pad_model, dim=self.padded, inputs=[v, vpad, self.origin], device=self.device)
         return vpad
 
-    def step(self, st: State, vpad, out: State | None = None, lap=None) -> State:
+    def step(self, st: State, vpad, out: State | None = None) -> State:
         """Advance st (level n) to level n+1. With out=None the step is done in place (forward only);
-        with `out` (fresh arrays, e.g. under a tape) st is left unchanged and out is returned. lap (the
-        fields' shape): also store there T[n], the stretched Laplacian of u[n] the step used (`stretched`)."""
+        with `out` (fresh arrays, e.g. under a tape or kept for the adjoint) st is left unchanged and out
+        is returned."""
         if out is None:
             out = State(st.u, st.u_prev, st.psi, st.zeta)  # u[n+1] overwrites u[n-1]; psi, zeta in place
             u_next = st.u_prev
@@ -1278,56 +1212,49 @@ class Acoustic:
         # GPU runs the 2D step as the core and frame kernels (3D: the reference kernel); a CPU runs rows,
         # split among threads.
         generated = wp._src.context.runtime.tape is not None
-        fused = self.core_frame and not generated
         if generated or self.cuda or self.core_frame:
             for a in axes:
                 wp.launch(self.k.psi[a][0], dim=self.strip_shape(a), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx],
                           device=self.device, record_tape=generated)  # fmt: skip
-            if fused:
-                self.step_core(st.u, st.u_prev, u_next, vpad, lap)
+            if self.core_frame and not generated:
+                self.step_core(st.u, st.u_prev, u_next, vpad)
                 wp.launch(self.k.step_frame, dim=self.n_shots * self.frame_cells, inputs=[*step_args, self.core, self.frame_cells], device=self.device, record_tape=False)
             else:
                 wp.launch(self.k.step, dim=self.interior, inputs=step_args, device=self.device, record_tape=generated)
         else:
             self._cpu_step(st, out, u_next, vpad, step_args)
-        if lap is not None:
-            args = [st.u, *out.psi, *out.zeta, *self.axes, self.inv_dx, self.top, lap]
-            if fused:
-                wp.launch(self.k.laplacian_frame, dim=self.n_shots * self.frame_cells, inputs=[*args, self.core, self.frame_cells], device=self.device, record_tape=False)
-            else:
-                wp.launch(self.k.laplacian, dim=self.interior, inputs=args, device=self.device, record_tape=False)
         return out
 
-    def adjoint_step(self, lap, b, adj, g, w, adj_psi, adj_zeta):
-        """Adjoint of the step from level n to n+1, on the adjoints kept as b = w lam (w = v^2 dt^2, pad_model's
-        shape): b = b[n+1]; adj holds b[n+2] and becomes b[n] but for the receiver terms; g (fields' shape)
-        += b[n+1] T[n] (lap: T[n], stored by step); adj_psi = (of psi[n+1], of psi[n]), adj_zeta = (of
-        zeta[n+1], of zeta[n]), each a list over the axes; the first ones are consumed and zeroed."""
-        args = [b, adj, g, lap, w, *adj_psi[0], *adj_zeta[1], *adj_zeta[0], *self.axes, self.inv_dx, self.top]
+    def adjoint_step(self, st: State, nxt: State, vpad, w, lam, adj, g, adj_psi, adj_zeta):
+        """Adjoint of the step from st (level n) to nxt (level n+1; only its psi is read): lam is the
+        adjoint of u[n+1]; adj (the adjoint of u[n+2]) becomes that of u[n] but for the receiver terms; g
+        (S, Lz, Ly, Lx) += lam times the stretched Laplacian of u[n]; adj_psi = (of psi[n+1], of psi[n]),
+        adj_zeta = (of zeta[n+1], of zeta[n]), each a list over the axes; the first ones are consumed and
+        zeroed. w = v^2 dt^2 (pad_model's shape)."""
+        args = [st.u, vpad, *nxt.psi, *st.zeta, lam, adj, g, *adj_psi[0], *adj_zeta[1], *adj_zeta[0], *self.axes, self.dt2, self.inv_dx, self.top]
         if not self.has_core:
             wp.launch(self.k.adjoint_step, dim=self.interior, inputs=args, device=self.device)
         else:
             box = self.adjoint_box
             if box[1] > box[0]:
                 threads = self.n_shots * -(-(box[1] - box[0]) // self.core_rows) * -(-(box[3] - box[2]) // self.core_cols)
-                wp.launch(self.k.adjoint_core(self.core_rows, self.core_cols), dim=threads, inputs=[b.flatten(), adj.flatten(), g.flatten(), lap.flatten(),
+                wp.launch(self.k.adjoint_core(self.core_rows, self.core_cols), dim=threads, inputs=[st.u.flatten(), lam.flatten(), adj.flatten(), g.flatten(),
                           w.flatten(), self.padded[0], self.padded[2], box, self.inv_dx], block_dim=self.core_threads, device=self.device)  # fmt: skip
             wp.launch(self.k.adjoint_frame, dim=self.n_shots * self.adjoint_frame_cells, inputs=[*args, box, self.adjoint_frame_cells], device=self.device)
         for a in range(3):
             if self.strip_width[a]:
-                wp.launch(self.k.psi_adjoint[a], dim=self.strip_shape(a), inputs=[adj, adj_psi[1][a], adj_psi[0][a], adj_zeta[0][a], w, self.axes[a], self.inv_dx],
+                wp.launch(self.k.psi_adjoint[a], dim=self.strip_shape(a), inputs=[adj, adj_psi[1][a], adj_psi[0][a], adj_zeta[0][a], self.axes[a], self.inv_dx],
                           device=self.device)  # fmt: skip
 
-    def core_kernel(self, store=False):
-        return self.k.step_core(self.core_rows, self.core_cols, store)
+    def core_kernel(self):
+        return self.k.step_core(self.core_rows, self.core_cols)
 
-    def step_core(self, u, u_prev, u_next, vpad, lap=None):
-        """The core part of a 2D GPU step (step_frame does the rest); lap as in step."""
+    def step_core(self, u, u_prev, u_next, vpad):
+        """The core part of a 2D GPU step (step_frame does the rest)."""
         c, rows, cols = self.core, self.core_rows, self.core_cols
         threads = self.n_shots * -(-(c[1] - c[0]) // rows) * -(-(c[3] - c[2]) // cols)
-        wp.launch(self.core_kernel(lap is not None), dim=threads, inputs=[u.flatten(), u_prev.flatten(), u_next.flatten(), vpad.flatten(), self.padded[0],
-                  self.padded[2], c, self.dt2, self.inv_dx, (u_next if lap is None else lap).flatten()], block_dim=self.core_threads, device=self.device,
-                  record_tape=False)  # fmt: skip
+        wp.launch(self.core_kernel(), dim=threads, inputs=[u.flatten(), u_prev.flatten(), u_next.flatten(), vpad.flatten(), self.padded[0],
+                  self.padded[2], c, self.dt2, self.inv_dx], block_dim=self.core_threads, device=self.device, record_tape=False)  # fmt: skip
 
     def _cpu_step(self, st, out, u_next, vpad, step_args):
         """A CPU step, split among threads by rows: each thread does its rows of the psi strips and of the
@@ -1409,6 +1336,13 @@ class Acoustic:
         dim = (self.n_shots, op.shape[1], self.k.operator_points)
         return self.k.inject, dim, [u, vpad, amplitudes, op, n, clock, self.origin, self.src_scale, self.inv_dx, self.top]
 
+    def _record_launch(self, u, data, op, n: int, clock):
+        clock = self.clock if clock is None else clock
+        if isinstance(op, tuple):
+            kernel, per = (self.k.record_fixed, 1) if self.cuda else (self.k.record_summed, op[1].shape[2])
+            return kernel, (*op[1].shape[:2], op[1].shape[2] // per), [u, data, op[0], op[1], n, clock]
+        return self.k.record, (self.n_shots, op.shape[1], self.k.operator_points), [u, data, op, n, clock, self.origin, self.inv_dx, self.top]
+
     def inject(self, u, vpad, amplitudes, op, n: int, clock=None):
         """Add source samples n (amplitudes (S, n_src, nt)) through the operator op into u; with `clock`
         (int32 device array (1,)) the sample n + clock[0], read when the kernel runs (graph replays)."""
@@ -1417,37 +1351,26 @@ class Acoustic:
 
     def record(self, u, data, op, n: int, clock=None):
         """data[:, :, n] += receiver samples of u through the operator op (clock as in inject)."""
-        clock = self.clock if clock is None else clock
-        if isinstance(op, tuple):
-            kernel, per = (self.k.record_fixed, 1) if self.cuda else (self.k.record_summed, op[1].shape[2])
-            wp.launch(kernel, dim=(*op[1].shape[:2], op[1].shape[2] // per), inputs=[u, data, op[0], op[1], n, clock], device=self.device)
-        else:
-            wp.launch(self.k.record, dim=(self.n_shots, op.shape[1], self.k.operator_points),
-                      inputs=[u, data, op, n, clock, self.origin, self.inv_dx, self.top], device=self.device)  # fmt: skip
+        kernel, dim, inputs = self._record_launch(u, data, op, n, clock)
+        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
 
-    def inject_adjoint(self, b, w, lam, vpad, amplitudes, op, n: int, clock=None):
-        """Adjoint of inject (Warp's generated one) from b = w lam, lam being the adjoint of the u it added
-        into (lam: scratch of the fields' shape, set at the operator's nodes): adds into the gradients
-        (.grad) of vpad, amplitudes and, for a differentiable operator, the locations."""
-        if isinstance(op, tuple):
-            wp.launch(self.k.unscale_fixed, dim=op[1].shape, inputs=[b, w, op[0], op[1], lam], device=self.device)
-        else:
-            wp.launch(self.k.unscale_points, dim=(self.n_shots, op.shape[1], self.k.operator_points),
-                      inputs=[b, w, op, self.origin, self.inv_dx, self.top, lam], device=self.device)  # fmt: skip
-        kernel, dim, inputs = self._inject_launch(lam, vpad, amplitudes, op, n, clock)
-        _adjoint_launch(kernel, dim, inputs, {0: lam}, self.device)
+    def inject_adjoint(self, adj_u, vpad, amplitudes, op, n: int, clock=None):
+        """Adjoint of inject (Warp's generated one): from adj_u, the adjoint of the u it added into, add
+        into the gradients (.grad) of vpad, amplitudes and, for a differentiable operator, the locations."""
+        kernel, dim, inputs = self._inject_launch(adj_u, vpad, amplitudes, op, n, clock)
+        _adjoint_launch(kernel, dim, inputs, {0: adj_u}, self.device)
 
-    def record_adjoint(self, b, w, residual, op, n: int, clock=None):
-        """Adjoint of record (precomputed operator op) into b = w lam: b += w R^T residual[:, :, n + clock[0]]."""
-        clock = self.clock if clock is None else clock
-        wp.launch(self.k.record_adjoint, dim=op[1].shape, inputs=[b, residual, op[0], op[1], w, n, clock], device=self.device)
+    def record_adjoint(self, adj_u, residual, op, n: int, clock=None):
+        """Adjoint of record: adj_u += the receiver operator's transpose applied to residual[:, :, n]."""
+        kernel, dim, inputs = self._record_launch(adj_u, residual, op, n, clock)
+        _adjoint_launch(kernel, dim, inputs, {0: adj_u, 1: residual}, self.device)
 
     def scatter(self, du_next, u_next, u, u_prev, vpad, dvpad):
         """du_next += 2 dv/v (u_next - 2 u + u_prev): the Born (tangent-linear) source term."""
         wp.launch(self.k.scatter, dim=self.interior, inputs=[du_next, u_next, u, u_prev, vpad, dvpad], device=self.device)
 
-    def accumulate_energy(self, u, e, n: int, clock, levels):
-        """e (padded model shape) += sum over shots of u^2 if n + clock[0] < levels[0] (int32 device arrays)."""
+    def accumulate_energy(self, u, e, n: int, clock, levels: int):
+        """e (padded model shape) += sum over shots of u^2 if n + clock[0] < levels; never recorded on a tape."""
         wp.launch(self.k.energy, dim=u.shape, inputs=[u, e, n, clock, levels], device=self.device, record_tape=False)
 
     def physical(self, a):

@@ -42,10 +42,11 @@ above it are folded onto their mirror nodes, with a sign change for szz and sxz 
 without for vx, vz, sxx; a normal-stress node on the surface gets no szz weight.
 
 Kernels. A step is `velocity` then `stress`, each as per-cell reference kernels (what Warp
-differentiates for adjoint="warp") or as the fast path: a `core` kernel over the cells with neither CPML
-nor free surface, on flat arrays with a 1D launch, each thread updating `rows` cells of one column with
-the z-stencil in a sliding register window, plus a `frame` kernel doing the other interior cells with the
-reference's per-cell code. A kernel may write its outputs into its inputs (every cell reads only its own
+differentiates for adjoint="warp") or as the fast path (`make_updates`, one kernel per half step and
+Layout): threads updating tiles of rows x cols cells of the core (the cells with neither CPML nor free
+surface) on flat arrays, with the z-stencil in sliding register windows and each row's values along x
+loaded once per tile, and threads doing the other interior cells (the frame) with the reference's per-cell
+code, in one launch or two. A kernel may write its outputs into its inputs (every cell reads only its own
 old value of a field it writes), so forward steps run in place; under a tape every level needs its own
 arrays. Hand-written adjoints (`*_adjoint`, then `*_transpose`) first compute per cell the adjoint of
 every raw stencil sum (CPML, materials and pointwise terms included) into scratch arrays, then apply the
@@ -65,13 +66,12 @@ from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _i0, fi
 from adseismic.numerics import STAGGERED_DERIVATIVE
 
 
-
 class Layout(NamedTuple):
-    """How the fast path's core is launched: each thread updates a tile of `rows` consecutive rows (z) x `cols`
-    adjacent columns (x), `threads` per block. lean: the core reads 1/rho at the normal-stress nodes instead of
-    bx, bz, and lambda + 2 mu, mu instead of lambda + 2 mu, lambda, mu at the shear nodes (derived in the kernel as
-    `materials` derives them: 4 bytes fewer per cell in each half step). merged: the core and the frame in one
-    launch instead of two."""
+    """How the fast path does the core: each thread updates a tile of `rows` consecutive rows (z) x `cols`
+    adjacent columns (x), `threads` per block. lean: the core reads one model array fewer per cell in each
+    half step, deriving bx, bz from 1/rho at the normal-stress nodes and lambda and the shear nodes' mu from
+    lambda + 2 mu and mu, with `materials`' operations (36 -> 32 and 44 -> 40 bytes per cell). merged: the
+    core and the frame in one launch instead of two."""
 
     rows: int
     cols: int
@@ -80,8 +80,9 @@ class Layout(NamedTuple):
     merged: bool = True
 
 
-# Provisional (not yet timed on a GPU): pick from `benchmarks/speed_elastic.py --variants`, which times LAYOUTS.
-CORE_LAYOUT = Layout(8, 2, 128, lean=True, merged=True)
+# From `benchmarks/speed_elastic.py --variants` on the H200 (step us, E2000 / E600x16): 8 x 2 merged 173 / 283; split 191 / 302;
+# 16 x 2 188 / 331; 8 x 1 193 / 305; 16 x 1 (the previous tile) 220 / 324; lean (one model array fewer) 209-264 / 307-406.
+CORE_LAYOUT = Layout(8, 2, 128, lean=False, merged=True)
 LAYOUTS = (
     Layout(16, 1, 128, False, False),  # the tile of the previous core kernels
     Layout(8, 1, 128, False, False),
@@ -607,7 +608,7 @@ def build(order: int, dtype, free_surface: bool):
                     i += lx
                     c += lx
 
-        @wp.kernel(module="unique", grid_stride=False)
+        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def velocity_update(
             vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2,
             p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
@@ -628,7 +629,7 @@ def build(order: int, dtype, free_surface: bool):
                 velocity_cell(vx, vz, sxx, szz, sxz, bx, bz, p_vx_x, p_vx_z, p_vz_x, p_vz_z, n_vx_x, n_vx_z, n_vz_x, n_vz_z,
                               vx_new, vz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
 
-        @wp.kernel(module="unique", grid_stride=False)
+        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def stress_update(
             vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2,
             p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
@@ -988,7 +989,7 @@ def build(order: int, dtype, free_surface: bool):
 def shear_ratio(dtype):
     """Kernel r = vs / vp on flat arrays (the on-device check of vs <= vp / sqrt(2))."""
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def ratio(vp: wp.array(dtype=dtype), vs: wp.array(dtype=dtype), r: wp.array(dtype=dtype)):
         i = wp.tid()
         r[i] = vs[i] / vp[i]

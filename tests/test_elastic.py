@@ -13,6 +13,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 import adseismic.elastic as E
+import adseismic.kernels.elastic as K
 from adseismic.analytic import elastic_2d_force, elastic_2d_force_spectrum, lamb_2d
 from adseismic.numerics import (
     dispersion_error,
@@ -466,3 +467,78 @@ def test_hand_adjoint_matches_warp_generated(order, free_surface, source_type, s
         a, b = getattr(ref, k), getattr(ours, k)
         assert np.abs(a).max() > 0
         assert np.abs(a - b).max() <= 1e-12 * np.abs(a).max(), k
+
+
+def random_step(prop, seed=5):
+    """One step (no source) from random fields, CPML memory variables and model (a fluid corner: zero shear
+    moduli) on prop's grid, in place with prop.layout, and by the per-cell reference kernels: (fast, reference)
+    arrays of the state."""
+    import warp as wp
+
+    rng = np.random.default_rng(seed)
+    shape = prop.padded
+    vp = 2000.0 + 400.0 * rng.random(shape)
+    vs = vp / 1.8 * (0.7 + 0.3 * rng.random(shape))
+    vs[: shape[0] // 3, : shape[1] // 3] = 0.0
+    rho = 1800.0 + 500.0 * rng.random(shape)
+    mat = prop.materials(*(wp.array(m, dtype=prop.dtype, device=prop.device) for m in (vp, vs, rho)))
+    st, ref = prop.new_state(), prop.new_state()
+    for a, b in zip(st.arrays(), ref.arrays()):
+        a.assign(rng.standard_normal(a.shape))
+        wp.copy(b, a)  # cells the reference does not write (halo) keep their values, as in place
+    with wp.Tape():  # an active tape selects the reference kernels
+        prop.step(st, mat, None, 0, out=ref)
+    prop.step(st, mat, None, 0)
+    return [a.numpy() for a in st.arrays()], [a.numpy() for a in ref.arrays()]
+
+
+@pytest.mark.parametrize("layout, order, free_surface", [(lay, 4, False) for lay in K.LAYOUTS] +
+                         [(K.CORE_LAYOUT, o, fs) for o, fs in ((2, True), (4, True), (8, False), (8, True))])  # fmt: skip
+def test_core_layouts_equal_reference_kernels(layout, order, free_surface):
+    # Every layout the benchmark times (rows x cols tiles, lean model arrays, core and frame merged or not) on a
+    # core whose rows and columns are no multiple of the tile's (22 x 27 cells at order 4), for one step from
+    # random fields: bitwise the per-cell reference kernels' step on the CPU (every sum is formed in the same
+    # order, and the lean core derives bx, bz, lambda and the shear nodes' mu with `materials`' operations). On a
+    # GPU, FMA contraction differs between the kernels: a field's update sums ~10 products of O(max) size, so
+    # float32 rounding (6e-8) stays below 1e-6 of the largest value; 1e-5 leaves headroom.
+    import warp as wp
+
+    prop = K.Elastic((23, 28), 10.0, 1e-3, order, 2, 5, 1e-3, 15.0, 2500.0, free_surface=free_surface, dtype=wp.float32, device=DEVICE)
+    prop.layout = layout
+    core = prop.core
+    assert prop.has_core and min(core[1] - core[0], core[3] - core[2]) > layout.rows
+    fast, ref = random_step(prop)
+    limit = 0.0 if DEVICE == "cpu" else 1e-5
+    for a, b in zip(fast, ref):
+        assert np.abs(a - b).max() <= limit * np.abs(b).max()
+
+
+def test_device_array_models():
+    # vp, vs, rho as Warp arrays (on DEVICE: a GPU's are checked there and never visit the host) give the traces
+    # and gradients of the same values as NumPy arrays, and the same errors for bad values.
+    import warp as wp
+
+    args, kw = small_problem(True, "moment", nt=80)
+    kw.pop("pml_velocity")  # the default, max(vp), from the device array
+    vp, vs, rho, *rest = args
+    models = [m.astype(np.float32).astype(float) for m in (vp, vs, rho)]  # values the float32 arrays hold exactly
+    host = E.forward_elastic(*models, *rest, precision="float32", **kw)
+    dev = E.forward_elastic(*(wp.array(m, dtype=wp.float32, device=DEVICE) for m in models), *rest, precision="float32", **kw)
+    limit = 0.0 if DEVICE == "cpu" else 1e-6
+    for name in E.COMPONENTS:
+        ref = getattr(host, name)
+        assert np.abs(getattr(dev, name) - ref).max() <= limit * np.abs(ref).max(), name
+    common = dict(observed={c: np.zeros_like(getattr(host, c)) for c in E.COMPONENTS}, wrt=("vp", "vs", "rho"), precision="float64", **kw)
+    g_host = E.gradient_elastic(*models, *rest, **common)
+    g_dev = E.gradient_elastic(*(wp.array(m, dtype=wp.float64, device=DEVICE) for m in models), *rest, **common)
+    for name in ("vp", "vs", "rho"):
+        ref = getattr(g_host, name)
+        assert np.abs(getattr(g_dev, name) - ref).max() <= 1e-12 * np.abs(ref).max(), name
+    bad_vs = models[1].copy()
+    bad_vs[3, 4] = -1.0
+    lame = models[1].copy()
+    lame[5, 6] = models[0][5, 6]
+    for m, match in ((bad_vs, r"vs has 1 non-finite or out-of-range values \(first at index \(3, 4\)\)"),
+                     (lame, r"vs > vp / sqrt\(2\) at index \(5, 6\)")):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            E.forward_elastic(*(wp.array(x, dtype=wp.float32, device=DEVICE) for x in (models[0], m, models[2])), *rest, **kw)
