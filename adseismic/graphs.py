@@ -1,12 +1,14 @@
-"""CUDA-graph time loops, shared by the acoustic and elastic forward runs.
+"""CUDA-graph time loops, shared by the acoustic and elastic forward runs (and the kept store that the
+acoustic gradient's Sweep also uses).
 
 Without a tape a time step launches the same few kernels every step, so on a GPU K steps are captured
 once as a CUDA graph and replayed to cover the nt levels; the source and receiver kernels read the
 time index from a device clock that each replay advances. A blow-up guard's statistics (max |u| and
 the count of non-finite values, every `every` levels) are read after each replay. The last captured
-loop is kept, with the arrays its launches read, for the next call with the same key (grid, time step,
-steps, shots, sources, receivers), which copies its inputs into those arrays and replays: no capture,
-no allocation.
+loop of each kind (key[0]: acoustic or elastic forward, gradient) is kept, with the arrays its launches
+read, for the next call with the same key (grid, time step, steps, shots, sources, receivers), which
+copies its inputs into those arrays and replays: no capture, no allocation. One per kind, so that an
+inversion's forward and gradient calls do not evict each other.
 """
 
 from __future__ import annotations
@@ -82,20 +84,25 @@ def replay(loop: Loop, nt: int, guard, progress=None):
             progress.update(min(K, nt - g * K))
 
 
-_KEPT: dict = {}  # the last captured loop (at most one: each holds a full set of wavefields)
+_KEPT: dict = {}  # kind -> the last captured loop of that kind (each holds a full set of wavefields)
 
 
 def kept(key) -> Loop | None:
-    """The kept loop captured under `key`, or None."""
-    return _KEPT.get(key)
+    """The kept loop captured under `key`, or None; a miss frees the kept loop of that kind (the caller
+    captures a new one, which needs the memory)."""
+    loop = _KEPT.get(key[0])
+    if loop is not None and loop.key == key:
+        return loop
+    _KEPT.pop(key[0], None)
+    return None
 
 
-def keep(loop: Loop) -> Loop:
-    _KEPT.clear()
-    _KEPT[loop.key] = loop
+def keep(loop):
+    """Keep `loop` (anything with a `key`), replacing the kept one of its kind."""
+    _KEPT[loop.key[0]] = loop
     return loop
 
 
 def release():
-    """Free the device memory of the kept time loop."""
+    """Free the device memory of the kept time loops."""
     _KEPT.clear()
