@@ -23,8 +23,8 @@ import numpy as np
 import warp as wp
 from tqdm.auto import tqdm
 
-from adseismic.misfits import misfit as named_misfit
 from adseismic import graphs
+from adseismic.misfits import misfit as named_misfit
 from adseismic.propagate import run_steps, setup, velocity_3d
 
 WRT = ("velocity", "source_amplitudes", "source_locations")
@@ -72,7 +72,8 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
 
     def total(seg):
         n_seg = math.ceil(nt / seg)
-        return fixed + (n_seg - 1) * per_ckpt + (seg + 1) * per_level
+        kept = max(n_seg - 2, 0) if hand else n_seg - 1  # the Sweep keeps no checkpoint of the first and last starts
+        return fixed + kept * per_ckpt + (seg + 1) * per_level
 
     if segment_length is not None:
         segment_length = length(int(segment_length))
@@ -250,8 +251,7 @@ class Sweep:
         levels = seg * n_seg
         self.levels = [prop.new_state()] + [prop.new_state(with_prev=False) for _ in range(seg)]
         self.checkpoints = [[wp.empty_like(a) for a in self.levels[0].arrays()] for _ in range(n_seg - 2)]
-        grad = "source_amplitudes" if su.amplitudes.requires_grad else ()
-        self.amplitudes = wp.zeros((*su.amplitudes.shape[:2], levels), dtype=prop.dtype, device=prop.device, requires_grad=bool(grad))
+        self.amplitudes = wp.zeros((*su.amplitudes.shape[:2], levels), dtype=prop.dtype, device=prop.device, requires_grad=su.amplitudes.requires_grad)
         self.vpad = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device, requires_grad=True)
         self.w = wp.zeros_like(self.vpad)
         shape = (prop.n_shots, su.receivers.shape[1], levels)
@@ -265,7 +265,7 @@ class Sweep:
         self.clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
         self.graphs = None
         if prop.cuda:
-            for k in kernels_of(prop, su):
+            for k in kernels_of(prop):
                 wp.load_module(k.module, device=prop.device)
             self.graphs = [self._capture(self._forward_segment), self._capture(self._adjoint_segment)]
 
@@ -363,7 +363,7 @@ def _inputs(su):
     return [a for ax in su.prop.axes for a in (ax.a, ax.b)] + ops
 
 
-def kernels_of(prop, su):
+def kernels_of(prop):
     """Every kernel a Sweep launches (loaded before a capture, which cannot compile)."""
     k = prop.k
     out = [k.step, k.step_frame, prop.core_kernel(), *(k.psi[a][0] for a in range(3)), k.record, k.record_fixed, k.inject, k.inject_fixed]

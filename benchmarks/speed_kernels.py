@@ -152,7 +152,7 @@ def adjoint_times(prop, st, vpad, reps, checks):
         box = prop.adjoint_box
         for rows, cols, block in CORE_VARIANTS:
             kernel = prop.k.adjoint_core(rows, cols)
-            threads = prop.n_shots * -(-(box[1] - box[0]) // rows) * -(-(box[3] - box[2]) // cols)
+            threads = prop.tiles(box, rows, cols)
 
             def core(a, gg):
                 wp.launch(kernel, dim=threads, inputs=[st.u.flatten(), lam.flatten(), a.flatten(), gg.flatten(), w.flatten(), prop.padded[0],

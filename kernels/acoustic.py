@@ -471,6 +471,23 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
              az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
 
+    def make_tile(rows: int, cols: int):
+        @wp.func
+        def tile(t: int, box: wp.vec4i, lz: int, lx: int) -> wp.vec4i:
+            # thread t's tile of `rows` rows x `cols` columns of the box rows [box[0], box[1]) x columns
+            # [box[2], box[3]) of every shot (a 2D grid (lz, lx)): first row z, its number of columns, and the
+            # flat indices of its first cell in a model (z lx + x) and in the fields (shot s)
+            nxc = (box[3] - box[2] + wp.static(cols - 1)) // wp.static(cols)
+            blocks = (box[1] - box[0] + wp.static(rows - 1)) // wp.static(rows)
+            q = t // nxc
+            x = box[2] + (t - q * nxc) * wp.static(cols)
+            s = q // blocks
+            z = box[0] + (q - s * blocks) * wp.static(rows)
+            c = z * lx + x
+            return wp.vec4i(z, wp.min(wp.static(cols), box[3] - x), c, s * lz * lx + c)
+
+        return tile
+
     def make_step_core(rows: int, cols: int):
         # 2D GPU step of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded indices), where
         # there is neither CPML nor a free surface, on the flat arrays (u: S * Lz * Lx, v: Lz * Lx). Thread t
@@ -479,19 +496,12 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         # multi-dimensional thread index costs 64-bit divisions; the loop over rows is unrolled.
         win = wp.types.matrix(shape=(cols, 2 * R + 1), dtype=dtype)
         line = wp.types.vector(length=cols + 2 * R, dtype=dtype)
+        tile = make_tile(rows, cols)
 
         @wp.kernel(module="unique", grid_stride=False)
         def step_core(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
-            t = wp.tid()
-            nxc = (core[3] - core[2] + wp.static(cols - 1)) // wp.static(cols)
-            blocks = (core[1] - core[0] + wp.static(rows - 1)) // wp.static(rows)
-            q = t // nxc
-            x = core[2] + (t - q * nxc) * wp.static(cols)
-            s = q // blocks
-            z = core[0] + (q - s * blocks) * wp.static(rows)
-            ncol = wp.min(wp.static(cols), core[3] - x)
-            c = z * lx + x
-            i = s * lz * lx + c
+            tl = tile(wp.tid(), core, lz, lx)
+            z, ncol, c, i = tl[0], tl[1], tl[2], tl[3]
             w = win()
             for j in range(wp.static(cols)):
                 for m in range(wp.static(2 * R + 1)):
@@ -728,19 +738,12 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         # layout of step_core, with windows of q = w lam (gathered) and of u (the model gradient's Laplacian)
         win = wp.types.matrix(shape=(cols, 2 * R + 1), dtype=dtype)
         line = wp.types.vector(length=cols + 2 * R, dtype=dtype)
+        tile = make_tile(rows, cols)
 
         @wp.kernel(module="unique", grid_stride=False)
         def adjoint_core(u: arr1, lam: arr1, adj: arr1, g: arr1, w: arr1, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
-            t = wp.tid()
-            nxc = (box[3] - box[2] + wp.static(cols - 1)) // wp.static(cols)
-            blocks = (box[1] - box[0] + wp.static(rows - 1)) // wp.static(rows)
-            q = t // nxc
-            x = box[2] + (t - q * nxc) * wp.static(cols)
-            s = q // blocks
-            z = box[0] + (q - s * blocks) * wp.static(rows)
-            ncol = wp.min(wp.static(cols), box[3] - x)
-            c = z * lx + x
-            i = s * lz * lx + c
+            tl = tile(wp.tid(), box, lz, lx)
+            z, ncol, c, i = tl[0], tl[1], tl[2], tl[3]
             wq = win()
             wu = win()
             for j in range(wp.static(cols)):
@@ -1237,8 +1240,7 @@ class Acoustic:
         else:
             box = self.adjoint_box
             if box[1] > box[0]:
-                threads = self.n_shots * -(-(box[1] - box[0]) // self.core_rows) * -(-(box[3] - box[2]) // self.core_cols)
-                wp.launch(self.k.adjoint_core(self.core_rows, self.core_cols), dim=threads, inputs=[st.u.flatten(), lam.flatten(), adj.flatten(), g.flatten(),
+                wp.launch(self.k.adjoint_core(self.core_rows, self.core_cols), dim=self.tiles(box), inputs=[st.u.flatten(), lam.flatten(), adj.flatten(), g.flatten(),
                           w.flatten(), self.padded[0], self.padded[2], box, self.inv_dx], block_dim=self.core_threads, device=self.device)  # fmt: skip
             wp.launch(self.k.adjoint_frame, dim=self.n_shots * self.adjoint_frame_cells, inputs=[*args, box, self.adjoint_frame_cells], device=self.device)
         for a in range(3):
@@ -1246,14 +1248,18 @@ class Acoustic:
                 wp.launch(self.k.psi_adjoint[a], dim=self.strip_shape(a), inputs=[adj, adj_psi[1][a], adj_psi[0][a], adj_zeta[0][a], self.axes[a], self.inv_dx],
                           device=self.device)  # fmt: skip
 
+    def tiles(self, box, rows=None, cols=None) -> int:
+        """Threads of a core-layout launch over `box` (make_tile; default: this helper's rows and columns)."""
+        rows, cols = rows or self.core_rows, cols or self.core_cols
+        return self.n_shots * -(-(box[1] - box[0]) // rows) * -(-(box[3] - box[2]) // cols)
+
     def core_kernel(self):
         return self.k.step_core(self.core_rows, self.core_cols)
 
     def step_core(self, u, u_prev, u_next, vpad):
         """The core part of a 2D GPU step (step_frame does the rest)."""
-        c, rows, cols = self.core, self.core_rows, self.core_cols
-        threads = self.n_shots * -(-(c[1] - c[0]) // rows) * -(-(c[3] - c[2]) // cols)
-        wp.launch(self.core_kernel(), dim=threads, inputs=[u.flatten(), u_prev.flatten(), u_next.flatten(), vpad.flatten(), self.padded[0],
+        c = self.core
+        wp.launch(self.core_kernel(), dim=self.tiles(c), inputs=[u.flatten(), u_prev.flatten(), u_next.flatten(), vpad.flatten(), self.padded[0],
                   self.padded[2], c, self.dt2, self.inv_dx], block_dim=self.core_threads, device=self.device, record_tape=False)  # fmt: skip
 
     def _cpu_step(self, st, out, u_next, vpad, step_args):
