@@ -13,6 +13,11 @@ Conventions (as adseismic.propagate; z depth, positive down):
     "explosive": the moment tensor (1, 1, 0) s(t) (isotropic).
 - receiver data: vx, vz (m/s) sample n at t = (n - 1/2) dt, pressure -(sxx + szz)/2 (Pa) at t = n dt
   (leapfrog staggering in time, see kernels/elastic.py), each (n_shots, n_receivers, nt).
+
+Gradients (gradient_elastic) are the discrete adjoint, checkpointed as in adseismic.gradient: by default an explicit
+time loop of the hand-written adjoint kernels (ElasticSweep; CUDA graphs on a GPU, kept for the next call with the
+same geometry) with Warp differentiating only the materials (vp, vs, rho -> MATERIALS) on a small tape;
+adjoint="warp" differentiates every kernel under wp.Tape (the reference).
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from tqdm.auto import tqdm
 
 from adseismic import graphs
 from adseismic.kernels.acoustic import HICKS_RADIUS, reduction_kernels, value_range
-from adseismic.kernels.elastic import PSI, Elastic, shear_ratio
+from adseismic.kernels.elastic import MATERIALS, PSI, Elastic, shear_ratio
 from adseismic.misfits import misfit as named_misfit
 from adseismic.numerics import check_order, staggered_cfl_limit
 from adseismic.propagate import (
@@ -60,7 +65,8 @@ class ElasticResult:
 class ElasticGradient:
     """Misfit and its gradients: vp, vs (per m/s) and rho (per kg/m^3) (nz, nx); source_amplitudes
     (n_shots, n_src, nt); source_components (n_shots, n_src, 2 or 3); source_locations (n_shots, n_src, 2)
-    per metre; None where not requested. synthetic: {"vx", "vz", "pressure"} data."""
+    per metre; None where not requested. synthetic: {"vx", "vz", "pressure"} data. segment_length (steps) and
+    n_segments of the checkpointed sweep, peak_bytes_estimate its planned memory (plan_segments)."""
 
     loss: float
     synthetic: dict
@@ -72,6 +78,7 @@ class ElasticGradient:
     source_locations: np.ndarray | None = None
     segment_length: int = 0
     n_segments: int = 0
+    peak_bytes_estimate: int = 0
 
 
 def check_model_values(vp, vs, rho, tolerance=1e-12):
@@ -246,11 +253,10 @@ class ElasticBlowupGuard:
             )
 
 
-def run_elastic(su: ElasticSetup, st, mat, data, steps: range, next_state=None, callback=None, tape=None):
+def run_elastic(su: ElasticSetup, st, mat, data, steps: range, next_state=None, callback=None):
     """Record level n into data[..., n - steps.start] and advance one step, for n in steps; returns the state
     at steps.stop (or nt - 1). mat: su.materials(); next_state: callable giving fresh arrays for the next
-    level (needed under a tape); None steps in place. callback(state, n) runs after recording. tape: the
-    active wp.Tape to record the hand-written adjoints on (None: Warp's generated ones)."""
+    level (needed under a tape); None steps in place. callback(state, n) runs after recording."""
     prop = su.prop
     src = su.source_args()
     for n in steps:
@@ -259,7 +265,7 @@ def run_elastic(su: ElasticSetup, st, mat, data, steps: range, next_state=None, 
             callback(st, n)
         if n == su.nt - 1:
             break
-        st = prop.step(st, mat, src, n, next_state() if next_state is not None else None, tape=tape)
+        st = prop.step(st, mat, src, n, next_state() if next_state is not None else None)
     return st
 
 
@@ -299,15 +305,22 @@ def _kept_loop(su: ElasticSetup, every: int) -> graphs.Loop:
         K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
         return graphs.keep(capture(su, prop.new_state(), su.materials(), _new_data(su, K * n_graphs), every))
     mine = loop.kept
-    pairs = [(getattr(a, f), getattr(b, f)) for a, b in zip(mine.su.prop.axes, prop.axes) for f in ("a", "b", "ah", "bh")]
-    pairs += list(zip(mine.mat, su.materials())) + list(zip(mine.su.receiver_op, su.receiver_op))
-    pairs += [(mine.su.components, su.components), (mine.su.sources, su.sources)]
-    for a, b in pairs:
-        wp.copy(a, b)
+    _refill(mine.su, mine.mat, su, su.materials())
     mine.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), loop.K * loop.graphs + 1, prop.dtype))
     for a in (*mine.st.arrays(), *mine.data, loop.clock):
         a.zero_()
     return loop
+
+
+def _refill(mine: ElasticSetup, mine_mat, su: ElasticSetup, mat):
+    """Copy su's inputs (CPML coefficients, MATERIALS mat, receiver operator, source components and locations) into
+    those of a kept loop or sweep made for `mine` (same key)."""
+    pairs = [(getattr(a, f), getattr(b, f)) for a, b in zip(mine.prop.axes, su.prop.axes) for f in ("a", "b", "ah", "bh")]
+    pairs += list(zip(mine_mat, mat)) + list(zip(mine.receiver_op, su.receiver_op))
+    pairs += [(mine.components, su.components), (mine.sources, su.sources)]
+    for a, b in pairs:
+        if a.ptr != b.ptr:  # (mine is su on a sweep's first call)
+            wp.copy(a, b)
 
 
 def _new_data(su, n, requires_grad=False):
@@ -349,16 +362,44 @@ def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
     return ElasticResult(vx=vx, vz=vz, pressure=p, dt=float(dt))
 
 
-def _segment_length(prop, nt, memory_budget, segment_length):
-    """Checkpoint spacing: pinned, all steps when they fit memory_budget (bytes), else ~sqrt(nt)."""
-    if segment_length is not None:
-        return int(segment_length)
+def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_length: int | None = None, adjoint: str = "hand"):
+    """(segment_length, estimated peak bytes) of the checkpointed sweep.
+
+    memory_budget (bytes) caps the checkpoints (States) plus one segment's levels (and, for adjoint="hand", the
+    sweep's fixed arrays); None picks the memory minimum (~sqrt(nt) steps); segment_length (at most nt) pins the
+    length instead. The hand-written sweep keeps a State per level and its segments have an even length (its
+    adjoint States alternate; the last segment runs past nt into zero sources and residuals); Warp's tape keeps
+    each level's adjoint too.
+    """
     item = 4 if prop.dtype == wp.float32 else 8
-    cells = 5 * prop.n_shots * math.prod(prop.padded) + sum(math.prod(prop.psi_shape(k)) for k in PSI)
-    per_step = 2 * item * cells  # fresh fields and CPML memory variables, and their adjoints
-    if memory_budget is not None and nt * per_step <= memory_budget:
-        return nt
-    return max(1, int(round(math.sqrt(nt))))
+    fields, model = prop.n_shots * math.prod(prop.padded), math.prod(prop.padded)
+    state = item * (5 * fields + sum(math.prod(prop.psi_shape(k)) for k in PSI))
+    hand = adjoint == "hand"
+    step = 2 if hand else 1
+    # hand: two adjoint States, four scratch fields, MATERIALS and their adjoints (sweep and model tape), padded models
+    fixed = 2 * state + item * (4 * fields + 33 * model) if hand else 0
+
+    def length(seg):
+        return -(-seg // step) * step
+
+    def total(seg):
+        n_seg = math.ceil(nt / seg)
+        if hand:  # no checkpoint of the first and the last segments' starts
+            return fixed + max(n_seg - 2, 0) * state + (seg + 1) * state
+        return (n_seg - 1) * state + (seg + 2) * 2 * state  # taped levels and two starts, with adjoints
+
+    if segment_length is not None:
+        seg = length(min(max(int(segment_length), 1), nt))
+    elif memory_budget is not None and total(length(nt)) <= memory_budget:
+        seg = length(nt)
+    else:
+        candidates = range(step, length(nt) + 1, step)
+        fits = [s for s in candidates if memory_budget is None or total(s) <= memory_budget]
+        if not fits:
+            need = min(total(s) for s in candidates)
+            raise ValueError(f"memory_budget = {memory_budget / 2**20:.1f} MiB is below the minimum {need / 2**20:.1f} MiB this gradient needs; raise it or use fewer shots per call")
+        seg = min(fits, key=total) if memory_budget is None else max(fits)
+    return int(seg), int(total(seg))
 
 
 def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
@@ -366,17 +407,19 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
                      order=4, pml_width=None, pml_reflection=None, pml_frequency=None, pml_velocity=None,
                      free_surface=False, device="cpu", precision="float32", memory_budget=None, segment_length=None,
                      adjoint="hand", progress=False) -> ElasticGradient:  # fmt: skip
-    """Misfit between simulated and observed data and its exact gradient (discrete adjoint by wp.Tape).
+    """Misfit between simulated and observed data and its exact gradient (the discrete adjoint).
 
     observed: {"vx": ..., "vz": ..., "pressure": ...} arrays (n_shots, n_receivers, nt) for the names in
     `components`; misfit: a name in misfits.MISFITS (summed over components) or a callable
     synthetic dict -> (J, {name: dJ/d synthetic}). wrt: any of WRT. Memory is bounded by checkpointing
-    (gradient.py's scheme): the state every segment_length steps (default ~sqrt(nt), or every step when
-    memory_budget bytes allow), each segment re-run under a fresh tape with its own arrays per level (the
-    last segment is taped in the forward sweep itself). adjoint: "hand" (the hand-written adjoints of the
-    stencil kernels) or "warp" (Warp's generated adjoints of every kernel, the reference the hand-written
-    ones are tested against). Other arguments as in forward_elastic. PML settings are treated as fixed
-    (pin pml_velocity and pml_frequency when the model changes between calls).
+    (plan_segments): memory_budget bytes, None for the minimum (~sqrt(nt) steps per segment); segment_length
+    pins the checkpoint spacing instead (rounded up to even for adjoint="hand"). adjoint: "hand" (ElasticSweep:
+    the hand-written adjoints of the stencil kernels in an explicit time loop; on a GPU captured as CUDA graphs
+    and kept, with its arrays, for the next call with the same grid, steps, shots and geometry: graphs.release()
+    frees it) or "warp" (Warp's generated adjoints of every kernel under wp.Tape, the reference the hand-written
+    ones are tested against). The materials' chain rule to vp, vs, rho is Warp's in both. Other arguments as in
+    forward_elastic. PML settings are treated as fixed (pin pml_velocity and pml_frequency when the model changes
+    between calls).
     """
     unknown = set(wrt) - set(WRT)
     if unknown:
@@ -387,7 +430,6 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
                        source_components=source_components, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
                        pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
                        precision=precision, requires_grad=set(wrt))  # fmt: skip
-    prop, nt = su.prop, su.nt
     if callable(misfit):
         loss_fn = misfit
     else:
@@ -399,8 +441,34 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
                 total += j
             return total, adj
 
-    seg = _segment_length(prop, nt, memory_budget, segment_length)
-    n_seg = math.ceil(nt / seg)
+    seg, peak = plan_segments(su.prop, su.nt, memory_budget, segment_length, adjoint)
+    n_seg = math.ceil(su.nt / seg)
+    bar = tqdm(total=2 * n_seg, desc="gradient segments", disable=not progress, leave=False)
+    sweep = _hand_sweep if adjoint == "hand" else _taped_sweep
+    loss, synthetic, grads = sweep(su, seg, n_seg, loss_fn, bar)
+    bar.close()
+    res = ElasticGradient(loss=float(loss), synthetic=synthetic, segment_length=seg, n_segments=n_seg, peak_bytes_estimate=peak)
+    for name in wrt:
+        setattr(res, name, grads[name])
+    return res
+
+
+def _gradients(su: ElasticSetup, sources) -> dict:
+    """{name in WRT: gradient as NumPy array}: vp, vs, rho from the models' .grad, the sources' from `sources` (the
+    adjoints of the amplitudes, cut to nt samples, the components and the locations); names without one are left out."""
+    arrays = {**dict(zip(("vp", "vs", "rho"), (m.grad for m in su.model))), **dict(zip(WRT[3:], sources))}
+    out = {k: a.numpy().astype(float) for k, a in arrays.items() if a is not None}
+    if "source_amplitudes" in out:
+        out["source_amplitudes"] = out["source_amplitudes"][:, :, : su.nt]
+    return out
+
+
+def _taped_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar):
+    """Warp's generated adjoints: a forward sweep without a tape up to the last segment, keeping the state at the
+    start of every segment; then each segment, last first, re-run under a fresh tape with its own arrays per level
+    (the last one's run is the forward sweep's end) and back-propagated with the data residual and the adjoint State
+    carried from the later segment. Returns (loss, synthetic, gradients)."""
+    prop, nt = su.prop, su.nt
     levels = [prop.new_state(requires_grad=True) for _ in range(seg)]
     starts = [prop.new_state(requires_grad=True) for _ in range(2)]
 
@@ -414,12 +482,9 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
         pool = iter(levels)
         tape = wp.Tape()
         with tape:
-            st = run_elastic(su, st0, su.materials(requires_grad=True), data_seg, range(n0, n1), next_state=lambda: next(pool),
-                             tape=tape if adjoint == "hand" else None)  # fmt: skip
+            st = run_elastic(su, st0, su.materials(requires_grad=True), data_seg, range(n0, n1), next_state=lambda: next(pool))
         return tape, st, data_seg
 
-    # forward sweep without a tape up to the last segment, keeping the state at the start of every segment;
-    # the last segment's state goes to starts[0] and that segment runs under its tape
     last = (n_seg - 1) * seg
     data = _new_data(su, last)
     checkpoints = []
@@ -432,10 +497,11 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
     for dst, a in zip(starts[0].arrays(), st.arrays()):
         wp.copy(dst, a)
     pending = taped(n_seg - 1, starts[0])
+    bar.update(n_seg)
     synthetic = {c: np.concatenate([a.numpy(), b.numpy()], axis=2).astype(float) for c, a, b in zip(COMPONENTS, data, pending[2])}
     loss, adj = loss_fn(synthetic)
     carry = None
-    for i, k in enumerate(tqdm(reversed(range(n_seg)), total=n_seg, desc="adjoint segments", disable=not progress, leave=False)):
+    for i, k in enumerate(reversed(range(n_seg))):
         n0, n1 = k * seg, min((k + 1) * seg, nt)
         st0 = starts[i % 2]
         if i:
@@ -447,18 +513,164 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
             a.grad.zero_()
         tape, st, data_seg = pending
         pending = None
-        seeds = {}
-        for name, d in zip(COMPONENTS, data_seg):
-            if name in adj:
-                seeds[d] = wp.array(np.ascontiguousarray(adj[name][:, :, n0:n1]), dtype=prop.dtype, device=prop.device)
+        seeds = {d: wp.array(np.ascontiguousarray(adj[c][:, :, n0:n1]), dtype=prop.dtype, device=prop.device)
+                 for c, d in zip(COMPONENTS, data_seg) if c in adj}  # fmt: skip
         if carry is not None:
             seeds.update(zip(st.arrays(), carry))
         tape.backward(grads=seeds)
         carry = [a.grad for a in st0.arrays()]
         del tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
-    res = ElasticGradient(loss=float(loss), synthetic=synthetic, segment_length=seg, n_segments=n_seg)
-    arrays = dict(zip(("vp", "vs", "rho"), su.model), source_amplitudes=su.amplitudes, source_components=su.components,
-                  source_locations=su.sources)  # fmt: skip
-    for name in wrt:
-        setattr(res, name, arrays[name].grad.numpy().astype(float))
-    return res
+        bar.update()
+    return loss, synthetic, _gradients(su, [a.grad for a in (su.amplitudes, su.components, su.sources)])
+
+
+def _hand_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar):
+    """The ElasticSweep (the kept one on a GPU), with MATERIALS differentiated by Warp on a small tape around them
+    (its backward maps the sweep's adjoints of MATERIALS to vp, vs, rho). Returns (loss, synthetic, gradients)."""
+    model_tape = wp.Tape()
+    with model_tape:
+        mat = su.materials(requires_grad=True)
+    sw = _kept_sweep(su, seg, n_seg)
+    sw.refill(su, mat)
+    sw.forward_sweep(bar)
+    synthetic = {c: d.numpy()[:, :, : su.nt].astype(float) for c, d in zip(COMPONENTS, sw.data)}
+    loss, adj = loss_fn(synthetic)
+    for c, r in zip(COMPONENTS, sw.residual):
+        if c in adj:
+            r.assign(graphs.padded_samples(np.asarray(adj[c], dtype=float), seg * n_seg, su.prop.dtype))
+    sw.backward_sweep(bar)
+    model_tape.backward(grads=dict(zip(mat[: len(sw.adj_mat)], sw.adj_mat)))
+    del model_tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
+    return loss, synthetic, _gradients(su, sw.adj_sources)
+
+
+class ElasticSweep:
+    """The hand-written adjoint time loop of one geometry, with every array it reads.
+
+    The forward sweep runs the segments of `seg` steps, each from levels[0] (its start State) out of place into
+    levels[1..seg], and keeps the start of every segment but the first (zero) and the last (still in `levels` when
+    the backward sweep begins) as a checkpoint. The backward sweep runs the segments last first: the forward steps
+    again from the checkpoint, then the adjoint steps back through the levels, the adjoint State of level j in
+    adj[j % 2], zeroed just before its step (seg is even, so adj[0] carries the adjoint of a segment's start to the
+    previous segment). The adjoints of MATERIALS (adj_mat) and of the sources' amplitudes, components and locations
+    (adj_sources) accumulate over all steps. Time indices are j + clock[0] (the segment's first level), so one
+    captured graph per direction serves every segment; nt is padded to n_seg * seg levels with zero source samples
+    and residuals. data and residual: (vx, vz, pressure) arrays (S, n_rec, n_seg * seg).
+    """
+
+    def __init__(self, key, su: ElasticSetup, seg: int, n_seg: int):
+        prop = su.prop
+        self.key, self.su, self.seg, self.n_seg = key, su, seg, n_seg
+        levels = seg * n_seg
+
+        def zeros(shape):
+            return wp.zeros(shape, dtype=prop.dtype, device=prop.device)
+
+        self.levels = [prop.new_state() for _ in range(seg + 1)]
+        self.checkpoints = [prop.new_state() for _ in range(n_seg - 2)]
+        self.mat = tuple(zeros(prop.padded) for _ in MATERIALS)
+        self.adj_mat = tuple(zeros(prop.padded) for _ in MATERIALS[:-1])  # b is the lean core's alone (not differentiated)
+        self.amplitudes = zeros((*su.amplitudes.shape[:2], levels + 1))  # + 1: a moment source reads sample n + 1
+        self.sources = (su.kind, self.amplitudes, su.components, su.sources)
+        self.adj_sources = tuple(zeros(a.shape) for a in self.sources[1:])
+        self.data = _new_data(su, levels)
+        self.residual = _new_data(su, levels)
+        self.adj = [prop.new_state() for _ in range(2)]
+        self.scratch = [zeros((prop.n_shots, *prop.padded)) for _ in range(4)]  # their halo stays zero
+        self.clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
+        self.graphs = None
+        if prop.cuda:
+            for k in _sweep_kernels(su):
+                wp.load_module(k.module, device=prop.device)
+            self.graphs = [self._capture(self._forward_segment), self._capture(self._adjoint_segment)]
+
+    def _capture(self, fn):
+        with wp.ScopedCapture(device=self.su.prop.device, force_module_load=False) as cap:
+            fn()
+        return cap.graph
+
+    def _run(self, which: int, n0: int):
+        self.clock.fill_(n0)
+        if self.graphs is None:
+            (self._forward_segment, self._adjoint_segment)[which]()
+        else:
+            wp.capture_launch(self.graphs[which])
+
+    def _forward_segment(self):
+        su, lv = self.su, self.levels
+        for j in range(self.seg):
+            su.prop.record(lv[j], self.data, su.receiver_op, j, self.clock)
+            su.prop.step(lv[j], self.mat, self.sources, j, out=lv[j + 1], clock=self.clock)
+
+    def _adjoint_segment(self):
+        su, lv = self.su, self.levels
+        for j in reversed(range(self.seg)):
+            adj = self.adj[j % 2]
+            for a in adj.arrays():
+                a.zero_()
+            su.prop.adjoint_step(lv[j], lv[j + 1], self.mat, self.adj[(j + 1) % 2], adj, self.adj_mat, self.sources, self.adj_sources,
+                                 self.scratch, j, self.clock)  # fmt: skip
+            su.prop.record_adjoint(adj, self.residual, su.receiver_op, j, self.clock)
+
+    def forward_sweep(self, bar):
+        """The forward steps of every segment; data then holds the synthetic (the backward sweep adds to it again)."""
+        end = self.levels[self.seg]
+        for k in range(self.n_seg):
+            if k > 0:
+                _copy_state(self.levels[0], end)
+                if k < self.n_seg - 1:
+                    _copy_state(self.checkpoints[k - 1], end)
+            self._run(0, k * self.seg)
+            bar.update()
+
+    def backward_sweep(self, bar):
+        """The adjoint steps of every segment, last first (the residual set)."""
+        for k in reversed(range(self.n_seg)):
+            if k < self.n_seg - 1:
+                if k == 0:
+                    for a in self.levels[0].arrays():
+                        a.zero_()
+                else:
+                    _copy_state(self.levels[0], self.checkpoints[k - 1])
+                self._run(0, k * self.seg)
+            self._run(1, k * self.seg)
+            bar.update()
+
+    def refill(self, su: ElasticSetup, mat):
+        """Copy su's inputs (CPML coefficients, MATERIALS mat, operators, source samples) into the kept arrays and
+        zero the start State, data, residuals and adjoints."""
+        _refill(self.su, self.mat, su, mat)
+        self.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], su.prop.dtype))
+        for a in (*self.levels[0].arrays(), *self.data, *self.residual, *(a for st in self.adj for a in st.arrays()), *self.adj_mat,
+                  *self.adj_sources):  # fmt: skip
+            a.zero_()
+
+
+def _copy_state(dst, src):
+    for a, b in zip(dst.arrays(), src.arrays()):
+        wp.copy(a, b)
+
+
+def _sweep_kernels(su: ElasticSetup):
+    """Every kernel an ElasticSweep launches (loaded before a capture, which cannot compile)."""
+    prop, k = su.prop, su.prop.k
+    updates = prop.update_kernels() if prop.has_core else (k.velocity, k.stress)
+    return (*updates, k.record, k.inject_force if su.kind == "force" else k.inject_moment, k.velocity_adjoint, k.velocity_transpose,
+            k.stress_adjoint, k.stress_transpose)  # fmt: skip
+
+
+def _sweep_key(su: ElasticSetup, seg: int, n_seg: int) -> tuple:
+    p = su.prop
+    return ("elastic_gradient", p.k, p.layout, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, seg, n_seg, su.amplitudes.shape,
+            su.receivers.shape, su.kind)  # fmt: skip
+
+
+def _kept_sweep(su: ElasticSetup, seg: int, n_seg: int) -> ElasticSweep:
+    """The kept ElasticSweep for this geometry (CUDA), else a new one (kept on CUDA)."""
+    key = _sweep_key(su, seg, n_seg)
+    sw = graphs.kept(key)
+    if sw is None:
+        sw = ElasticSweep(key, su, seg, n_seg)
+        if su.prop.cuda:
+            graphs.keep(sw)
+    return sw

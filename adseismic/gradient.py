@@ -55,8 +55,8 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
 
     memory_budget (bytes) caps checkpoints + one segment's levels; None picks the memory minimum. The
     hand-written sweep keeps, per level of a segment, u and the CPML strips (psi, zeta); Warp's tape keeps
-    their adjoints too. Its segments have an even length (the adjoint's buffers alternate), and the last one
-    runs past nt into zero sources and residuals.
+    their adjoints too. Its segments are a multiple of 6 steps long (the adjoint's buffers rotate in threes
+    and twos), and the last one runs past nt into zero sources and residuals.
     """
     item = 4 if prop.dtype == wp.float32 else 8
     cells = prop.n_shots * math.prod(prop.padded)
@@ -64,8 +64,8 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
     hand = adjoint == "hand"
     per_level = item * (cells + 2 * strips) * (1 if hand else 2)
     per_ckpt = item * (2 * cells + 2 * strips)
-    fixed = item * (3 * cells + 4 * strips + 3 * math.prod(prop.padded)) if hand else 0  # adjoint ring, g, strips' adjoints, vpad, w
-    step = 2 if hand else 1
+    fixed = item * (5 * cells + 4 * strips + 3 * math.prod(prop.padded)) if hand else 0  # adjoint ring, g pair, strips' adjoints, vpad, w
+    step = 6 if hand else 1
 
     def length(seg):
         return -(-seg // step) * step
@@ -102,7 +102,7 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
     (numpy array theta) and `velocity(theta: wp.array) -> wp.array` (nz, [ny,] nx) written with Warp
     kernels; velocity is then ignored except for its shape and the gradient is returned for theta.
     memory_budget: bytes for checkpoints plus one segment's levels; segment_length pins the checkpoint
-    spacing instead (rounded up to even for adjoint="hand").
+    spacing instead (rounded up to a multiple of 6 for adjoint="hand").
     adjoint: "hand" (the hand-written adjoint time loop; on a GPU captured as CUDA graphs and kept, with
     its arrays, for the next call with the same grid, steps, shots and geometry: graphs.release() frees it)
     or "warp" (Warp's generated adjoints of every kernel under wp.Tape; the reference the hand-written one
@@ -239,10 +239,12 @@ class Sweep:
     The forward sweep runs the segments of `seg` steps, each from levels[0] (its start state) into
     levels[1..seg] (u[n], psi[n], zeta[n] of every level), and keeps each segment's start as a
     checkpoint. The backward sweep runs the segments last first: the forward steps again from the
-    checkpoint (but for the last segment, still in `levels`), then the adjoint steps back through them,
-    the adjoint of u in two buffers that alternate (`lam`), of psi and zeta likewise. Time indices are
-    k + clock[0] (the segment's first level), so one captured graph per direction serves every segment;
-    nt is padded to n_seg * seg with zero source samples and residuals.
+    checkpoint (but for the last segment, still in `levels`), then the adjoint steps back through them:
+    the adjoint of u at level j in lam[j % 3], the sum g of the model gradient alternating between two
+    buffers (a GPU writes an array faster than it updates one in place), the adjoints of psi and zeta
+    alternating likewise; seg is a multiple of 6, so every segment starts with the same roles. Time
+    indices are k + clock[0] (the segment's first level), so one captured graph per direction serves every
+    segment; nt is padded to n_seg * seg with zero source samples and residuals.
     """
 
     def __init__(self, key, su, seg: int, n_seg: int, illumination: bool):
@@ -257,8 +259,8 @@ class Sweep:
         shape = (prop.n_shots, su.receivers.shape[1], levels)
         self.data = wp.zeros(shape, dtype=prop.dtype, device=prop.device)
         self.residual = wp.zeros(shape, dtype=prop.dtype, device=prop.device)
-        self.lam = [wp.zeros_like(self.levels[0].u) for _ in range(2)]
-        self.g = wp.zeros_like(self.levels[0].u)
+        self.lam = [wp.zeros_like(self.levels[0].u) for _ in range(3)]
+        self.g = [wp.zeros_like(self.levels[0].u) for _ in range(2)]
         self.adj_psi = [prop.new_state(with_prev=False).psi for _ in range(2)]
         self.adj_zeta = [prop.new_state(with_prev=False).zeta for _ in range(2)]
         self.energy = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device) if illumination else None
@@ -285,19 +287,18 @@ class Sweep:
         su, prop, lv = self.su, self.su.prop, self.levels
         st = lv[0]
         for j in range(self.seg):
-            prop.record(st.u, self.data, su.receiver_op, j, self.clock)
-            st = prop.step(st, self.vpad, out=lv[j + 1])
+            st = prop.step(st, self.vpad, out=lv[j + 1], record=(self.data, su.receiver_op, j, self.clock))
             prop.inject(st.u, self.vpad, self.amplitudes, su.source_op, j, self.clock)
 
     def _adjoint_segment(self):
         su, prop, lv = self.su, self.su.prop, self.levels
         for j in reversed(range(self.seg)):
-            lam, adj = self.lam[(j + 1) % 2], self.lam[j % 2]
+            lam, adj, out = (self.lam[(j + d) % 3] for d in (1, 2, 0))
             psi = (self.adj_psi[(j + 1) % 2], self.adj_psi[j % 2])
             zeta = (self.adj_zeta[(j + 1) % 2], self.adj_zeta[j % 2])
             prop.inject_adjoint(lam, self.vpad, self.amplitudes, su.source_op, j, self.clock)
-            prop.adjoint_step(lv[j], lv[j + 1], self.vpad, self.w, lam, adj, self.g, psi, zeta)
-            prop.record_adjoint(adj, self.residual, su.receiver_op, j, self.clock)
+            prop.adjoint_step(lv[j], lv[j + 1], self.vpad, self.w, lam, adj, self.g[(j + 1) % 2], psi, zeta,
+                              residual=(self.residual, su.receiver_op, j, self.clock), out=(out, self.g[j % 2]))  # fmt: skip
             if self.energy is not None:
                 prop.accumulate_energy(lv[j].u, self.energy, j, self.clock, su.nt)
 
@@ -340,7 +341,7 @@ class Sweep:
         self.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), self.seg * self.n_seg, prop.dtype))
         wp.copy(self.vpad, vpad)
         wp.launch(prop.k.squared, dim=prop.padded, inputs=[self.vpad, prop.dt2, self.w], device=prop.device)
-        zero = [self.data, self.g, *self.lam, *(a for r in (self.adj_psi, self.adj_zeta) for p in r for a in p), self.vpad.grad]
+        zero = [self.data, *self.g, *self.lam, *(a for r in (self.adj_psi, self.adj_zeta) for p in r for a in p), self.vpad.grad]
         zero += [a.grad for a in (self.amplitudes, mine.sources) if a.requires_grad]
         zero += [self.energy] if self.energy is not None else []
         for a in zero:
@@ -349,7 +350,7 @@ class Sweep:
     def collect(self, su, vpad, energy):
         """Move the results to su's arrays: dJ/dvpad into vpad.grad, dJ/d(locations), the illumination."""
         prop = su.prop
-        wp.launch(prop.k.model_gradient, dim=prop.padded, inputs=[self.vpad, self.g, prop.dt2, self.vpad.grad], device=prop.device)
+        wp.launch(prop.k.model_gradient, dim=prop.padded, inputs=[self.vpad, self.g[0], prop.dt2, self.vpad.grad], device=prop.device)
         wp.copy(vpad.grad, self.vpad.grad)
         if su.sources.requires_grad and su.sources is not self.su.sources:
             wp.copy(su.sources.grad, self.su.sources.grad)
@@ -366,8 +367,8 @@ def _inputs(su):
 def kernels_of(prop):
     """Every kernel a Sweep launches (loaded before a capture, which cannot compile)."""
     k = prop.k
-    out = [k.step, k.step_frame, prop.core_kernel(), *(k.psi[a][0] for a in range(3)), k.record, k.record_fixed, k.inject, k.inject_fixed]
-    out += [k.adjoint_step, k.adjoint_frame, k.adjoint_core(prop.core_rows, prop.core_cols), *k.psi_adjoint, k.energy]
+    out = [k.step, k.pre_step, prop.core_kernel(), *(k.psi[a][0] for a in range(3)), k.record, k.record_fixed, k.inject, k.inject_fixed]
+    out += [k.adjoint_step, k.post_adjoint, prop.adjoint_kernel(), *k.psi_adjoint, k.energy]
     return out
 
 

@@ -24,11 +24,12 @@ from adseismic.kernels.acoustic import tick
 GRAPH_STEPS = 50  # time steps per captured graph (rounded to a multiple of the guard's interval)
 
 
-def graph_plan(cuda: bool, nt: int, every: int) -> tuple[int, int]:
-    """(K, graphs): K steps per graph (even, as in-place steps swap buffers, and a multiple of `every`),
-    replayed `graphs` times to cover the nt levels (the last replay runs up to K - 1 levels past them,
-    into padding); graphs = 0 where none are used (CPU, or fewer than two replays)."""
-    K = math.lcm(2, every)
+def graph_plan(cuda: bool, nt: int, every: int, period: int = 2) -> tuple[int, int]:
+    """(K, graphs): K steps per graph (a multiple of `period`, after which the steps' buffers are back in
+    their roles, and of `every`), replayed `graphs` times to cover the nt levels (the last replay runs up to
+    K - 1 levels past them, into padding, unless capture was given nt); graphs = 0 where none are used
+    (CPU, or fewer than two replays)."""
+    K = math.lcm(period, every)
     K *= max(1, GRAPH_STEPS // K)
     graphs = -(-nt // K)
     return K, graphs if cuda and graphs >= 2 else 0
@@ -43,8 +44,9 @@ def padded_samples(amplitudes: np.ndarray, levels: int, dtype) -> np.ndarray:
 
 @dataclass
 class Loop:
-    """A captured time loop: the graph of K steps, replayed `graphs` times, the guard's statistics
-    (K // every, 2), the device clock, and `kept`: the arrays its launches read (physics-specific)."""
+    """A captured time loop: the graph of K steps, replayed `graphs` times (the last time `tail`, the
+    graph of the remaining steps, where there is one), the guard's statistics (K // every, 2), the device
+    clock, and `kept`: the arrays its launches read (physics-specific)."""
 
     key: tuple
     graph: object
@@ -54,21 +56,28 @@ class Loop:
     stats: wp.array
     clock: wp.array
     kept: object
+    tail: object = None
 
 
-def capture(key, device, dtype, K: int, graphs: int, every: int, step, kernels, kept) -> Loop:
+def capture(key, device, dtype, K: int, graphs: int, every: int, step, kernels, kept, nt: int | None = None) -> Loop:
     """Capture step(k, clock, stats) for k < K, stats being the guard's row (2,) at levels k % every == 0
     and None otherwise, then the clock's advance; kernels: every kernel the steps launch (loaded first,
-    as a capture cannot compile)."""
+    as a capture cannot compile). With nt, the last replay's steps past nt are left out (a second graph of
+    the steps before them)."""
     stats = wp.zeros((K // every, 2), dtype=dtype, device=device)
     clock = wp.zeros(1, dtype=wp.int32, device=device)
     for k in (*kernels, tick):
         wp.load_module(k.module, device=device)
-    with wp.ScopedCapture(device=device, force_module_load=False) as cap:
-        for k in range(K):
-            step(k, clock, stats[k // every] if k % every == 0 else None)
-        wp.launch(tick, dim=1, inputs=[clock, K], device=device)
-    return Loop(key, cap.graph, K, graphs, every, stats, clock, kept)
+
+    def graph(steps):
+        with wp.ScopedCapture(device=device, force_module_load=False) as cap:
+            for k in range(steps):
+                step(k, clock, stats[k // every] if k % every == 0 else None)
+            wp.launch(tick, dim=1, inputs=[clock, steps], device=device)
+        return cap.graph
+
+    last = K if nt is None else nt - (graphs - 1) * K
+    return Loop(key, graph(K), K, graphs, every, stats, clock, kept, graph(last) if last < K else None)
 
 
 def replay(loop: Loop, nt: int, guard, progress=None):
@@ -76,7 +85,7 @@ def replay(loop: Loop, nt: int, guard, progress=None):
     after each replay (the levels past nt - 1 are padding)."""
     K, every = loop.K, loop.every
     for g in range(loop.graphs):
-        wp.capture_launch(loop.graph)
+        wp.capture_launch(loop.tail if g == loop.graphs - 1 and loop.tail is not None else loop.graph)
         for j, (amax, nonfinite) in enumerate(loop.stats.numpy()):
             if g * K + j * every < nt:
                 guard.check(g * K + j * every, float(amax), float(nonfinite))

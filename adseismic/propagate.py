@@ -22,7 +22,7 @@ import warp as wp
 from tqdm.auto import tqdm
 
 from adseismic import graphs
-from adseismic.kernels.acoustic import HICKS_RADIUS, Acoustic, reduction_kernels, value_range
+from adseismic.kernels.acoustic import HICKS_RADIUS, Acoustic, State, reduction_kernels, value_range
 from adseismic.numerics import cfl_limit, check_order
 
 log = logging.getLogger(__name__)
@@ -248,41 +248,48 @@ def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback
     """Record u[n] into data[:, :, n - steps.start] and advance one step, for n in steps; returns the
     state at steps.stop (or at nt - 1). next_state: callable returning the arrays of the next level
     (each level needs its own under wp.Tape); None updates the state in place. callback(state, n)
-    runs at each level n after recording."""
+    runs at each level n before it is recorded and stepped from."""
     prop = su.prop
     for n in steps:
-        prop.record(st.u, data, su.receiver_op, n - steps.start)
         if callback is not None:
             callback(st, n)
+        record = (data, su.receiver_op, n - steps.start, None)
         if n == su.nt - 1:
+            prop.record(st.u, *record)
             break
-        st = prop.step(st, vpad, next_state() if next_state is not None else None)
+        st = prop.step(st, vpad, next_state() if next_state is not None else None, record=record)
         prop.inject(st.u, vpad, su.amplitudes, su.source_op, n)
     return st
 
 
+ROLES = 3  # the GPU time loop's wavefield buffers: u[n+1] goes to the third (a GPU writes an array faster than it updates one in place)
+
+
 def capture(su: Setup, st, vpad, data, every: int) -> graphs.Loop:
     """The untaped time loop of run_steps (record, the guard's check every `every` levels, step, inject)
-    captured as a CUDA graph (graphs.capture); data must have K * graphs samples (graphs.graph_plan)."""
+    captured as a CUDA graph (graphs.capture), u[n+1] written into a third buffer (kept.spare) instead of
+    over u[n-1]; data must have K * graphs samples (graphs.graph_plan with period ROLES)."""
     prop = su.prop
-    K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
+    K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every, ROLES)
     if data.shape[2] < K * n_graphs:
         raise ValueError(f"data has {data.shape[2]} samples; the graph replays record {K * n_graphs}")
     amplitudes = wp.array(graphs.padded_samples(su.amplitudes.numpy(), K * n_graphs, prop.dtype), dtype=prop.dtype, device=prop.device)
-    state = [st]
+    spare = wp.zeros_like(st.u)
+    state = [st, spare]
 
     def step(k, clock, stats):
-        prop.record(state[0].u, data, su.receiver_op, k, clock)
+        st, spare = state
         if stats is not None:
-            prop.monitor(state[0].u, stats)
-        state[0] = prop.step(state[0], vpad)
-        prop.inject(state[0].u, vpad, amplitudes, su.source_op, k, clock)
+            prop.monitor(st.u, stats)
+        nxt = prop.step(st, vpad, out=State(None, spare, st.psi, st.zeta), record=(data, su.receiver_op, k, clock))
+        prop.inject(nxt.u, vpad, amplitudes, su.source_op, k, clock)
+        state[:] = [nxt, st.u_prev]
 
-    kernels = [reduction_kernels(prop.dtype)[0], prop.k.step, prop.k.step_frame, prop.core_kernel(), *(prop.k.psi[a][0] for a in range(3))]
-    kernels += [prop.k.record_fixed if isinstance(su.receiver_op, tuple) else prop.k.record]
+    kernels = [reduction_kernels(prop.dtype)[0], prop.k.step, prop.k.pre_step, prop.core_kernel(), *(prop.k.psi[a][0] for a in range(3))]
+    kernels += [prop.k.record_fixed, prop.k.record]
     kernels += [prop.k.inject_fixed if isinstance(su.source_op, tuple) else prop.k.inject]
-    kept = SimpleNamespace(su=su, st=st, vpad=vpad, data=data, amplitudes=amplitudes)
-    return graphs.capture(_graph_key(su, every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept)
+    kept = SimpleNamespace(su=su, st=st, spare=spare, vpad=vpad, data=data, amplitudes=amplitudes)
+    return graphs.capture(_graph_key(su, every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept, su.nt)
 
 
 def run_graphs(su: Setup, st, vpad, data, guard: BlowupGuard, progress=None):
@@ -303,7 +310,7 @@ def _kept_loop(su: Setup, every: int) -> graphs.Loop:
     loop = graphs.kept(_graph_key(su, every))
     if loop is None:
         prop = su.prop
-        K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
+        K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every, ROLES)
         data = wp.zeros((prop.n_shots, su.receivers.shape[1], K * n_graphs), dtype=prop.dtype, device=prop.device)
         return graphs.keep(capture(su, prop.new_state(), prop.pad_model(su.velocity), data, every))
     mine = loop.kept
@@ -317,7 +324,7 @@ def _kept_loop(su: Setup, every: int) -> graphs.Loop:
         wp.copy(a, b)
     mine.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), loop.K * loop.graphs, prop.dtype))
     prop.pad_model(su.velocity, out=mine.vpad)
-    for a in (*mine.st.arrays(), mine.data, loop.clock):
+    for a in (*mine.st.arrays(), mine.spare, mine.data, loop.clock):
         a.zero_()
     return loop
 
@@ -346,7 +353,7 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
                free_surface=free_surface, device=device, precision=precision)  # fmt: skip
     prop = su.prop
     guard = BlowupGuard(prop, np.asarray(source_amplitudes), check_every)
-    use_graphs = graphs.graph_plan(prop.cuda, su.nt, guard.every)[1] > 0 and not snapshot_every
+    use_graphs = graphs.graph_plan(prop.cuda, su.nt, guard.every, ROLES)[1] > 0 and not snapshot_every
     snaps, snap_t = [], []
     o, ny = prop.origin, (prop.shape[1] if su.ndim == 3 else 1)
     phys = (slice(None), slice(o[0], o[0] + prop.shape[0]), slice(o[1], o[1] + ny), slice(o[2], o[2] + prop.shape[-1]))

@@ -1,7 +1,7 @@
 """Check and time the 2D elastic propagator on one device: per-kernel microseconds (CUDA-graph replays on
 a GPU, a synchronised loop on the CPU), with --variants every core layout of kernels/elastic.LAYOUTS (its
 half steps and whole step, and its step against the per-cell reference kernels on random fields), one
-taped step's backward (hand-written vs Warp's generated adjoints), the whole forward_elastic /
+step's adjoint (hand-written vs Warp's generated adjoints), the whole forward_elastic /
 gradient_elastic calls as adseismic/bench.py runs them (best of --repeat after a warm-up that compiles the
 kernels; the forward with the model on the host and on the device) in Gcell/s (padded cells x steps x
 shots / s), and the optimised traces against the per-cell reference kernels. One JSON line per
@@ -169,22 +169,29 @@ def variant_times(check, layout, device, reps):
 
 
 def backward_times(su, device, reps):
-    """Microseconds of one taped step's backward, hand-written and generated adjoints."""
-    prop = su.prop
-    out = {}
-    for adjoint in ("hand", "warp"):
-        try:
-            a, b = prop.new_state(requires_grad=True), prop.new_state(requires_grad=True)
-            tape = wp.Tape()
-            with tape:
-                mat = prop.materials(*(prop.pad_model(m, True) for m in su.model), requires_grad=True)
-            tape = wp.Tape()  # the step alone
-            with tape:
-                prop.step(a, mat, su.source_args(), 3, out=b, tape=tape if adjoint == "hand" else None)
-            out[f"step_backward_{adjoint}_us"] = round(per_call_us(tape.backward, device, reps), 2)
-        except Exception as exc:
-            out[f"step_backward_{adjoint}_us"] = f"failed: {type(exc).__name__}: {exc}"[:300]
-    return out
+    """Microseconds of one step's adjoint: the hand-written Elastic.adjoint_step on explicit adjoint States (as
+    adseismic.elastic.ElasticSweep launches it, without its zeroing and receiver adjoint), and the backward of one
+    taped step with Warp's generated adjoints."""
+    prop, src = su.prop, su.source_args()
+
+    def zeros(shape):
+        return wp.zeros(shape, dtype=prop.dtype, device=device)
+
+    st, nxt, adj_next, adj = (prop.new_state() for _ in range(4))
+    mat = su.materials()
+    prop.step(st, mat, src, 3, out=nxt)
+    adj_mat = [zeros(prop.padded) for _ in mat[:-1]]
+    adj_src = [zeros(a.shape) for a in src[1:]]
+    scratch = [zeros((prop.n_shots, *prop.padded)) for _ in range(4)]
+    a, b = prop.new_state(requires_grad=True), prop.new_state(requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        prop.step(a, su.materials(requires_grad=True), src, 3, out=b)
+    jobs = {
+        "step_backward_hand": lambda: prop.adjoint_step(st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch, 3),
+        "step_backward_warp": tape.backward,
+    }
+    return timings(jobs, device, reps)
 
 
 def traces_vs_reference(su):

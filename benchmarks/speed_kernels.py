@@ -26,7 +26,7 @@ import adseismic.propagate as P  # noqa: E402
 from adseismic.graphs import graph_plan  # noqa: E402
 from adseismic.kernels import acoustic as K  # noqa: E402
 
-CORE_VARIANTS = [(16, 1, 128), (8, 1, 128), (32, 1, 128), (16, 1, 256), (8, 2, 128), (16, 2, 128), (8, 4, 128), (16, 4, 64)]  # (rows, columns per thread, threads per block) of step_core
+CORE_VARIANTS = [(8, 2, 128), (16, 2, 128), (8, 1, 128), (16, 1, 128), (4, 2, 128), (4, 4, 128), (8, 4, 128), (8, 2, 256)]  # (rows, columns per thread, threads per block) of step_core
 
 
 def make(name, device, order, nt=None):
@@ -39,7 +39,7 @@ def loop(su, s):
     """forward's time loop (graphs on a GPU, else run_steps); returns (seconds, data)."""
     prop = su.prop
     guard = P.BlowupGuard(prop, s, 25)
-    K, graphs = graph_plan(prop.cuda, su.nt, guard.every)
+    K, graphs = graph_plan(prop.cuda, su.nt, guard.every, P.ROLES)
     data = wp.zeros((prop.n_shots, su.receivers.shape[1], max(su.nt, K * graphs)), dtype=prop.dtype, device=prop.device)
     st, vpad = prop.new_state(), prop.pad_model(su.velocity)
     wp.synchronize_device(prop.device)
@@ -103,27 +103,34 @@ def kernel_times(su, reps):
 
     out, checks = {}, {}
     out["step_reference"] = per_launch(lambda: wp.launch(prop.k.step, dim=prop.interior, inputs=args(ref_next), device=dev), dev, reps)
+    data = wp.zeros((S, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=dev)
     if prop.cuda and prop.has_core:
-        def frame():
-            wp.launch(prop.k.step_frame, dim=S * prop.frame_cells, inputs=[*args(fast_next), prop.core, prop.frame_cells], device=dev)
+        def part(name):
+            return lambda: prop.step_core(args(fast_next), st.u, st.u_prev, fast_next, vpad, part=name)
 
-        out["step_frame"] = per_launch(frame, dev, reps)
+        out["step_frame"] = per_launch(part("frame"), dev, reps)
         ref = ref_next.numpy()
         for rows, cols, block in CORE_VARIANTS:
             prop.core_rows, prop.core_cols, prop.core_threads = rows, cols, block
             name = f"step_core_r{rows}_c{cols}_b{block}"
-            out[name] = per_launch(lambda: prop.step_core(st.u, st.u_prev, fast_next, vpad), dev, reps)
+            out[name] = per_launch(part("core"), dev, reps)
+            out[name + "_with_frame"] = per_launch(part(None), dev, reps)
             checks[name] = float(np.abs(fast_next.numpy() - ref).max() / np.abs(ref).max())
             fast_next.zero_()
-            frame()
         prop.core_rows, prop.core_cols, prop.core_threads = K.GPU_CORE_ROWS, K.GPU_CORE_COLS, K.GPU_CORE_THREADS
+        out["pre_step"] = per_launch(lambda: prop._pre_step(st, st, (data, su.receiver_op, 3, None)), dev, reps)
     out["step_in_place"] = per_launch(lambda: prop.step(st, vpad), dev, reps)
-    out.update(adjoint_times(prop, st, vpad, reps, checks))
+
+    def whole():  # a time step as forward's loop runs it
+        prop.step(st, vpad, record=(data, su.receiver_op, 3, None))
+        prop.inject(st.u, vpad, su.amplitudes, su.source_op, 3)
+
+    out["step_record_inject"] = per_launch(whole, dev, reps)
+    out.update(adjoint_times(prop, st, vpad, su.receiver_op, reps, checks))
     for a in (0, 2):
         out[f"psi_{a}"] = per_launch(lambda: wp.launch(prop.k.psi[a][0], dim=prop.strip_shape(a), inputs=[st.u, st.psi[a], st.psi[a], prop.axes[a], prop.inv_dx], device=dev), dev, reps)  # fmt: skip
     stats = wp.zeros(2, dtype=prop.dtype, device=dev)
     out["monitor"] = per_launch(lambda: prop.monitor(st.u, stats), dev, reps)
-    data = wp.zeros((S, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=dev)
     out["record"] = per_launch(lambda: prop.record(st.u, data, su.receiver_op, 3), dev, reps)
     out["inject"] = per_launch(lambda: prop.inject(st.u, vpad, su.amplitudes, su.source_op, 3), dev, reps)
     cells = S * np.prod(prop.padded)
@@ -133,40 +140,41 @@ def kernel_times(su, reps):
     return times
 
 
-def adjoint_times(prop, st, vpad, reps, checks):
+def adjoint_times(prop, st, vpad, residual_op, reps, checks):
     """Per-launch seconds of the adjoint step (core variants on a GPU, each checked against the per-cell
-    adjoint_step kernel on the same inputs) and of the whole adjoint step (core, frame, psi)."""
+    adjoint_step kernel on the same inputs) and of the whole adjoint step (core, frame, psi and, through
+    residual_op (the receiver operator), the receivers), writing into fresh arrays as the Sweep does."""
     dev, out = prop.device, {}
     rng = np.random.default_rng(1)
     lam, adj, g = (wp.array(rng.standard_normal(st.u.shape).astype(np.float32) * 1e-3, device=dev) for _ in range(3))
+    adj_out, g_out = wp.zeros_like(adj), wp.zeros_like(g)
     w = wp.zeros_like(vpad)
     wp.launch(prop.k.squared, dim=prop.padded, inputs=[vpad, prop.dt2, w], device=dev)
     nxt = prop.new_state(with_prev=False)
     ap = [prop.new_state(with_prev=False).psi for _ in range(2)]
     az = [prop.new_state(with_prev=False).zeta for _ in range(2)]
-    args = lambda a, gg: [st.u, vpad, *nxt.psi, *st.zeta, lam, a, gg, *ap[0], *az[1], *az[0], *prop.axes, prop.dt2, prop.inv_dx, prop.top]  # noqa: E731
+    args = [st.u, vpad, *nxt.psi, *st.zeta, lam, adj, g, adj_out, g_out, *ap[0], *az[1], *az[0], *prop.axes, prop.dt2, prop.inv_dx, prop.top]
     if prop.cuda and prop.has_core:
-        ref_a, ref_g = wp.clone(adj), wp.clone(g)
-        wp.launch(prop.k.adjoint_step, dim=prop.interior, inputs=args(ref_a, ref_g), device=dev)
+        ref_a, ref_g = wp.zeros_like(adj), wp.zeros_like(g)
+        wp.launch(prop.k.adjoint_step, dim=prop.interior, inputs=[*args[:11], ref_a, ref_g, *args[13:]], device=dev)
         ref_a, ref_g = ref_a.numpy(), ref_g.numpy()
-        box = prop.adjoint_box
+
+        def part(name):
+            return lambda: prop.adjoint_core(args, st.u, lam, adj, g, adj_out, g_out, w, part=name)
+
         for rows, cols, block in CORE_VARIANTS:
-            kernel = prop.k.adjoint_core(rows, cols)
-            threads = prop.tiles(box, rows, cols)
-
-            def core(a, gg):
-                wp.launch(kernel, dim=threads, inputs=[st.u.flatten(), lam.flatten(), a.flatten(), gg.flatten(), w.flatten(), prop.padded[0],
-                          prop.padded[2], box, prop.inv_dx], block_dim=block, device=dev)  # fmt: skip
-
+            prop.core_rows, prop.core_cols, prop.core_threads = rows, cols, block
             name = f"adjoint_core_r{rows}_c{cols}_b{block}"
-            a2, g2 = wp.clone(adj), wp.clone(g)
-            core(a2, g2)
-            wp.launch(prop.k.adjoint_frame, dim=prop.n_shots * prop.adjoint_frame_cells, inputs=[*args(a2, g2), box, prop.adjoint_frame_cells], device=dev)
-            checks[name] = float(max(np.abs(a2.numpy() - ref_a).max() / np.abs(ref_a).max(), np.abs(g2.numpy() - ref_g).max() / np.abs(ref_g).max()))
-            out[name] = per_launch(lambda: core(a2, g2), dev, reps)
-        out["adjoint_frame"] = per_launch(lambda: wp.launch(prop.k.adjoint_frame, dim=prop.n_shots * prop.adjoint_frame_cells,
-                                          inputs=[*args(adj, g), box, prop.adjoint_frame_cells], device=dev), dev, reps)  # fmt: skip
-    out["adjoint_step"] = per_launch(lambda: prop.adjoint_step(st, nxt, vpad, w, lam, adj, g, ap, az), dev, reps)
+            adj_out.zero_(), g_out.zero_()
+            part(None)()
+            checks[name] = float(max(np.abs(adj_out.numpy() - ref_a).max() / np.abs(ref_a).max(), np.abs(g_out.numpy() - ref_g).max() / np.abs(ref_g).max()))
+            out[name] = per_launch(part("core"), dev, reps)
+            out[name + "_with_frame"] = per_launch(part(None), dev, reps)
+        prop.core_rows, prop.core_cols, prop.core_threads = K.GPU_CORE_ROWS, K.GPU_CORE_COLS, K.GPU_CORE_THREADS
+        out["adjoint_frame"] = per_launch(part("frame"), dev, reps)
+    res = wp.zeros((prop.n_shots, residual_op[1].shape[1], 8), dtype=prop.dtype, device=dev)
+    out["adjoint_step"] = per_launch(lambda: prop.adjoint_step(st, nxt, vpad, w, lam, adj, g, ap, az, residual=(res, residual_op, 3, None), out=(adj_out, g_out)),
+                                     dev, reps)  # fmt: skip
     return out
 
 
@@ -195,7 +203,7 @@ def adjoint_only(a):
         su, _ = make(name, a.device, a.order)
         prop, checks = su.prop, {}
         st, vpad = prop.new_state(), prop.pad_model(su.velocity, requires_grad=True)
-        times = adjoint_times(prop, st, vpad, a.reps, checks)
+        times = adjoint_times(prop, st, vpad, su.receiver_op, a.reps, checks)
         res = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
         times["record_adjoint"] = per_launch(lambda: prop.record_adjoint(st.u, res, su.receiver_op, 3), prop.device, a.reps)
         times["inject_adjoint"] = per_launch(lambda: prop.inject_adjoint(st.u, vpad, su.amplitudes, su.source_op, 3), prop.device, a.reps)

@@ -40,10 +40,10 @@ import warp as wp
 from adseismic.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 
 HICKS_RADIUS = 4
-# 2D GPU core step: rows (along z) x adjacent columns per thread, threads per block (H200, S4000 / S600x16,
-# us: 8 x 2: 85.6 / 32.1, 16 x 2: 87.6 / 34.3, 8 x 1: 90.2 / 33.7, 16 x 1: 97.1 / 39.7, 8 x 4: 119 / 44.4;
-# 256 threads 1% slower)
-GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS = 8, 2, 128
+# 2D GPU core steps: rows (along z) x adjacent columns per thread, threads per block (H200, S4000, us, writing
+# u[n+1] into a third array: step 4 x 2: 83.5, 8 x 2: 90.0, 16 x 2: 94.6, 8 x 1: 92.6, 4 x 4: 115; adjoint,
+# writing into fresh arrays: 4 x 2: 186, 8 x 2: 201, 16 x 2: 212; 256 threads 1% slower)
+GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS = 4, 2, 128
 CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over row blocks of a CPU step
 MONITOR_BLOCK = 256
 HICKS_B = 6.31
@@ -197,9 +197,12 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
         return psi_cell
 
+    psi_cells = [make_psi_cell(a) for a in range(3)]
+    psi_cell_z, psi_cell_x = psi_cells[0], psi_cells[2]
+
     def make_psi(axis: int):
         # one thread per strip cell (GPU, and Warp's generated adjoint)
-        cell = make_psi_cell(axis)
+        cell = psi_cells[axis]
 
         @wp.kernel(module="unique", grid_stride=False)
         def psi_kernel(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype):
@@ -454,23 +457,6 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             x = x - box[2] + box[3]
         return wp.vec2i(box[0] + g // sides, x)
 
-    @wp.kernel(module="unique", grid_stride=False)
-    def step_frame(
-        u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
-        psi_z: arr4, psi_y: arr4, psi_x: arr4,
-        zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-        zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
-        az: Axis, ay: Axis, ax: Axis,
-        dt2: dtype, inv_dx: dtype, top: int, core: wp.vec4i, cells: int,
-    ):  # fmt: skip
-        # 2D GPU step of the interior cells outside the core (frame_cell): the CPML strips and free-surface
-        # rows, as the reference step does them; `cells` per shot, a 1D launch (see step_core)
-        t = wp.tid()
-        s = t // cells
-        zx = frame_cell(t - s * cells, u.shape[1], u.shape[3], core)
-        cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
-             az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
-
     def make_tile(rows: int, cols: int):
         @wp.func
         def tile(t: int, box: wp.vec4i, lz: int, lx: int) -> wp.vec4i:
@@ -488,19 +474,19 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
         return tile
 
-    def make_step_core(rows: int, cols: int):
-        # 2D GPU step of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded indices), where
-        # there is neither CPML nor a free surface, on the flat arrays (u: S * Lz * Lx, v: Lz * Lx). Thread t
-        # updates `rows` consecutive rows of `cols` adjacent columns, with the stencil's values along z in
-        # sliding windows and one load per value of a row along x; a 1D launch, since unravelling a
-        # multi-dimensional thread index costs 64-bit divisions; the loop over rows is unrolled.
+    @functools.lru_cache(maxsize=None)
+    def make_core_tile(rows: int, cols: int):
+        # 2D GPU step of one tile of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded
+        # indices), where there is neither CPML nor a free surface, on the flat arrays (u: S * Lz * Lx, v: Lz *
+        # Lx). Thread t updates `rows` consecutive rows of `cols` adjacent columns, with the stencil's values
+        # along z in sliding windows and one load per value of a row along x; the loop over rows is unrolled.
         win = wp.types.matrix(shape=(cols, 2 * R + 1), dtype=dtype)
         line = wp.types.vector(length=cols + 2 * R, dtype=dtype)
         tile = make_tile(rows, cols)
 
-        @wp.kernel(module="unique", grid_stride=False)
-        def step_core(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
-            tl = tile(wp.tid(), core, lz, lx)
+        @wp.func
+        def core_tile(t: int, u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
+            tl = tile(t, core, lz, lx)
             z, ncol, c, i = tl[0], tl[1], tl[2], tl[3]
             w = win()
             for j in range(wp.static(cols)):
@@ -526,7 +512,72 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                     i += lx
                     c += lx
 
+        return core_tile
+
+    def make_step_core(rows: int, cols: int):
+        # The 2D GPU step in one 1D launch (unravelling a multi-dimensional thread index costs 64-bit
+        # divisions): thread t + offset below `tiles` does a core tile (make_core_tile), from `frame` (a block
+        # boundary, so that no warp mixes the two) one interior cell outside the core as the reference step
+        # does it (frame_cell: the CPML strips and the free-surface rows), `cells` per shot.
+        core_tile = make_core_tile(rows, cols)
+
+        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+        def step_core(
+            u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
+            psi_z: arr4, psi_y: arr4, psi_x: arr4,
+            zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+            zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
+            az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
+            core: wp.vec4i, cells: int, uf: arr1, uf_prev: arr1, uf_next: arr1, vf: arr1, tiles: int, frame: int, offset: int,
+        ):  # fmt: skip
+            t = wp.tid() + offset
+            if t < frame:
+                if t < tiles:
+                    core_tile(t, uf, uf_prev, uf_next, vf, u.shape[1], u.shape[3], core, dt2, inv_dx)
+            else:
+                s = (t - frame) // cells
+                zx = frame_cell(t - frame - s * cells, u.shape[1], u.shape[3], core)
+                cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                     az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
+
         return step_core
+
+    @wp.func
+    def strip_cell(t: int, a: arr4) -> wp.vec3i:
+        # (s, i, k) of the t-th cell of a 2D strip array a (S, I, 1, K)
+        n = a.shape[1] * a.shape[3]
+        s = t // n
+        r = t - s * n
+        i = r // a.shape[3]
+        return wp.vec3i(s, i, r - i * a.shape[3])
+
+    @wp.func
+    def record_point(u: arr4, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1, s: int, rec: int, q: int):
+        wq = w[s, rec, q]
+        if wq != dtype(0.0):
+            i = idx[s, rec, q]
+            wp.atomic_add(data, s, rec, n + clock[0], wq * u[s, i[0], i[1], i[2]])
+
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def pre_step(
+        u: arr4, psi_z: arr4, psi_z_new: arr4, psi_x: arr4, psi_x_new: arr4, az: Axis, ax: Axis, inv_dx: dtype,
+        z_cells: int, x_cells: int, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1,
+    ):  # fmt: skip
+        # What a 2D GPU step does before step_core, in one launch: psi along z (the first z_cells threads) and x
+        # (the next x_cells), then record_fixed's receiver points of u (idx: (S, n_rec, points))
+        t = wp.tid()
+        if t < z_cells:
+            c = strip_cell(t, psi_z_new)
+            psi_cell_z(u, psi_z, psi_z_new, az, inv_dx, c[0], c[1], 0, c[2])
+        elif t < z_cells + x_cells:
+            c = strip_cell(t - z_cells, psi_x_new)
+            psi_cell_x(u, psi_x, psi_x_new, ax, inv_dx, c[0], c[1], 0, c[2])
+        else:
+            q = t - z_cells - x_cells
+            per = idx.shape[1] * idx.shape[2]
+            s = q // per
+            rec = (q - s * per) // idx.shape[2]
+            record_point(u, data, idx, w, n, clock, s, rec, q - s * per - rec * idx.shape[2])
 
     # --- Hand-written adjoints of psi_kernel and step, run by adseismic.gradient's backward sweep; they
     # match Warp's generated adjoints (tests/test_gradient.py). The step's adjoint gathers: the Laplacian
@@ -537,11 +588,11 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     def make_psi_adjoint(axis: int):
         deriv_t = d1t[axis]
 
-        @wp.kernel(module="unique", grid_stride=False)
-        def psi_adjoint(adj_u: arr4, adj_psi_old: arr4, adj_psi_new: arr4, adj_zeta_new: arr4, ax: Axis, inv_dx: dtype):
+        @wp.func
+        def psi_adjoint_cell(adj_u: arr4, adj_psi_old: arr4, adj_psi_new: arr4, adj_zeta_new: arr4, ax: Axis, inv_dx: dtype,
+                             s: int, i: int, j: int, k: int):  # fmt: skip
             # consumes (and zeroes) the adjoints of psi[n+1] and zeta[n+1] at this strip cell: adds to those of
             # psi[n] and u[n]
-            s, i, j, k = wp.tid()
             lam = adj_psi_new[s, i, j, k]
             adj_psi_new[s, i, j, k] = dtype(0.0)
             adj_zeta_new[s, i, j, k] = dtype(0.0)
@@ -563,7 +614,42 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             else:
                 deriv_t(adj_u, s, i, j, p, f)
 
-        return psi_adjoint
+        @wp.kernel(module="unique", grid_stride=False)
+        def psi_adjoint(adj_u: arr4, adj_psi_old: arr4, adj_psi_new: arr4, adj_zeta_new: arr4, ax: Axis, inv_dx: dtype):
+            s, i, j, k = wp.tid()
+            psi_adjoint_cell(adj_u, adj_psi_old, adj_psi_new, adj_zeta_new, ax, inv_dx, s, i, j, k)
+
+        return psi_adjoint_cell, psi_adjoint
+
+    psi_adjoints = [make_psi_adjoint(a) for a in range(3)]
+    psi_adjoint_z, psi_adjoint_x = psi_adjoints[0][0], psi_adjoints[2][0]
+
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def post_adjoint(
+        adj: arr4, adj_psi_z: arr4, adj_psi_z_new: arr4, adj_zeta_z_new: arr4, adj_psi_x: arr4, adj_psi_x_new: arr4, adj_zeta_x_new: arr4,
+        az: Axis, ax: Axis, inv_dx: dtype, z_cells: int, x_cells: int,
+        residual: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1,
+    ):  # fmt: skip
+        # What a 2D adjoint step does after adjoint_core, in one launch: the psi adjoints along z (the first
+        # z_cells threads) and x (the next x_cells), then the adjoint of record_fixed: adj += the receiver
+        # points' weights times residual[:, :, n + clock[0]]
+        t = wp.tid()
+        if t < z_cells:
+            c = strip_cell(t, adj_psi_z_new)
+            psi_adjoint_z(adj, adj_psi_z, adj_psi_z_new, adj_zeta_z_new, az, inv_dx, c[0], c[1], 0, c[2])
+        elif t < z_cells + x_cells:
+            c = strip_cell(t - z_cells, adj_psi_x_new)
+            psi_adjoint_x(adj, adj_psi_x, adj_psi_x_new, adj_zeta_x_new, ax, inv_dx, c[0], c[1], 0, c[2])
+        else:
+            q = t - z_cells - x_cells
+            per = idx.shape[1] * idx.shape[2]
+            s = q // per
+            rec = (q - s * per) // idx.shape[2]
+            q = q - s * per - rec * idx.shape[2]
+            wq = w[s, rec, q]
+            if wq != dtype(0.0):
+                i = idx[s, rec, q]
+                wp.atomic_add(adj, s, i[0], i[1], i[2], wq * residual[s, rec, n + clock[0]])
 
     def make_gather(axis: int):
         @wp.func
@@ -663,17 +749,18 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     @wp.func
     def adjoint_cell(
         u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-        lam: arr4, adj: arr4, g: arr4,
+        lam: arr4, adj: arr4, g: arr4, adj_out: arr4, g_out: arr4,
         adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
         adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
         adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
         az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, s: int, z: int, y: int, x: int,
     ):  # fmt: skip
         # Adjoint of step n at interior cell (s, z, y, x). u: u[n]; psi: psi[n+1]; zeta: zeta[n];
-        # lam: the adjoint of u[n+1]; adj holds the adjoint of u[n+2] and gets that of u[n] (in place: this
-        # cell's value only, all but the psi and receiver terms, which are added after); g += lam times the
-        # stretched Laplacian of u[n] (the model gradient is 2 v dt^2 sum_n of it); the CPML variables'
-        # adjoints are scattered (atomics: the strips are thin).
+        # lam: the adjoint of u[n+1]; adj: that of u[n+2]; adj_out gets that of u[n] (all but the psi and
+        # receiver terms, which are added after); g_out = g + lam times the stretched Laplacian of u[n] (the
+        # model gradient is 2 v dt^2 sum_n of it; not written on a free surface's row); the CPML variables'
+        # adjoints are scattered (atomics: the strips are thin). adj_out and g_out may be adj and g (in place),
+        # but separate arrays are faster on a GPU (a read and a write of one address cost more than two).
         lo_z = wp.static(R)
         if wp.static(fs):
             lo_z = top + 1  # the surface row is set to 0, not updated
@@ -693,13 +780,13 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             total += sadj_x(d2x(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_x, zeta_x, adj_psi_x, adj_zeta_x, adj_zeta_x_new, ax, inv_dx)
             if wp.static(three):
                 total += sadj_y(d2y(u, s, z, y, x, top) * inv_dx2, q, s, z, y, x, psi_y, zeta_y, adj_psi_y, adj_zeta_y, adj_zeta_y_new, ay, inv_dx)
-            g[s, z, y, x] = g[s, z, y, x] + lc * total
-        adj[s, z, y, x] = acc
+            g_out[s, z, y, x] = g[s, z, y, x] + lc * total
+        adj_out[s, z, y, x] = acc
 
     @wp.kernel(module="unique", grid_stride=False)
     def adjoint_step(
         u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-        lam: arr4, adj: arr4, g: arr4,
+        lam: arr4, adj: arr4, g: arr4, adj_out: arr4, g_out: arr4,
         adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
         adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
         adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
@@ -710,39 +797,23 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         y = yi
         if wp.static(three):
             y = yi + wp.static(R)
-        adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_psi_z, adj_psi_y, adj_psi_x,
+        adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_out, g_out, adj_psi_z, adj_psi_y, adj_psi_x,
                      adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
                      az, ay, ax, dt2, inv_dx, top, s, zi + wp.static(R), y, xi + wp.static(R))  # fmt: skip
 
-    @wp.kernel(module="unique", grid_stride=False)
-    def adjoint_frame(
-        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-        lam: arr4, adj: arr4, g: arr4,
-        adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
-        adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
-        adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
-        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, box: wp.vec4i, cells: int,
-    ):  # fmt: skip
-        # 2D: adjoint_cell at the interior cells outside `box` (adjoint_core does those inside); a 1D
-        # launch of `cells` threads per shot, as step_frame
-        t = wp.tid()
-        s = t // cells
-        zx = frame_cell(t - s * cells, u.shape[1], u.shape[3], box)
-        adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_psi_z, adj_psi_y, adj_psi_x,
-                     adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
-                     az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
-
     def make_adjoint_core(rows: int, cols: int):
-        # adjoint_cell on the flat 2D arrays (u, lam, adj, g: S * Lz * Lx; w = v^2 dt^2: Lz * Lx) inside `box`,
-        # the cells whose stencil neighbours all lie in step_core's core (no CPML, no surface image): the
-        # layout of step_core, with windows of q = w lam (gathered) and of u (the model gradient's Laplacian)
+        # The 2D adjoint step in one 1D launch, laid out as step_core: thread t + offset below `tiles` does a
+        # tile of adjoint_cell on the flat arrays (u, lam, adj, g: S * Lz * Lx; w = v^2 dt^2: Lz * Lx) inside
+        # `box`, the cells whose stencil neighbours all lie in step_core's core (no CPML, no surface image),
+        # with windows of q = w lam (gathered) and of u (the model gradient's Laplacian); from `frame` (a block
+        # boundary) one interior cell outside `box` (frame_cell), `cells` per shot, by the per-cell gather.
         win = wp.types.matrix(shape=(cols, 2 * R + 1), dtype=dtype)
         line = wp.types.vector(length=cols + 2 * R, dtype=dtype)
         tile = make_tile(rows, cols)
 
-        @wp.kernel(module="unique", grid_stride=False)
-        def adjoint_core(u: arr1, lam: arr1, adj: arr1, g: arr1, w: arr1, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
-            tl = tile(wp.tid(), box, lz, lx)
+        @wp.func
+        def adjoint_tile(t: int, u: arr1, lam: arr1, adj: arr1, g: arr1, adj_out: arr1, g_out: arr1, w: arr1, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
+            tl = tile(t, box, lz, lx)
             z, ncol, c, i = tl[0], tl[1], tl[2], tl[3]
             wq = win()
             wu = win()
@@ -774,11 +845,11 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                             lc = lam[i + j]
                             acc += dtype(2.0) * lc
                             acc -= adj[i + j]
-                            adj[i + j] = acc
+                            adj_out[i + j] = acc
                             dxx = dtype(wp.static(A[0])) * ru[j + wp.static(R)]
                             for m in range(wp.static(R)):
                                 dxx += dtype(wp.static(A[m + 1])) * (ru[j + wp.static(R + 1) + m] + ru[j + wp.static(R - 1) - m])
-                            g[i + j] = g[i + j] + lc * (d2w(wu[j]) * inv_dx2 + dxx * inv_dx2)
+                            g_out[i + j] = g[i + j] + lc * (d2w(wu[j]) * inv_dx2 + dxx * inv_dx2)
                             for m in range(wp.static(2 * R)):
                                 wq[j, m] = wq[j, m + 1]
                                 wu[j, m] = wu[j, m + 1]
@@ -787,6 +858,27 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                             wu[j, wp.static(2 * R)] = u[i + o]
                     i += lx
                     c += lx
+
+        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+        def adjoint_core(
+            u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+            lam: arr4, adj: arr4, g: arr4, adj_out: arr4, g_out: arr4,
+            adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
+            adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
+            adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
+            az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, box: wp.vec4i, cells: int,
+            uf: arr1, lamf: arr1, adjf: arr1, gf: arr1, adjf_out: arr1, gf_out: arr1, wf: arr1, tiles: int, frame: int, offset: int,
+        ):  # fmt: skip
+            t = wp.tid() + offset
+            if t < frame:
+                if t < tiles:
+                    adjoint_tile(t, uf, lamf, adjf, gf, adjf_out, gf_out, wf, u.shape[1], u.shape[3], box, inv_dx)
+            else:
+                s = (t - frame) // cells
+                zx = frame_cell(t - frame - s * cells, u.shape[1], u.shape[3], box)
+                adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_out, g_out, adj_psi_z, adj_psi_y, adj_psi_x,
+                             adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
+                             az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
 
         return adjoint_core
 
@@ -939,9 +1031,9 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         grad[z, y, x] = grad[z, y, x] + dtype(2.0) * v[z, y, x] * dt2 * acc
 
     return _Kernels(
-        Axis=Axis, step=step, step_frame=step_frame, step_core=functools.lru_cache(maxsize=None)(make_step_core), step_rows=step_rows, step_core_rows=step_core_rows, psi=psi, inject=inject,
-        adjoint_step=adjoint_step, adjoint_frame=adjoint_frame, adjoint_core=functools.lru_cache(maxsize=None)(make_adjoint_core),
-        squared=squared, model_gradient=model_gradient, psi_adjoint=(make_psi_adjoint(0), make_psi_adjoint(1), make_psi_adjoint(2)),
+        Axis=Axis, step=step, step_core=functools.lru_cache(maxsize=None)(make_step_core), step_rows=step_rows, step_core_rows=step_core_rows, psi=psi, inject=inject,
+        adjoint_step=adjoint_step, adjoint_core=functools.lru_cache(maxsize=None)(make_adjoint_core),
+        squared=squared, model_gradient=model_gradient, psi_adjoint=tuple(k for _, k in psi_adjoints), post_adjoint=post_adjoint, pre_step=pre_step,
         record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS), pad_model=pad_model, scatter=scatter, energy=energy, halo=R, operator_points=NPTS,
     )  # fmt: skip
 
@@ -1199,54 +1291,86 @@ class Acoustic:
         wp.launch(self.k.pad_model, dim=self.padded, inputs=[v, vpad, self.origin], device=self.device)
         return vpad
 
-    def step(self, st: State, vpad, out: State | None = None) -> State:
+    def step(self, st: State, vpad, out: State | None = None, record=None) -> State:
         """Advance st (level n) to level n+1. With out=None the step is done in place (forward only);
         with `out` (fresh arrays, e.g. under a tape or kept for the adjoint) st is left unchanged and out
-        is returned."""
+        is returned. record: (data, op, n, clock) to record st.u first (as `record`; on a GPU in the step's
+        first launch)."""
         if out is None:
             out = State(st.u, st.u_prev, st.psi, st.zeta)  # u[n+1] overwrites u[n-1]; psi, zeta in place
             u_next = st.u_prev
         else:
             out = State(st.u, out.u, out.psi, out.zeta)
             u_next = out.u
-        axes = [a for a in range(3) if self.strip_width[a]]
         step_args = [st.u, st.u_prev, u_next, vpad, *out.psi, *st.zeta, *out.zeta, *self.axes, self.dt2, self.inv_dx, self.top]
         # Under a wp.Tape (Warp's generated adjoints, adjoint="warp") the per-cell reference kernels run; a
-        # GPU runs the 2D step as the core and frame kernels (3D: the reference kernel); a CPU runs rows,
-        # split among threads.
+        # GPU runs the 2D step as two launches (pre_step: psi and record; step_core: core and frame; 3D: the
+        # reference kernels); a CPU runs rows, split among threads.
         generated = wp._src.context.runtime.tape is not None
-        if generated or self.cuda or self.core_frame:
-            for a in axes:
-                wp.launch(self.k.psi[a][0], dim=self.strip_shape(a), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx],
-                          device=self.device, record_tape=generated)  # fmt: skip
-            if self.core_frame and not generated:
-                self.step_core(st.u, st.u_prev, u_next, vpad)
-                wp.launch(self.k.step_frame, dim=self.n_shots * self.frame_cells, inputs=[*step_args, self.core, self.frame_cells], device=self.device, record_tape=False)
-            else:
-                wp.launch(self.k.step, dim=self.interior, inputs=step_args, device=self.device, record_tape=generated)
+        fused = self.core_frame and not generated
+        if record is not None and not (fused and isinstance(record[1], tuple)):
+            self.record(st.u, *record)
+            record = None
+        if fused:
+            self._pre_step(st, out, record)
+            self.step_core(step_args, st.u, st.u_prev, u_next, vpad)
+        elif generated or self.cuda:
+            for a in range(3):
+                if self.strip_width[a]:
+                    wp.launch(self.k.psi[a][0], dim=self.strip_shape(a), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx],
+                              device=self.device, record_tape=generated)  # fmt: skip
+            wp.launch(self.k.step, dim=self.interior, inputs=step_args, device=self.device, record_tape=generated)
         else:
             self._cpu_step(st, out, u_next, vpad, step_args)
         return out
 
-    def adjoint_step(self, st: State, nxt: State, vpad, w, lam, adj, g, adj_psi, adj_zeta):
+    def _strip_cells(self):
+        """Cells of the z and x CPML strips (0 for an axis without)."""
+        return [math.prod(self.strip_shape(a)) if self.strip_width[a] else 0 for a in (0, 2)]
+
+    def _no_points(self):
+        """(data, (idx, w)) standing in for a record/residual of no points."""
+        return wp.zeros((1, 1, 1), dtype=self.dtype, device=self.device), (wp.zeros((1, 1, 1), dtype=wp.vec3i, device=self.device),
+                                                                           wp.zeros((1, 1, 1), dtype=self.dtype, device=self.device))  # fmt: skip
+
+    def _points(self, record):
+        """(data, idx, w, n, clock, number of points) of a record/residual tuple (data, op, n, clock) or None."""
+        if record is None:
+            data, op = self._no_points()
+            return data, *op, 0, self.clock, 0
+        data, op, n, clock = record
+        return data, *op, n, self.clock if clock is None else clock, op[1].size
+
+    def _pre_step(self, st: State, out: State, record):
+        z, x = self._strip_cells()
+        data, idx, w, n, clock, points = self._points(record)
+        wp.launch(self.k.pre_step, dim=z + x + points, inputs=[st.u, st.psi[0], out.psi[0], st.psi[2], out.psi[2], self.axes[0], self.axes[2],
+                  self.inv_dx, z, x, data, idx, w, n, clock], device=self.device, record_tape=False)  # fmt: skip
+
+    def adjoint_step(self, st: State, nxt: State, vpad, w, lam, adj, g, adj_psi, adj_zeta, residual=None, out=None):
         """Adjoint of the step from st (level n) to nxt (level n+1; only its psi is read): lam is the
-        adjoint of u[n+1]; adj (the adjoint of u[n+2]) becomes that of u[n] but for the receiver terms; g
-        (S, Lz, Ly, Lx) += lam times the stretched Laplacian of u[n]; adj_psi = (of psi[n+1], of psi[n]),
-        adj_zeta = (of zeta[n+1], of zeta[n]), each a list over the axes; the first ones are consumed and
-        zeroed. w = v^2 dt^2 (pad_model's shape)."""
-        args = [st.u, vpad, *nxt.psi, *st.zeta, lam, adj, g, *adj_psi[0], *adj_zeta[1], *adj_zeta[0], *self.axes, self.dt2, self.inv_dx, self.top]
+        adjoint of u[n+1], adj that of u[n+2]; out = (adj_out, g_out), default (adj, g): adj_out gets the
+        adjoint of u[n] (plus, with residual = (data, op, n, clock), that of recording u[n], as
+        record_adjoint), g_out = g (S, Lz, Ly, Lx) + lam times the stretched Laplacian of u[n]; adj_psi = (of
+        psi[n+1], of psi[n]), adj_zeta = (of zeta[n+1], of zeta[n]), each a list over the axes; the first ones
+        are consumed and zeroed. w = v^2 dt^2 (pad_model's shape). Separate outputs are faster on a GPU."""
+        adj_out, g_out = (adj, g) if out is None else out
+        args = [st.u, vpad, *nxt.psi, *st.zeta, lam, adj, g, adj_out, g_out, *adj_psi[0], *adj_zeta[1], *adj_zeta[0], *self.axes, self.dt2,
+                self.inv_dx, self.top]  # fmt: skip
         if not self.has_core:
             wp.launch(self.k.adjoint_step, dim=self.interior, inputs=args, device=self.device)
-        else:
-            box = self.adjoint_box
-            if box[1] > box[0]:
-                wp.launch(self.k.adjoint_core(self.core_rows, self.core_cols), dim=self.tiles(box), inputs=[st.u.flatten(), lam.flatten(), adj.flatten(), g.flatten(),
-                          w.flatten(), self.padded[0], self.padded[2], box, self.inv_dx], block_dim=self.core_threads, device=self.device)  # fmt: skip
-            wp.launch(self.k.adjoint_frame, dim=self.n_shots * self.adjoint_frame_cells, inputs=[*args, box, self.adjoint_frame_cells], device=self.device)
-        for a in range(3):
-            if self.strip_width[a]:
-                wp.launch(self.k.psi_adjoint[a], dim=self.strip_shape(a), inputs=[adj, adj_psi[1][a], adj_psi[0][a], adj_zeta[0][a], self.axes[a], self.inv_dx],
-                          device=self.device)  # fmt: skip
+            for a in range(3):
+                if self.strip_width[a]:
+                    wp.launch(self.k.psi_adjoint[a], dim=self.strip_shape(a), inputs=[adj_out, adj_psi[1][a], adj_psi[0][a], adj_zeta[0][a], self.axes[a],
+                              self.inv_dx], device=self.device)  # fmt: skip
+            if residual is not None:
+                self.record_adjoint(adj_out, *residual)
+            return
+        self.adjoint_core(args, st.u, lam, adj, g, adj_out, g_out, w)
+        z, x = self._strip_cells()
+        data, idx, wq, n, clock, points = self._points(residual)
+        wp.launch(self.k.post_adjoint, dim=z + x + points, inputs=[adj_out, adj_psi[1][0], adj_psi[0][0], adj_zeta[0][0], adj_psi[1][2],
+                  adj_psi[0][2], adj_zeta[0][2], self.axes[0], self.axes[2], self.inv_dx, z, x, data, idx, wq, n, clock], device=self.device)  # fmt: skip
 
     def tiles(self, box, rows=None, cols=None) -> int:
         """Threads of a core-layout launch over `box` (make_tile; default: this helper's rows and columns)."""
@@ -1256,11 +1380,29 @@ class Acoustic:
     def core_kernel(self):
         return self.k.step_core(self.core_rows, self.core_cols)
 
-    def step_core(self, u, u_prev, u_next, vpad):
-        """The core part of a 2D GPU step (step_frame does the rest)."""
-        c = self.core
-        wp.launch(self.core_kernel(), dim=self.tiles(c), inputs=[u.flatten(), u_prev.flatten(), u_next.flatten(), vpad.flatten(), self.padded[0],
-                  self.padded[2], c, self.dt2, self.inv_dx], block_dim=self.core_threads, device=self.device, record_tape=False)  # fmt: skip
+    def adjoint_kernel(self):
+        return self.k.adjoint_core(self.core_rows, self.core_cols)
+
+    def _merged(self, kernel, inputs, box, frame_cells: int, part=None):
+        """Launch a core-and-frame kernel (make_step_core, make_adjoint_core) over the tiles of `box`, then, from
+        a block boundary, the frame's cells; part "core" or "frame": only that part (for timing)."""
+        tiles = self.tiles(box)
+        frame = -(-tiles // self.core_threads) * self.core_threads
+        cells = self.n_shots * frame_cells
+        launches = {"core": (tiles, 0), "frame": (cells, frame)}
+        for dim, offset in [launches[part]] if part else [(frame + cells, 0)]:
+            wp.launch(kernel, dim=dim, inputs=[*inputs, tiles, frame, offset], block_dim=self.core_threads, device=self.device, record_tape=False)
+
+    def step_core(self, step_args, u, u_prev, u_next, vpad, part=None):
+        """The 2D GPU step but psi (step_args: the reference step's arguments)."""
+        flat = [a.flatten() for a in (u, u_prev, u_next, vpad)]
+        self._merged(self.core_kernel(), [*step_args, self.core, self.frame_cells, *flat], self.core, self.frame_cells, part)
+
+    def adjoint_core(self, args, u, lam, adj, g, adj_out, g_out, w, part=None):
+        """The 2D adjoint step but psi and receivers (args: adjoint_step's arguments)."""
+        flat = [a.flatten() for a in (u, lam, adj, g, adj_out, g_out, w)]
+        box = self.adjoint_box
+        self._merged(self.adjoint_kernel(), [*args, box, self.adjoint_frame_cells, *flat], box, self.adjoint_frame_cells, part)
 
     def _cpu_step(self, st, out, u_next, vpad, step_args):
         """A CPU step, split among threads by rows: each thread does its rows of the psi strips and of the

@@ -47,11 +47,13 @@ Layout): threads updating tiles of rows x cols cells of the core (the cells with
 surface) on flat arrays, with the z-stencil in sliding register windows and each row's values along x
 loaded once per tile, and threads doing the other interior cells (the frame) with the reference's per-cell
 code, in one launch or two. A kernel may write its outputs into its inputs (every cell reads only its own
-old value of a field it writes), so forward steps run in place; under a tape every level needs its own
-arrays. Hand-written adjoints (`*_adjoint`, then `*_transpose`) first compute per cell the adjoint of
-every raw stencil sum (CPML, materials and pointwise terms included) into scratch arrays, then apply the
-transposed stencils as gathers; rows next to a free surface, whose stencils fold or shrink, scatter with
-atomics instead.
+old value of a field it writes), so forward steps run in place, or out of place into a level's own arrays
+(under a tape, and in the hand-written adjoint sweep). Hand-written adjoints (`*_adjoint`, then
+`*_transpose`, launched by Elastic.adjoint_step on explicit adjoint arrays, which they add to) first compute
+per cell the adjoint of every raw stencil sum (CPML, materials and pointwise terms included) into scratch
+arrays, then apply the transposed stencils as gathers; rows next to a free surface, whose stencils fold or
+shrink, scatter with atomics instead. The source and receiver kernels' adjoints are Warp's generated ones,
+launched directly (adjoint=True).
 """
 
 
@@ -62,7 +64,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _i0, field_stats
+from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _adjoint_launch, _i0, field_stats
 from adseismic.numerics import STAGGERED_DERIVATIVE
 
 
@@ -678,7 +680,7 @@ def build(order: int, dtype, free_surface: bool):
         q = t // nx
         return q + wp.static(M), t - q * nx + wp.static(M)
 
-    @wp.kernel(module="unique", grid_stride=False)
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def velocity_adjoint(
         sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2, n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
         g_vx_new: arr3, g_vz_new: arr3, g_vx: arr3, g_vz: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_bx: arr2, g_bz: arr2,
@@ -726,7 +728,7 @@ def build(order: int, dtype, free_surface: bool):
         g_bx[z, x] = g_bx[z, x] + acc1
         g_bz[z, x] = g_bz[z, x] + acc2
 
-    @wp.kernel(module="unique", grid_stride=False)
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def velocity_transpose(t1: arr1, t2: arr1, t3: arr1, t4: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
                            lz: int, lx: int, box: wp.vec4i, rows: int):  # fmt: skip
         # t1 = adj of dx_of_int(sxx), t2 of dz_sxz (half nodes in), t3 of dx_of_half(sxz), t4 of dz_szz
@@ -737,7 +739,7 @@ def build(order: int, dtype, free_surface: bool):
             g_szz[i] = g_szz[i] + gather_int(t4, i, lx)
             i += lx
 
-    @wp.kernel(module="unique", grid_stride=False)
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def stress_adjoint(
         vx: arr3, vz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
         g_sxx_new: arr3, g_szz_new: arr3, g_sxz_new: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_vx: arr3, g_vz: arr3,
@@ -809,7 +811,7 @@ def build(order: int, dtype, free_surface: bool):
         g_mu[z, x] = g_mu[z, x] + acc_mu
         g_muh[z, x] = g_muh[z, x] + acc_muh
 
-    @wp.kernel(module="unique", grid_stride=False)
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def stress_transpose(t1: arr1, t2: arr1, t3: arr1, t4: arr1, g_vx: arr1, g_vz: arr1,
                          lz: int, lx: int, box: wp.vec4i, rows: int):  # fmt: skip
         # t1 = adj of dx_of_half(vx), t2 of dz_vz (half nodes in), t3 of dz_vx, t4 of dx_of_int(vz)
@@ -1092,7 +1094,6 @@ class Elastic:
         self.dt_device = dtype(dt)
         self.cuda = wp.get_device(device).is_cuda
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
-        self._scratch = None
 
     def psi_shape(self, name):
         axis = PSI[name]
@@ -1164,63 +1165,71 @@ class Elastic:
             wp.launch(self.update_kernels()[kind], dim=dim, inputs=[*inputs, offset], block_dim=lay.threads, device=self.device,
                       record_tape=False)  # fmt: skip
 
-    def scratch(self):
-        """The hand adjoints' four scratch fields (allocated on first use)."""
-        if self._scratch is None:
-            self._scratch = [wp.zeros((self.n_shots, *self.padded), dtype=self.dtype, device=self.device) for _ in range(4)]
-        return self._scratch
+    def _source_launch(self, out: State, mat, sources, n: int, clock):
+        """(kernel, dim, inputs) injecting sample n (+ clock[0]) of sources into out: a force into its velocities,
+        a moment into its stresses."""
+        kind, amp, comp, loc = sources
+        dim = (self.n_shots, loc.shape[1], self.k.operator_points)
+        if kind == "force":
+            return self.k.inject_force, dim, [out.vx, out.vz, mat[0], mat[1], amp, comp, loc, n, clock, self.origin,
+                                              self.dtype(self.dt / self.dx**2), self.inv_dx, self.top]  # fmt: skip
+        return self.k.inject_moment, dim, [out.sxx, out.szz, out.sxz, amp, comp, loc, n, clock, self.origin, self.dtype(1.0 / self.dx**2),
+                                           self.inv_dx, self.top]  # fmt: skip
 
-    def step(self, st: State, mat, sources, n: int, out: State | None = None, tape=None, clock=None) -> State:
+    def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
         """Advance st (level n) to level n + 1 with source sample n (+ clock[0], an int32 device array
         (1,), for graph replays). mat: MATERIALS (Elastic.materials); sources: (kind, amplitudes
         (S, n_src, nt), components, locations (S, n_src, 2) m) with kind "force" or "moment", or None.
-        With out=None the step is done in place (forward only); with `out` (fresh arrays, e.g. under a
-        tape) st is left unchanged and out is returned. With `tape` (the active wp.Tape, out given) the
-        hand-written adjoints are recorded instead of Warp's generated ones."""
+        With out=None the step is done in place (forward only); with `out` (other arrays: a kept level, or
+        fresh ones under a tape) st is left unchanged and out is returned. Under an active wp.Tape the
+        per-cell reference kernels are launched and recorded (Warp's generated adjoints)."""
         out = st if out is None else out
         clock = self.clock if clock is None else clock
-        P, Q = st.psi, out.psi
-        bx, bz, l2m, lam, mu, muh, _ = mat
-        dev, dt, inv_dx, top = self.device, self.dt_device, self.inv_dx, self.top
-        generated = tape is None and wp._src.context.runtime.tape is not None
+        generated = wp._src.context.runtime.tape is not None
+
+        def inject(kind):
+            if sources is not None and sources[0] == kind:
+                kernel, dim, inputs = self._source_launch(out, mat, sources, n, clock)
+                wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
         self.update(0, st, out, mat, generated)
-        if tape is not None:
-
-            def velocity_backward():
-                t = self.scratch()
-                wp.launch(self.k.velocity_adjoint, dim=math.prod(self.interior[1:]),
-                          inputs=[st.sxx, st.szz, st.sxz, bx, bz, *(Q[k] for k in PSI_V), out.vx.grad, out.vz.grad, st.vx.grad,
-                                  st.vz.grad, st.sxx.grad, st.szz.grad, st.sxz.grad, bx.grad, bz.grad, *(P[k].grad for k in PSI_V),
-                                  *(Q[k].grad for k in PSI_V), *t, *self.axes, dt, inv_dx, top], device=dev)  # fmt: skip
-                self._flat_launch(self.k.velocity_transpose, self.box, [*t, st.sxx.grad, st.szz.grad, st.sxz.grad])
-
-            tape.record_func(velocity_backward, arrays=[st.sxx, st.szz, st.sxz, st.vx, st.vz, out.vx, out.vz, bx, bz,
-                                                        *(P[k] for k in PSI_V), *(Q[k] for k in PSI_V)])  # fmt: skip
-        if sources is not None and sources[0] == "force":
-            _, amp, comp, loc = sources
-            wp.launch(self.k.inject_force, dim=(self.n_shots, loc.shape[1], self.k.operator_points),
-                      inputs=[out.vx, out.vz, bx, bz, amp, comp, loc, n, clock, self.origin, self.dtype(self.dt / self.dx**2), inv_dx, top],
-                      device=dev)  # fmt: skip
+        inject("force")
         self.update(1, st, out, mat, generated)
-        if tape is not None:
-
-            def stress_backward():
-                t = self.scratch()
-                wp.launch(self.k.stress_adjoint, dim=math.prod(self.interior[1:]),
-                          inputs=[out.vx, out.vz, l2m, lam, mu, muh, *(Q[k] for k in PSI_S), out.sxx.grad, out.szz.grad,
-                                  out.sxz.grad, st.sxx.grad, st.szz.grad, st.sxz.grad, out.vx.grad, out.vz.grad, l2m.grad,
-                                  lam.grad, mu.grad, muh.grad, *(P[k].grad for k in PSI_S), *(Q[k].grad for k in PSI_S), *t,
-                                  *self.axes, dt, inv_dx, top], device=dev)  # fmt: skip
-                self._flat_launch(self.k.stress_transpose, self.box, [*t, out.vx.grad, out.vz.grad])
-
-            tape.record_func(stress_backward, arrays=[out.vx, out.vz, st.sxx, st.szz, st.sxz, out.sxx, out.szz, out.sxz,
-                                                      l2m, lam, mu, muh, *(P[k] for k in PSI_S), *(Q[k] for k in PSI_S)])  # fmt: skip
-        if sources is not None and sources[0] == "moment":
-            _, amp, comp, loc = sources
-            wp.launch(self.k.inject_moment, dim=(self.n_shots, loc.shape[1], self.k.operator_points),
-                      inputs=[out.sxx, out.szz, out.sxz, amp, comp, loc, n, clock, self.origin, self.dtype(1.0 / self.dx**2), inv_dx, top],
-                      device=dev)  # fmt: skip
+        inject("moment")
         return out
+
+    def adjoint_step(self, st: State, out: State, mat, adj_next: State, adj: State, adj_mat, sources, adj_sources, scratch, n: int,
+                     clock=None):  # fmt: skip
+        """Adjoint of step(st, mat, sources, n, out) (out-of-place, st and out as it left them): the hand-written
+        adjoints of the half steps and Warp's generated ones of the source injection. adj_next: the adjoint State
+        of level n + 1, consumed (its velocities gain the stress update's terms); adj: that of level n, added to
+        (zero it first); adj_mat: the adjoints of MATERIALS but b (6 arrays (Lz, Lx)); adj_sources: of the sources'
+        (amplitudes, components, locations); both added to. scratch: four fields (S, Lz, Lx) whose halo is zero."""
+        clock = self.clock if clock is None else clock
+        bx, bz, l2m, lam, mu, muh, _ = mat
+        g_bx, g_bz, g_l2m, g_lam, g_mu, g_muh = adj_mat
+        Q, G, GN = out.psi, adj.psi, adj_next.psi
+        dev, dt, inv_dx, top = self.device, self.dt_device, self.inv_dx, self.top
+        cells = math.prod(self.interior[1:])
+
+        def source_adjoint(kind, first):  # adjoints of the injection's inputs, in launch order from `first` (the fields)
+            if sources is not None and sources[0] == kind:
+                kernel, dim, inputs = self._source_launch(out, mat, sources, n, clock)
+                extra = [g_bx, g_bz] if kind == "force" else []
+                _adjoint_launch(kernel, dim, inputs, dict(enumerate([*first, *extra, *adj_sources])), dev)
+
+        source_adjoint("moment", [adj_next.sxx, adj_next.szz, adj_next.sxz])
+        wp.launch(self.k.stress_adjoint, dim=cells,
+                  inputs=[out.vx, out.vz, l2m, lam, mu, muh, *(Q[k] for k in PSI_S), adj_next.sxx, adj_next.szz, adj_next.sxz, adj.sxx, adj.szz,
+                          adj.sxz, adj_next.vx, adj_next.vz, g_l2m, g_lam, g_mu, g_muh, *(G[k] for k in PSI_S), *(GN[k] for k in PSI_S),
+                          *scratch, *self.axes, dt, inv_dx, top], device=dev)  # fmt: skip
+        self._flat_launch(self.k.stress_transpose, self.box, [*scratch, adj_next.vx, adj_next.vz])
+        source_adjoint("force", [adj_next.vx, adj_next.vz])
+        wp.launch(self.k.velocity_adjoint, dim=cells,
+                  inputs=[st.sxx, st.szz, st.sxz, bx, bz, *(Q[k] for k in PSI_V), adj_next.vx, adj_next.vz, adj.vx, adj.vz, adj.sxx,
+                          adj.szz, adj.sxz, g_bx, g_bz, *(G[k] for k in PSI_V), *(GN[k] for k in PSI_V), *scratch, *self.axes, dt, inv_dx,
+                          top], device=dev)  # fmt: skip
+        self._flat_launch(self.k.velocity_transpose, self.box, [*scratch, adj.sxx, adj.szz, adj.sxz])
 
     def receivers(self, locations):
         """The receiver operator at locations (S, n_rec, 2) m: node indices and weights (4, S, n_rec, points)."""
@@ -1235,6 +1244,13 @@ class Elastic:
         operator op (Elastic.receivers)."""
         clock = self.clock if clock is None else clock
         wp.launch(self.k.record, dim=op[1].shape[1:], inputs=[st.vx, st.vz, st.sxx, st.szz, *data, *op, n, clock], device=self.device)
+
+    def record_adjoint(self, adj: State, residual, op, n: int, clock=None):
+        """Adjoint of record (Warp's generated one): adj's vx, vz, sxx, szz += the receiver operator's transpose
+        applied to sample n (+ clock[0]) of residual = (vx, vz, pressure) arrays (S, n_rec, levels)."""
+        clock = self.clock if clock is None else clock
+        inputs = [adj.vx, adj.vz, adj.sxx, adj.szz, *residual, *op, n, clock]
+        _adjoint_launch(self.k.record, op[1].shape[1:], inputs, dict(enumerate(inputs[:7])), self.device)
 
     def physical(self, a):
         """View of the physical grid (nz, nx) of a padded model-shaped array."""
