@@ -65,7 +65,7 @@ class ElasticResult:
 class ElasticGradient:
     """Misfit and its gradients: vp, vs (per m/s) and rho (per kg/m^3) (nz, nx); source_amplitudes
     (n_shots, n_src, nt); source_components (n_shots, n_src, 2 or 3); source_locations (n_shots, n_src, 2)
-    per metre; None where not requested. synthetic: {"vx", "vz", "pressure"} data. segment_length (steps) and
+    per metre; None where not requested; in the simulation's precision. synthetic: {"vx", "vz", "pressure"} data. segment_length (steps) and
     n_segments of the checkpointed sweep, peak_bytes_estimate its planned memory (plan_segments)."""
 
     loss: float
@@ -270,24 +270,28 @@ def run_elastic(su: ElasticSetup, st, mat, data, steps: range, next_state=None, 
 
 
 def capture(su: ElasticSetup, st, mat, data, every: int) -> graphs.Loop:
-    """The in-place time loop of run_elastic (record, the guard's checks, step) captured as a CUDA graph
-    (graphs.capture); data must have K * graphs samples (graphs.graph_plan)."""
+    """The time loop of run_elastic (record, the guard's checks, step) captured as a CUDA graph
+    (graphs.capture), stepping from st into a second state (kept.spare) and back (a GPU writes an array
+    faster than it updates one in place); data must have K * graphs samples (graphs.graph_plan)."""
     prop = su.prop
     K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
     amp = wp.array(graphs.padded_samples(su.amplitudes.numpy(), K * n_graphs + 1, prop.dtype), dtype=prop.dtype, device=prop.device)
     src = (su.kind, amp, su.components, su.sources)
+    states = [st, prop.new_state()]
 
     def step(n, clock, stats):
-        prop.record(st, data, su.receiver_op, n, clock)
+        cur, other = states
+        prop.record(cur, data, su.receiver_op, n, clock)
         if stats is not None:
-            prop.monitor((st.vx, st.vz), stats)
-        prop.step(st, mat, src, n, clock=clock)
+            prop.monitor((cur.vx, cur.vz), stats)
+        prop.step(cur, mat, src, n, out=other, clock=clock)
+        states.reverse()
 
     k = prop.k
     kernels = (reduction_kernels(prop.dtype)[0], k.velocity, k.stress, *prop.update_kernels(), k.record,
                k.inject_force if su.kind == "force" else k.inject_moment)  # fmt: skip
-    kept = SimpleNamespace(su=su, st=st, mat=mat, data=data, amplitudes=amp)
-    return graphs.capture(_graph_key(su, every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept)
+    kept = SimpleNamespace(su=su, st=st, spare=states[1], mat=mat, data=data, amplitudes=amp)
+    return graphs.capture(_graph_key(su, every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept, su.nt)
 
 
 def _graph_key(su: ElasticSetup, every: int) -> tuple:
@@ -307,7 +311,7 @@ def _kept_loop(su: ElasticSetup, every: int) -> graphs.Loop:
     mine = loop.kept
     _refill(mine.su, mine.mat, su, su.materials())
     mine.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), loop.K * loop.graphs + 1, prop.dtype))
-    for a in (*mine.st.arrays(), *mine.data, loop.clock):
+    for a in (*mine.st.arrays(), *mine.spare.arrays(), *mine.data, loop.clock):
         a.zero_()
     return loop
 
@@ -457,7 +461,7 @@ def _gradients(su: ElasticSetup, sources) -> dict:
     """{name in WRT: gradient as NumPy array}: vp, vs, rho from the models' .grad, the sources' from `sources` (the
     adjoints of the amplitudes, cut to nt samples, the components and the locations); names without one are left out."""
     arrays = {**dict(zip(("vp", "vs", "rho"), (m.grad for m in su.model))), **dict(zip(WRT[3:], sources))}
-    out = {k: a.numpy().astype(float) for k, a in arrays.items() if a is not None}
+    out = {k: np.array(a.numpy()) for k, a in arrays.items() if a is not None}  # copies, in the simulation's precision
     if "source_amplitudes" in out:
         out["source_amplitudes"] = out["source_amplitudes"][:, :, : su.nt]
     return out

@@ -36,7 +36,7 @@ class GradientResult:
     (n_shots, n_src, nt); source_locations: dJ/dx_s (n_shots, n_src, ndim) per metre; parameters:
     dJ/dtheta of a parameterization; illumination: sum over time and shots of u^2 (model shape;
     the pseudo-Hessian diagonal of Shin et al. 2001); synthetic: (n_shots, n_receivers, nt). Entries
-    not requested are None."""
+    not requested are None; the gradients are in the simulation's precision (float32 or float64)."""
 
     loss: float
     synthetic: np.ndarray
@@ -151,8 +151,8 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
         amplitudes_grad = su.amplitudes.grad
     bar.close()
 
-    def grad_of(arr):
-        return arr.grad.numpy().astype(float)
+    def grad_of(arr):  # in the simulation's precision (a float64 copy of an S4000 gradient costs as much as 60 time steps)
+        return arr.grad.numpy()
 
     res = GradientResult(loss=float(loss), synthetic=synthetic, segment_length=seg, n_segments=n_seg, peak_bytes_estimate=peak)
     if "velocity" in wrt:
@@ -163,7 +163,7 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
     if energy is not None:
         res.illumination = prop.physical(energy.numpy()).astype(float).reshape(prop.shape)
     if "source_amplitudes" in wrt:
-        res.source_amplitudes = amplitudes_grad.numpy()[:, :, :nt].astype(float)
+        res.source_amplitudes = amplitudes_grad.numpy()[:, :, :nt]
     if "source_locations" in wrt:
         g = grad_of(su.sources)
         res.source_locations = g if su.ndim == 3 else g[..., [0, 2]]

@@ -26,7 +26,7 @@ import adseismic.propagate as P  # noqa: E402
 from adseismic.graphs import graph_plan  # noqa: E402
 from adseismic.kernels import acoustic as K  # noqa: E402
 
-CORE_VARIANTS = [(8, 2, 128), (16, 2, 128), (8, 1, 128), (16, 1, 128), (4, 2, 128), (4, 4, 128), (8, 4, 128), (8, 2, 256)]  # (rows, columns per thread, threads per block) of step_core
+CORE_VARIANTS = [(4, 2, 128), (8, 2, 128), (2, 2, 128), (4, 1, 128), (4, 2, 256), (16, 2, 128)]  # (rows, columns per thread, threads per block) of the core kernels
 
 
 def make(name, device, order, nt=None):
