@@ -1266,6 +1266,9 @@ class Acoustic:
         self._pool = None
         self._launches = {}  # recorded CPU step launches per set of arrays (_cpu_step)
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
+        # (data, idx, w) standing in for a record/residual of no points in the fused launches
+        self._no_points = (wp.zeros((1, 1, 1), dtype=dtype, device=device), wp.zeros((1, 1, 1), dtype=wp.vec3i, device=device),
+                           wp.zeros((1, 1, 1), dtype=dtype, device=device))  # fmt: skip
 
     def strip_shape(self, axis: int):
         """Shape of psi/zeta along `axis`; (1, 1, 1, 1) for an axis without CPML (never read)."""
@@ -1328,16 +1331,10 @@ class Acoustic:
         """Cells of the z and x CPML strips (0 for an axis without)."""
         return [math.prod(self.strip_shape(a)) if self.strip_width[a] else 0 for a in (0, 2)]
 
-    def _no_points(self):
-        """(data, (idx, w)) standing in for a record/residual of no points."""
-        return wp.zeros((1, 1, 1), dtype=self.dtype, device=self.device), (wp.zeros((1, 1, 1), dtype=wp.vec3i, device=self.device),
-                                                                           wp.zeros((1, 1, 1), dtype=self.dtype, device=self.device))  # fmt: skip
-
     def _points(self, record):
         """(data, idx, w, n, clock, number of points) of a record/residual tuple (data, op, n, clock) or None."""
         if record is None:
-            data, op = self._no_points()
-            return data, *op, 0, self.clock, 0
+            return *self._no_points, 0, self.clock, 0
         data, op, n, clock = record
         return data, *op, n, self.clock if clock is None else clock, op[1].size
 
