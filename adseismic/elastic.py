@@ -582,23 +582,7 @@ class ElasticSweep:
         self.adj = [prop.new_state() for _ in range(2)]
         self.scratch = [zeros((prop.n_shots, *prop.padded)) for _ in range(4)]  # their halo stays zero
         self.clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
-        self.graphs = None
-        if prop.cuda:
-            for k in _sweep_kernels(su):
-                wp.load_module(k.module, device=prop.device)
-            self.graphs = [self._capture(self._forward_segment), self._capture(self._adjoint_segment)]
-
-    def _capture(self, fn):
-        with wp.ScopedCapture(device=self.su.prop.device, force_module_load=False) as cap:
-            fn()
-        return cap.graph
-
-    def _run(self, which: int, n0: int):
-        self.clock.fill_(n0)
-        if self.graphs is None:
-            (self._forward_segment, self._adjoint_segment)[which]()
-        else:
-            wp.capture_launch(self.graphs[which])
+        self.segments = graphs.Segments(prop.device, self.clock, _sweep_kernels(su), (self._forward_segment, self._adjoint_segment))
 
     def _forward_segment(self):
         su, lv = self.su, self.levels
@@ -624,7 +608,7 @@ class ElasticSweep:
                 _copy_state(self.levels[0], end)
                 if k < self.n_seg - 1:
                     _copy_state(self.checkpoints[k - 1], end)
-            self._run(0, k * self.seg)
+            self.segments.run(0, k * self.seg)
             bar.update()
 
     def backward_sweep(self, bar):
@@ -636,8 +620,8 @@ class ElasticSweep:
                         a.zero_()
                 else:
                     _copy_state(self.levels[0], self.checkpoints[k - 1])
-                self._run(0, k * self.seg)
-            self._run(1, k * self.seg)
+                self.segments.run(0, k * self.seg)
+            self.segments.run(1, k * self.seg)
             bar.update()
 
     def refill(self, su: ElasticSetup, mat):

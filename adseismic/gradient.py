@@ -265,23 +265,7 @@ class Sweep:
         self.adj_zeta = [prop.new_state(with_prev=False).zeta for _ in range(2)]
         self.energy = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device) if illumination else None
         self.clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
-        self.graphs = None
-        if prop.cuda:
-            for k in kernels_of(prop):
-                wp.load_module(k.module, device=prop.device)
-            self.graphs = [self._capture(self._forward_segment), self._capture(self._adjoint_segment)]
-
-    def _capture(self, fn):
-        with wp.ScopedCapture(device=self.su.prop.device, force_module_load=False) as cap:
-            fn()
-        return cap.graph
-
-    def _run(self, which: int, n0: int):
-        self.clock.fill_(n0)
-        if self.graphs is None:
-            (self._forward_segment, self._adjoint_segment)[which]()
-        else:
-            wp.capture_launch(self.graphs[which])
+        self.segments = graphs.Segments(prop.device, self.clock, kernels_of(prop), (self._forward_segment, self._adjoint_segment))
 
     def _forward_segment(self):
         su, prop, lv = self.su, self.su.prop, self.levels
@@ -320,15 +304,15 @@ class Sweep:
                 if k < self.n_seg - 1:
                     for dst, src in zip(self.checkpoints[k - 1], end):
                         wp.copy(dst, src)
-            self._run(0, k * self.seg)
+            self.segments.run(0, k * self.seg)
             bar.update()
 
     def backward_sweep(self, bar):
         for k in reversed(range(self.n_seg)):
             if k < self.n_seg - 1:
                 self._start(k)
-                self._run(0, k * self.seg)
-            self._run(1, k * self.seg)
+                self.segments.run(0, k * self.seg)
+            self.segments.run(1, k * self.seg)
             bar.update()
 
     def refill(self, su, vpad):

@@ -14,6 +14,7 @@ inversion's forward and gradient calls do not evict each other.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,3 +116,28 @@ def keep(loop):
 def release():
     """Free the device memory of the kept time loops."""
     _KEPT.clear()
+
+
+class Segments:
+    """The two directions of a checkpointed sweep (forward and adjoint segment functions, whose launches read
+    the time index from `clock`): on a GPU each captured once as a CUDA graph (after loading `kernels`) and
+    replayed, on a CPU called; run(which, n0) runs one with clock[0] = n0. fns are a sweep's bound methods,
+    held weakly (no reference cycle keeps a sweep's device memory after graphs.release())."""
+
+    def __init__(self, device, clock, kernels, fns):
+        self.clock, self.fns, self.graphs = clock, [weakref.WeakMethod(f) for f in fns], None
+        if wp.get_device(device).is_cuda:
+            for k in kernels:
+                wp.load_module(k.module, device=device)
+            self.graphs = []
+            for fn in fns:
+                with wp.ScopedCapture(device=device, force_module_load=False) as cap:
+                    fn()
+                self.graphs.append(cap.graph)
+
+    def run(self, which: int, n0: int):
+        self.clock.fill_(n0)
+        if self.graphs is None:
+            self.fns[which]()()
+        else:
+            wp.capture_launch(self.graphs[which])
