@@ -24,9 +24,8 @@ from speed import SCENES, scene  # noqa: E402
 
 import adseismic.propagate as P  # noqa: E402
 from adseismic.graphs import graph_plan  # noqa: E402
-from adseismic.kernels import acoustic as K  # noqa: E402
 
-CORE_VARIANTS = [(4, 2, 128), (8, 2, 128), (2, 2, 128), (4, 1, 128), (4, 2, 256), (16, 2, 128)]  # (rows, columns per thread, threads per block) of the core kernels
+CORE_VARIANTS = [(4, 4, 128), (4, 2, 128), (8, 4, 128), (2, 4, 128), (4, 1, 128), (4, 4, 256)]  # (rows, columns per thread (one vector), threads per block) of the core kernels
 
 
 def make(name, device, order, nt=None):
@@ -110,6 +109,7 @@ def kernel_times(su, reps):
 
         out["step_frame"] = per_launch(part("frame"), dev, reps)
         ref = ref_next.numpy()
+        default = prop.core_rows, prop.core_cols, prop.core_threads
         for rows, cols, block in CORE_VARIANTS:
             prop.core_rows, prop.core_cols, prop.core_threads = rows, cols, block
             name = f"step_core_r{rows}_c{cols}_b{block}"
@@ -117,7 +117,7 @@ def kernel_times(su, reps):
             out[name + "_with_frame"] = per_launch(part(None), dev, reps)
             checks[name] = float(np.abs(fast_next.numpy() - ref).max() / np.abs(ref).max())
             fast_next.zero_()
-        prop.core_rows, prop.core_cols, prop.core_threads = K.GPU_CORE_ROWS, K.GPU_CORE_COLS, K.GPU_CORE_THREADS
+        prop.core_rows, prop.core_cols, prop.core_threads = default
         out["pre_step"] = per_launch(lambda: prop._pre_step(st, st, (data, su.receiver_op, 3, None)), dev, reps)
     out["step_in_place"] = per_launch(lambda: prop.step(st, vpad), dev, reps)
 
@@ -162,6 +162,7 @@ def adjoint_times(prop, st, vpad, residual_op, reps, checks):
         def part(name):
             return lambda: prop.adjoint_core(args, st.u, lam, adj, g, adj_out, g_out, w, part=name)
 
+        default = prop.core_rows, prop.core_cols, prop.core_threads
         for rows, cols, block in CORE_VARIANTS:
             prop.core_rows, prop.core_cols, prop.core_threads = rows, cols, block
             name = f"adjoint_core_r{rows}_c{cols}_b{block}"
@@ -170,7 +171,7 @@ def adjoint_times(prop, st, vpad, residual_op, reps, checks):
             checks[name] = float(max(np.abs(adj_out.numpy() - ref_a).max() / np.abs(ref_a).max(), np.abs(g_out.numpy() - ref_g).max() / np.abs(ref_g).max()))
             out[name] = per_launch(part("core"), dev, reps)
             out[name + "_with_frame"] = per_launch(part(None), dev, reps)
-        prop.core_rows, prop.core_cols, prop.core_threads = K.GPU_CORE_ROWS, K.GPU_CORE_COLS, K.GPU_CORE_THREADS
+        prop.core_rows, prop.core_cols, prop.core_threads = default
         out["adjoint_frame"] = per_launch(part("frame"), dev, reps)
     res = wp.zeros((prop.n_shots, residual_op[1].shape[1], 8), dtype=prop.dtype, device=dev)
     out["adjoint_step"] = per_launch(lambda: prop.adjoint_step(st, nxt, vpad, w, lam, adj, g, ap, az, residual=(res, residual_op, 3, None), out=(adj_out, g_out)),

@@ -40,9 +40,10 @@ import warp as wp
 from adseismic.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 
 HICKS_RADIUS = 4
-# 2D GPU core steps: rows (along z) x adjacent columns per thread, threads per block (H200, S4000, us, writing
-# u[n+1] into a third array: step 4 x 2: 83.5, 8 x 2: 90.0, 16 x 2: 94.6, 8 x 1: 92.6, 4 x 4: 115; adjoint,
-# writing into fresh arrays: 4 x 2: 186, 8 x 2: 201, 16 x 2: 212; 256 threads 1% slower)
+# 2D GPU core steps: rows (along z) x adjacent columns per thread (read and written as one vector; fewer where
+# the row length is no multiple), threads per block (H200, S4000, us, writing into fresh arrays: step 4 x 2: 72.8,
+# 4 x 4: 74.2, 2 x 4: 73.8, 8 x 4: 79.8, 4 x 1: 93.0; adjoint core 4 x 2: 134.5, 4 x 4: 146, 8 x 4: 156, 4 x 1:
+# 189; 256 threads 2-5% slower)
 GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS = 4, 2, 128
 CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over row blocks of a CPU step
 MONITOR_BLOCK = 256
@@ -475,51 +476,96 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         return tile
 
     @functools.lru_cache(maxsize=None)
-    def make_core_tile(rows: int, cols: int):
-        # 2D GPU step of one tile of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded
-        # indices), where there is neither CPML nor a free surface, on the flat arrays (u: S * Lz * Lx, v: Lz *
-        # Lx). Thread t updates `rows` consecutive rows of `cols` adjacent columns, with the stencil's values
-        # along z in sliding windows and one load per value of a row along x; the loop over rows is unrolled.
-        win = wp.types.matrix(shape=(cols, 2 * R + 1), dtype=dtype)
-        line = wp.types.vector(length=cols + 2 * R, dtype=dtype)
-        tile = make_tile(rows, cols)
+    def make_lanes(V: int):
+        # Types and row reads of tiles of V adjacent columns held as V-vectors: the flat arrays are viewed as
+        # arrays of vector(V) (the box's columns and the row length are multiples of V), so that a thread loads
+        # and stores V cells at once. Returns (vector, its array, window (V, 2R + 1), line (V + 2R), row).
+        NB = -(-R // V)  # vectors each side that hold a row's R neighbours
+        vec = wp.types.vector(length=V, dtype=dtype)
+        arrv = wp.array(dtype=vec)
+        win = wp.types.matrix(shape=(V, 2 * R + 1), dtype=dtype)
+        line = wp.types.vector(length=V + 2 * R, dtype=dtype)
 
         @wp.func
-        def core_tile(t: int, u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
+        def sides(a: arrv, i: int) -> line:
+            # the R values left and right of vector i along its row, at r[0:R] and r[R + V:] (r[R:R + V] = 0)
+            r = line()
+            for b in range(wp.static(NB)):
+                lo = a[i - wp.static(NB) + b]
+                hi = a[i + 1 + b]
+                for j in range(wp.static(V)):
+                    if wp.static((b - NB) * V + j + R >= 0):
+                        r[wp.static((b - NB) * V + j + R)] = lo[j]
+                    if wp.static((b + 1) * V + j + R < V + 2 * R):
+                        r[wp.static((b + 1) * V + j + R)] = hi[j]
+            return r
+
+        @wp.func
+        def row(r: line, w: win) -> line:
+            # r with its centre r[R:R + V] taken from the window's centre (the tile's own cells)
+            out = line()
+            for p in range(wp.static(V + 2 * R)):
+                if wp.static(p >= R and p < R + V):
+                    out[p] = w[wp.static(p - R), wp.static(R)]
+                else:
+                    out[p] = r[p]
+            return out
+
+        return vec, arrv, win, line, sides, row
+
+    @functools.lru_cache(maxsize=None)
+    def make_core_tile(rows: int, V: int):
+        # 2D GPU step of one tile of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded
+        # indices), where there is neither CPML nor a free surface, on the flat arrays viewed as V-vectors
+        # (make_lanes; u: S * Lz * Lx / V, v: Lz * Lx / V). Thread t updates `rows` consecutive rows of V adjacent
+        # columns, with the stencil's values along z in sliding windows and one load per vector of a row along
+        # x; the loop over rows is unrolled.
+        vec, arrv, win, line, sides, row = make_lanes(V)
+        tile = make_tile(rows, V)
+
+        @wp.func
+        def core_tile(t: int, u: arrv, u_prev: arrv, u_next: arrv, v: arrv, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
             tl = tile(t, core, lz, lx)
-            z, ncol, c, i = tl[0], tl[1], tl[2], tl[3]
+            z = tl[0]
+            c = tl[2] // wp.static(V)
+            i = tl[3] // wp.static(V)
+            n = lx // wp.static(V)
             w = win()
-            for j in range(wp.static(cols)):
-                for m in range(wp.static(2 * R + 1)):
-                    if j < ncol:
-                        w[j, m] = u[i + j + (m - wp.static(R)) * lx]
+            for m in range(wp.static(2 * R + 1)):
+                a = u[i + (m - wp.static(R)) * n]
+                for j in range(wp.static(V)):
+                    w[j, m] = a[j]
             inv_dx2 = inv_dx * inv_dx
             for k in range(wp.static(rows)):
                 if z + k < core[1]:
-                    row = line()
-                    for p in range(wp.static(cols + 2 * R)):
-                        if p < ncol + wp.static(2 * R):
-                            row[p] = u[i + p - wp.static(R)]
-                    for j in range(wp.static(cols)):
-                        if j < ncol:
-                            dxx = dtype(wp.static(A[0])) * w[j, wp.static(R)]
-                            for m in range(wp.static(R)):
-                                dxx += dtype(wp.static(A[m + 1])) * (row[j + wp.static(R + 1) + m] + row[j + wp.static(R - 1) - m])
-                            u_next[i + j] = advance(w[j, wp.static(R)], u_prev[i + j], v[c + j], dt2, (d2w(w[j]) + dxx) * inv_dx2)
+                    r = row(sides(u, i), w)
+                    up = u_prev[i]
+                    vv = v[c]
+                    out = vec()
+                    for j in range(wp.static(V)):
+                        dxx = dtype(wp.static(A[0])) * w[j, wp.static(R)]
+                        for m in range(wp.static(R)):
+                            dxx += dtype(wp.static(A[m + 1])) * (r[j + wp.static(R + 1) + m] + r[j + wp.static(R - 1) - m])
+                        out[j] = advance(w[j, wp.static(R)], up[j], vv[j], dt2, (d2w(w[j]) + dxx) * inv_dx2)
+                    u_next[i] = out
+                    if wp.static(k + 1 < rows):
+                        a = u[i + wp.static(R + 1) * n]
+                        for j in range(wp.static(V)):
                             for m in range(wp.static(2 * R)):
                                 w[j, m] = w[j, m + 1]
-                            w[j, wp.static(2 * R)] = u[i + j + wp.static(R + 1) * lx]
-                    i += lx
-                    c += lx
+                            w[j, wp.static(2 * R)] = a[j]
+                    i += n
+                    c += n
 
-        return core_tile
+        return core_tile, arrv
 
-    def make_step_core(rows: int, cols: int):
+    def make_step_core(rows: int, V: int):
         # The 2D GPU step in one 1D launch (unravelling a multi-dimensional thread index costs 64-bit
-        # divisions): thread t + offset below `tiles` does a core tile (make_core_tile), from `frame` (a block
-        # boundary, so that no warp mixes the two) one interior cell outside the core as the reference step
-        # does it (frame_cell: the CPML strips and the free-surface rows), `cells` per shot.
-        core_tile = make_core_tile(rows, cols)
+        # divisions): thread t + offset below `tiles` does a core tile (make_core_tile; uf..vf: the flat arrays
+        # as V-vectors), from `frame` (a block boundary, so that no warp mixes the two) one interior cell outside
+        # the core as the reference step does it (frame_cell: the CPML strips and the free-surface rows), `cells`
+        # per shot.
+        core_tile, arrv = make_core_tile(rows, V)
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def step_core(
@@ -528,7 +574,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
             zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
             az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
-            core: wp.vec4i, cells: int, uf: arr1, uf_prev: arr1, uf_next: arr1, vf: arr1, tiles: int, frame: int, offset: int,
+            core: wp.vec4i, cells: int, uf: arrv, uf_prev: arrv, uf_next: arrv, vf: arrv, tiles: int, frame: int, offset: int,
         ):  # fmt: skip
             t = wp.tid() + offset
             if t < frame:
@@ -801,63 +847,72 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                      adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
                      az, ay, ax, dt2, inv_dx, top, s, zi + wp.static(R), y, xi + wp.static(R))  # fmt: skip
 
-    def make_adjoint_core(rows: int, cols: int):
+    def make_adjoint_core(rows: int, V: int):
         # The 2D adjoint step in one 1D launch, laid out as step_core: thread t + offset below `tiles` does a
-        # tile of adjoint_cell on the flat arrays (u, lam, adj, g: S * Lz * Lx; w = v^2 dt^2: Lz * Lx) inside
-        # `box`, the cells whose stencil neighbours all lie in step_core's core (no CPML, no surface image),
-        # with windows of q = w lam (gathered) and of u (the model gradient's Laplacian); from `frame` (a block
-        # boundary) one interior cell outside `box` (frame_cell), `cells` per shot, by the per-cell gather.
-        win = wp.types.matrix(shape=(cols, 2 * R + 1), dtype=dtype)
-        line = wp.types.vector(length=cols + 2 * R, dtype=dtype)
-        tile = make_tile(rows, cols)
+        # tile of adjoint_cell on the flat arrays as V-vectors (make_lanes; u, lam, adj, g: S * Lz * Lx / V; w =
+        # v^2 dt^2: Lz * Lx / V) inside `box`, the cells whose stencil neighbours all lie in step_core's core (no
+        # CPML, no surface image), with windows of q = w lam (gathered) and of u (the model gradient's
+        # Laplacian); from `frame` (a block boundary) one interior cell outside `box` (frame_cell), `cells` per
+        # shot, by the per-cell gather.
+        vec, arrv, win, line, sides, row = make_lanes(V)
+        tile = make_tile(rows, V)
 
         @wp.func
-        def adjoint_tile(t: int, u: arr1, lam: arr1, adj: arr1, g: arr1, adj_out: arr1, g_out: arr1, w: arr1, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
+        def adjoint_tile(t: int, u: arrv, lam: arrv, adj: arrv, g: arrv, adj_out: arrv, g_out: arrv, w: arrv, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
             tl = tile(t, box, lz, lx)
-            z, ncol, c, i = tl[0], tl[1], tl[2], tl[3]
+            z = tl[0]
+            c = tl[2] // wp.static(V)
+            i = tl[3] // wp.static(V)
+            n = lx // wp.static(V)
             wq = win()
             wu = win()
-            for j in range(wp.static(cols)):
-                for m in range(wp.static(2 * R + 1)):
-                    if j < ncol:
-                        o = j + (m - wp.static(R)) * lx
-                        wq[j, m] = w[c + o] * lam[i + o]
-                        wu[j, m] = u[i + o]
+            for m in range(wp.static(2 * R + 1)):
+                o = (m - wp.static(R)) * n
+                a = wp.cw_mul(w[c + o], lam[i + o])
+                b = u[i + o]
+                for j in range(wp.static(V)):
+                    wq[j, m] = a[j]
+                    wu[j, m] = b[j]
             inv_dx2 = inv_dx * inv_dx
             for k in range(wp.static(rows)):
                 if z + k < box[1]:
-                    rq = line()
-                    ru = line()
-                    for p in range(wp.static(cols + 2 * R)):
-                        if p < ncol + wp.static(2 * R):
-                            rq[p] = w[c + p - wp.static(R)] * lam[i + p - wp.static(R)]
-                            ru[p] = u[i + p - wp.static(R)]
-                    for j in range(wp.static(cols)):
-                        if j < ncol:
-                            # the order of gather_z + gather_x (from the far neighbour to the near one)
-                            acz = dtype(0.0)
-                            acx = dtype(0.0)
-                            for m in range(wp.static(2 * R + 1)):
-                                acz += dtype(wp.static(A[abs(m - R)])) * wq[j, wp.static(2 * R) - m]
-                            for m in range(wp.static(2 * R + 1)):
-                                acx += dtype(wp.static(A[abs(m - R)])) * rq[j + wp.static(2 * R) - m]
-                            acc = (acz + acx) * inv_dx2
-                            lc = lam[i + j]
-                            acc += dtype(2.0) * lc
-                            acc -= adj[i + j]
-                            adj_out[i + j] = acc
-                            dxx = dtype(wp.static(A[0])) * ru[j + wp.static(R)]
-                            for m in range(wp.static(R)):
-                                dxx += dtype(wp.static(A[m + 1])) * (ru[j + wp.static(R + 1) + m] + ru[j + wp.static(R - 1) - m])
-                            g_out[i + j] = g[i + j] + lc * (d2w(wu[j]) * inv_dx2 + dxx * inv_dx2)
+                    rq = row(wp.cw_mul(sides(w, c), sides(lam, i)), wq)
+                    ru = row(sides(u, i), wu)
+                    lc = lam[i]
+                    ad = adj[i]
+                    gi = g[i]
+                    ao = vec()
+                    go = vec()
+                    for j in range(wp.static(V)):
+                        # the order of gather_z + gather_x (from the far neighbour to the near one)
+                        acz = dtype(0.0)
+                        acx = dtype(0.0)
+                        for m in range(wp.static(2 * R + 1)):
+                            acz += dtype(wp.static(A[abs(m - R)])) * wq[j, wp.static(2 * R) - m]
+                        for m in range(wp.static(2 * R + 1)):
+                            acx += dtype(wp.static(A[abs(m - R)])) * rq[j + wp.static(2 * R) - m]
+                        acc = (acz + acx) * inv_dx2
+                        acc += dtype(2.0) * lc[j]
+                        acc -= ad[j]
+                        ao[j] = acc
+                        dxx = dtype(wp.static(A[0])) * ru[j + wp.static(R)]
+                        for m in range(wp.static(R)):
+                            dxx += dtype(wp.static(A[m + 1])) * (ru[j + wp.static(R + 1) + m] + ru[j + wp.static(R - 1) - m])
+                        go[j] = gi[j] + lc[j] * (d2w(wu[j]) * inv_dx2 + dxx * inv_dx2)
+                    adj_out[i] = ao
+                    g_out[i] = go
+                    if wp.static(k + 1 < rows):
+                        o = wp.static(R + 1) * n
+                        a = wp.cw_mul(w[c + o], lam[i + o])
+                        b = u[i + o]
+                        for j in range(wp.static(V)):
                             for m in range(wp.static(2 * R)):
                                 wq[j, m] = wq[j, m + 1]
                                 wu[j, m] = wu[j, m + 1]
-                            o = j + wp.static(R + 1) * lx
-                            wq[j, wp.static(2 * R)] = w[c + o] * lam[i + o]
-                            wu[j, wp.static(2 * R)] = u[i + o]
-                    i += lx
-                    c += lx
+                            wq[j, wp.static(2 * R)] = a[j]
+                            wu[j, wp.static(2 * R)] = b[j]
+                    i += n
+                    c += n
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def adjoint_core(
@@ -867,7 +922,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
             adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
             az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, box: wp.vec4i, cells: int,
-            uf: arr1, lamf: arr1, adjf: arr1, gf: arr1, adjf_out: arr1, gf_out: arr1, wf: arr1, tiles: int, frame: int, offset: int,
+            uf: arrv, lamf: arrv, adjf: arrv, gf: arrv, adjf_out: arrv, gf_out: arrv, wf: arrv, tiles: int, frame: int, offset: int,
         ):  # fmt: skip
             t = wp.tid() + offset
             if t < frame:
@@ -1046,34 +1101,41 @@ def tick(clock: wp.array(dtype=wp.int32), steps: int):
 
 @functools.lru_cache(maxsize=None)
 def reduction_kernels(dtype):
-    """(monitor, extrema): block-reduced GPU kernels over a flat array v, thread t reading v[t + k stride]
-    for k < iters (coalesced), MONITOR_BLOCK threads per block reducing to one atomic each.
+    """(monitor, extrema): block-reduced GPU kernels over a flat array v read as 4-vectors v4 (its first 4 len(v4)
+    values; thread 0 also reads the rest), thread t reading v4[t + k stride] for k < iters (coalesced; a vector
+    load keeps 4 values in flight per thread), MONITOR_BLOCK threads per block reducing to one atomic each.
     monitor: stats[0] = max(stats[0], max |v| of the finite values), stats[1] += count of non-finite ones.
     extrema: stats = [min, max] of the finite values (stats starts at [+max, -max, 0]), stats[2] += count
     of non-finite ones."""
     big = float(np.finfo(wp.dtype_to_numpy(dtype)).max)
+    vec4 = wp.types.vector(length=4, dtype=dtype)
 
     @wp.func
-    def scan(v: wp.array(dtype=dtype), t: int, stride: int, iters: int):
+    def take(val: dtype, lo: dtype, hi: dtype, top: dtype, bad: dtype):
+        if wp.isfinite(val):
+            return wp.min(lo, val), wp.max(hi, val), wp.max(top, wp.abs(val)), bad
+        return lo, hi, top, bad + dtype(1.0)
+
+    @wp.func
+    def scan(v4: wp.array(dtype=vec4), v: wp.array(dtype=dtype), t: int, stride: int, iters: int):
         lo = dtype(wp.static(big))
         hi = -lo
         top = dtype(0.0)
         bad = dtype(0.0)
         for k in range(iters):
             c = t + k * stride
-            if c < v.shape[0]:
-                val = v[c]
-                if wp.isfinite(val):
-                    lo = wp.min(lo, val)
-                    hi = wp.max(hi, val)
-                    top = wp.max(top, wp.abs(val))
-                else:
-                    bad += dtype(1.0)
+            if c < v4.shape[0]:
+                q = v4[c]
+                for j in range(4):
+                    lo, hi, top, bad = take(q[j], lo, hi, top, bad)
+        if t == 0:
+            for c in range(4 * v4.shape[0], v.shape[0]):
+                lo, hi, top, bad = take(v[c], lo, hi, top, bad)
         return lo, hi, top, bad
 
     @wp.kernel(module="unique")
-    def monitor(v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int):
-        lo, hi, top, bad = scan(v, wp.tid(), stride, iters)
+    def monitor(v4: wp.array(dtype=vec4), v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int):
+        lo, hi, top, bad = scan(v4, v, wp.tid(), stride, iters)
         block_top = wp.tile_max(wp.tile(top))
         block_bad = wp.tile_sum(wp.tile(bad))
         if wp.tid() % wp.static(MONITOR_BLOCK) == 0:
@@ -1081,8 +1143,8 @@ def reduction_kernels(dtype):
             wp.atomic_add(stats, 1, block_bad[0])
 
     @wp.kernel(module="unique")
-    def extrema(v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int):
-        lo, hi, top, bad = scan(v, wp.tid(), stride, iters)
+    def extrema(v4: wp.array(dtype=vec4), v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int):
+        lo, hi, top, bad = scan(v4, v, wp.tid(), stride, iters)
         block_lo = wp.tile_min(wp.tile(lo))
         block_hi = wp.tile_max(wp.tile(hi))
         block_bad = wp.tile_sum(wp.tile(bad))
@@ -1096,9 +1158,10 @@ def reduction_kernels(dtype):
 
 def _reduce(kernel, v: wp.array, stats: wp.array):
     flat = v.flatten()
-    n = flat.shape[0]
-    threads = MONITOR_BLOCK * min(-(-n // MONITOR_BLOCK), 4 * wp.get_device(v.device).sm_count)
-    wp.launch(kernel, dim=threads, inputs=[flat, stats, threads, -(-n // threads)], block_dim=MONITOR_BLOCK, device=v.device)
+    n4 = flat.shape[0] // 4
+    v4 = flat[: 4 * n4].reshape((n4, 4)).view(wp.types.vector(length=4, dtype=v.dtype))
+    threads = MONITOR_BLOCK * max(1, min(-(-n4 // MONITOR_BLOCK), 8 * wp.get_device(v.device).sm_count))
+    wp.launch(kernel, dim=threads, inputs=[v4, flat, stats, threads, -(-n4 // threads)], block_dim=MONITOR_BLOCK, device=v.device)
 
 
 def field_stats(fields, stats: wp.array):
@@ -1146,6 +1209,11 @@ class _Kernels:
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
+
+
+def _aligned(z0: int, z1: int, x0: int, x1: int, V: int) -> wp.vec4i:
+    """The box of rows [z0, z1) and of the columns of [x0, x1) from and to a multiple of V."""
+    return wp.vec4i(z0, z1, -(-x0 // V) * V, x1 // V * V)
 
 
 def _strip_layout(n_lo: int, n_hi: int, length: int, halo: int):
@@ -1246,13 +1314,16 @@ class Acoustic:
         band = [[R + n if n else 0 for n in (lo[a], hi[a])] for a in (0, 2)]
         if free_surface:
             band[0][0] = R  # the surface row and the rows whose stencil reaches above it
-        self.core = wp.vec4i(R + band[0][0], self.padded[0] - R - band[0][1], R + band[1][0], self.padded[2] - R - band[1][1])
+        # the core's columns start and end at multiples of `lanes`, which the vector width of its tiles divides
+        self.lanes = next(V for V in (4, 2, 1) if self.padded[2] % V == 0)
+        self.core = _aligned(R + band[0][0], self.padded[0] - R - band[0][1], R + band[1][0], self.padded[2] - R - band[1][1], self.lanes)
         core_rows, core_cols = self.core[1] - self.core[0], self.core[3] - self.core[2]
         self.frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - max(core_rows, 0) * max(core_cols, 0)
         self.has_core = self.ndim == 2 and core_rows > 0 and core_cols > 0 and self.n_shots * self.padded[0] * self.padded[2] < 2**31  # int32 indices
         # the adjoint's core: the cells whose stencil neighbours are all core cells (else an empty box)
         c = self.core
-        self.adjoint_box = wp.vec4i(c[0] + R, c[1] - R, c[2] + R, c[3] - R) if self.has_core and min(core_rows, core_cols) > 2 * R else wp.vec4i(R, R, R, R)
+        inner = _aligned(c[0] + R, c[1] - R, c[2] + R, c[3] - R, self.lanes)
+        self.adjoint_box = inner if self.has_core and inner[1] > inner[0] and inner[3] > inner[2] else wp.vec4i(R, R, R, R)
         box = self.adjoint_box
         self.adjoint_frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - (box[1] - box[0]) * (box[3] - box[2])
         self.core_frame = self.has_core and wp.get_device(device).is_cuda  # the 2D GPU step: psi, core and frame kernels
@@ -1261,7 +1332,7 @@ class Acoustic:
         self.dt2 = dtype(dt * dt)
         self.src_scale = dtype(dt * dt / dx**self.ndim)
         self.cuda = wp.get_device(device).is_cuda
-        self.core_rows, self.core_cols, self.core_threads = GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS
+        self.core_rows, self.core_cols, self.core_threads = GPU_CORE_ROWS, min(GPU_CORE_COLS, self.lanes), GPU_CORE_THREADS
         self.threads = 1 if self.cuda else max(1, min(CPU_THREADS, os.cpu_count() or 1, self.interior[1]))
         self._pool = None
         self._launches = {}  # recorded CPU step launches per set of arrays (_cpu_step)
@@ -1390,14 +1461,19 @@ class Acoustic:
         for dim, offset in [launches[part]] if part else [(frame + cells, 0)]:
             wp.launch(kernel, dim=dim, inputs=[*inputs, tiles, frame, offset], block_dim=self.core_threads, device=self.device, record_tape=False)
 
+    def _lanes(self, a):
+        """a's memory as a flat array of vectors of core_cols values (the core kernels' loads and stores)."""
+        V, flat = self.core_cols, a.flatten()
+        return (flat if V == 1 else flat.reshape((a.size // V, V))).view(wp.types.vector(length=V, dtype=self.dtype))
+
     def step_core(self, step_args, u, u_prev, u_next, vpad, part=None):
         """The 2D GPU step but psi (step_args: the reference step's arguments)."""
-        flat = [a.flatten() for a in (u, u_prev, u_next, vpad)]
+        flat = [self._lanes(a) for a in (u, u_prev, u_next, vpad)]
         self._merged(self.core_kernel(), [*step_args, self.core, self.frame_cells, *flat], self.core, self.frame_cells, part)
 
     def adjoint_core(self, args, u, lam, adj, g, adj_out, g_out, w, part=None):
         """The 2D adjoint step but psi and receivers (args: adjoint_step's arguments)."""
-        flat = [a.flatten() for a in (u, lam, adj, g, adj_out, g_out, w)]
+        flat = [self._lanes(a) for a in (u, lam, adj, g, adj_out, g_out, w)]
         box = self.adjoint_box
         self._merged(self.adjoint_kernel(), [*args, box, self.adjoint_frame_cells, *flat], box, self.adjoint_frame_cells, part)
 

@@ -33,3 +33,22 @@ def test_cpu_and_cuda_agree(precision, tol, free_surface):
         runs[dev] = (d, g.velocity, g.source_locations)
     for a, b in zip(runs["cpu"], runs["cuda:0"]):
         assert np.abs(a - b).max() <= tol * np.abs(a).max()
+
+
+@pytest.mark.parametrize("n", [1, 3, 4, 1027, 1_000_003])
+def test_gpu_reductions_equal_numpy(n):
+    # the blow-up monitor and value_range read 4-vectors and the remainder separately: every length must
+    # give NumPy's extrema and count of non-finite values, wherever the largest value and the NaNs fall
+    from adseismic.kernels.acoustic import field_stats, value_range
+
+    rng = np.random.default_rng(n)
+    a = rng.standard_normal(n).astype(np.float32)
+    a[-1] = 7.5  # the largest |value|, in the remainder when n % 4 != 0
+    lo, hi, bad = value_range(wp.array(a, device="cuda:0"))
+    assert (lo, hi, bad) == (float(a.min()), float(a.max()), 0)
+    a[0] = np.nan
+    a[n // 2] = -np.inf if n > 1 else np.nan
+    stats = wp.zeros(2, dtype=wp.float32, device="cuda:0")
+    field_stats([wp.array(a, device="cuda:0")], stats)
+    finite = a[np.isfinite(a)]
+    assert stats.numpy().tolist() == [float(np.abs(finite).max(initial=0.0)), float(n - finite.size)]

@@ -114,6 +114,17 @@ def test_checkpointed_equals_all_steps_float32():
         assert np.linalg.norm(a - b) <= max(1e-6, 2.0 * spread) * np.linalg.norm(a)
 
 
+def test_model_on_the_device_keeps_its_gradient_there():
+    # a Warp array model gets its velocity gradient as a Warp array on its device (no copy to the host),
+    # equal to the NumPy path's (to the rounding of float64 atomics, whose order varies on a GPU)
+    v, s, src, rec, obs = problem()
+    host = gradient(v, DX, DT, s, src, rec, obs)
+    dev = gradient(wp.array(v, dtype=wp.float64, device=DEVICE), DX, DT, s, src, rec, obs)
+    assert isinstance(dev.velocity, wp.array) and dev.velocity.device == wp.get_device(DEVICE) and dev.velocity.shape == v.shape
+    assert np.abs(dev.velocity.numpy() - host.velocity).max() <= 1e-12 * np.abs(host.velocity).max()
+    assert abs(dev.loss - host.loss) <= 1e-12 * host.loss
+
+
 def test_equality_check_catches_reused_buffers():
     # The same comparison must fail for a tape run over a ring of reused wavefield buffers
     # (in-place stepping): the tape keeps references, so the model gradient is silently wrong.

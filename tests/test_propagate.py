@@ -222,14 +222,16 @@ def test_optimised_kernels_equal_reference_kernels(free_surface):
 
 
 @pytest.mark.parametrize("free_surface", [False, True])
-def test_gpu_step_kernels_equal_reference_kernels(free_surface):
-    # the 2D GPU step (psi kernels, flat core kernel, frame kernel) run on DEVICE, also on the CPU, so that
-    # CI checks its indexing
+@pytest.mark.parametrize("lanes", [1, 2, 4])
+def test_gpu_step_kernels_equal_reference_kernels(free_surface, lanes):
+    # the 2D GPU step (pre_step, and step_core: core tiles of `lanes` columns read as vectors, frame cells) run
+    # on DEVICE, also on the CPU, so that CI checks its indexing (PML 11: rows of 96 cells, a multiple of 4)
     import warp as wp
 
-    su = propagate.setup(*small_scene(), device=DEVICE, free_surface=free_surface, precision="float32", pml_width=10)
+    su = propagate.setup(*small_scene(), device=DEVICE, free_surface=free_surface, precision="float32", pml_width=11)
     prop = su.prop
-    prop.core_frame = True
+    assert prop.lanes == 4
+    prop.core_frame, prop.core_cols = True, lanes
     data = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
     propagate.run_steps(su, prop.new_state(), prop.pad_model(su.velocity), data, range(su.nt))
     ref = reference_traces(su)
