@@ -555,11 +555,11 @@ class ElasticSweep:
     levels[1..seg], and keeps the start of every segment but the first (zero) and the last (still in `levels` when
     the backward sweep begins) as a checkpoint. The backward sweep runs the segments last first: the forward steps
     again from the checkpoint, then the adjoint steps back through the levels, the adjoint State of level j in
-    adj[j % 2], zeroed just before its step (seg is even, so adj[0] carries the adjoint of a segment's start to the
-    previous segment). The adjoints of MATERIALS (adj_mat) and of the sources' amplitudes, components and locations
-    (adj_sources) accumulate over all steps. Time indices are j + clock[0] (the segment's first level), so one
-    captured graph per direction serves every segment; nt is padded to n_seg * seg levels with zero source samples
-    and residuals. data and residual: (vx, vz, pressure) arrays (S, n_rec, n_seg * seg).
+    adj[j % 2], written by its step (Elastic.adjoint_step; seg is even, so adj[0] carries the adjoint of a
+    segment's start to the previous segment). The adjoints of MATERIALS (adj_mat) and of the sources' amplitudes,
+    components and locations (adj_sources) accumulate over all steps. Time indices are j + clock[0] (the segment's
+    first level), so one captured graph per direction serves every segment; nt is padded to n_seg * seg levels with
+    zero source samples and residuals. data and residual: (vx, vz, pressure) arrays (S, n_rec, n_seg * seg).
     """
 
     def __init__(self, key, su: ElasticSetup, seg: int, n_seg: int):
@@ -593,9 +593,7 @@ class ElasticSweep:
     def _adjoint_segment(self):
         su, lv = self.su, self.levels
         for j in reversed(range(self.seg)):
-            adj = self.adj[j % 2]
-            for a in adj.arrays():
-                a.zero_()
+            adj = self.adj[j % 2]  # written by the step, not zeroed first
             su.prop.adjoint_step(lv[j], lv[j + 1], self.mat, self.adj[(j + 1) % 2], adj, self.adj_mat, self.sources, self.adj_sources,
                                  self.scratch, j, self.clock)  # fmt: skip
             su.prop.record_adjoint(adj, self.residual, su.receiver_op, j, self.clock)
@@ -643,14 +641,13 @@ def _sweep_kernels(su: ElasticSetup):
     """Every kernel an ElasticSweep launches (loaded before a capture, which cannot compile)."""
     prop, k = su.prop, su.prop.k
     updates = prop.update_kernels() if prop.has_core else (k.velocity, k.stress)
-    return (*updates, k.record, k.inject_force if su.kind == "force" else k.inject_moment, k.velocity_adjoint, k.velocity_transpose,
-            k.stress_adjoint, k.stress_transpose)  # fmt: skip
+    return (*updates, k.record, k.inject_force if su.kind == "force" else k.inject_moment, *prop.adjoint_kernels())
 
 
 def _sweep_key(su: ElasticSetup, seg: int, n_seg: int) -> tuple:
     p = su.prop
-    return ("elastic_gradient", p.k, p.layout, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, seg, n_seg, su.amplitudes.shape,
-            su.receivers.shape, su.kind)  # fmt: skip
+    return ("elastic_gradient", p.k, p.layout, p.adjoint_layout, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, seg, n_seg,
+            su.amplitudes.shape, su.receivers.shape, su.kind)  # fmt: skip
 
 
 def _kept_sweep(su: ElasticSetup, seg: int, n_seg: int) -> ElasticSweep:

@@ -41,7 +41,8 @@ class PropagationError(RuntimeError):
 class ForwardResult:
     """Output of :func:`forward`.
 
-    receiver_amplitudes: (n_shots, n_receivers_per_shot, nt), samples of u at t = n dt.
+    receiver_amplitudes: (n_shots, n_receivers_per_shot, nt), samples of u at t = n dt, in the simulation's
+    precision (float32 or float64).
     dt: time step (s). snapshots: (n_snapshots, n_shots, *grid shape) or None; snapshot_times (s).
     """
 
@@ -376,7 +377,7 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
         run_steps(su, prop.new_state(), prop.pad_model(su.velocity), data, range(su.nt), callback=callback)
     bar.close()
     return ForwardResult(
-        receiver_amplitudes=data.numpy()[:, :, : su.nt].astype(float),
+        receiver_amplitudes=data.numpy()[:, :, : su.nt],  # no float64 copy: it cost 6.7 ms of a 72 ms S600x16 call
         dt=float(dt),
         snapshots=np.stack(snaps) if snaps else None,
         snapshot_times=np.asarray(snap_t) if snaps else None,

@@ -1,13 +1,16 @@
 """Check and time the 2D elastic propagator on one device: per-kernel microseconds (CUDA-graph replays on
 a GPU, a synchronised loop on the CPU), with --variants every core layout of kernels/elastic.LAYOUTS (its
 half steps and whole step, and its step against the per-cell reference kernels on random fields), one
-step's adjoint (hand-written vs Warp's generated adjoints), the whole forward_elastic /
-gradient_elastic calls as adseismic/bench.py runs them (best of --repeat after a warm-up that compiles the
-kernels; the forward with the model on the host and on the device) in Gcell/s (padded cells x steps x
-shots / s), and the optimised traces against the per-cell reference kernels. One JSON line per
-measurement; a failing measurement prints its error and the others still run.
+step's adjoint (with --modes gradient: the hand-written one with the device's AdjointLayout, each of its launches,
+the per-cell kernels', and Warp's generated adjoints), with --adjoint-variants every AdjointLayout of
+kernels/elastic.ADJOINT_LAYOUTS (its adjoint step and launches, and its step against the per-cell kernels' on
+random fields), the whole forward_elastic / gradient_elastic calls as adseismic/bench.py runs them (best of
+--repeat after a warm-up that compiles the kernels; the forward with the model on the host and on the device) in
+Gcell/s (padded cells x steps x shots / s), and the optimised traces against the per-cell reference kernels. One
+JSON line per measurement; a failing measurement prints its error and the others still run.
 
     python benchmarks/speed_elastic.py --device cuda:0 --scenes E2000 E600x16 --modes forward --variants
+    python benchmarks/speed_elastic.py --device cuda:0 --scenes E2000 E600x16 --modes gradient --adjoint-variants
     python benchmarks/speed_elastic.py --device cpu --size 60 --steps 20 --modes forward --variants
 """
 
@@ -22,7 +25,7 @@ import warp as wp
 
 import adseismic.elastic as E
 from adseismic import bench
-from adseismic.kernels.elastic import CORE_LAYOUT, LAYOUTS
+from adseismic.kernels.elastic import ADJOINT_LAYOUTS, CORE_LAYOUT, LAYOUTS
 
 ORDER = 4
 
@@ -111,6 +114,24 @@ def kernel_times(su, device, reps):
     return out
 
 
+def random_materials(prop, rng):
+    """MATERIALS of a random model on prop's padded grid, with a fluid patch (zero shear moduli)."""
+    shape = prop.padded
+    vp = 2000.0 + 400.0 * rng.random(shape)
+    vs = vp / 1.8 * (0.7 + 0.3 * rng.random(shape))
+    vs[: shape[0] // 3, : shape[1] // 3] = 0.0
+    rho = 1800.0 + 500.0 * rng.random(shape)
+    return prop.materials(*(wp.array(m, dtype=prop.dtype, device=prop.device) for m in (vp, vs, rho)))
+
+
+def random_state(prop, rng):
+    """A State of standard normal fields and memory variables."""
+    st = prop.new_state()
+    for a in st.arrays():
+        a.assign(rng.standard_normal(a.shape, dtype=np.float32))
+    return st
+
+
 class VariantCheck:
     """Random fields, CPML memory variables and model (with a fluid patch) on su's grid, and the per-cell
     reference kernels' step from them (no source), for checking each layout's in-place step."""
@@ -118,15 +139,8 @@ class VariantCheck:
     def __init__(self, su, seed=11):
         prop = self.prop = su.prop
         rng = np.random.default_rng(seed)
-        shape = prop.padded
-        vp = 2000.0 + 400.0 * rng.random(shape)
-        vs = vp / 1.8 * (0.7 + 0.3 * rng.random(shape))
-        vs[: shape[0] // 3, : shape[1] // 3] = 0.0
-        rho = 1800.0 + 500.0 * rng.random(shape)
-        self.mat = prop.materials(*(wp.array(m, dtype=prop.dtype, device=prop.device) for m in (vp, vs, rho)))
-        self.start = prop.new_state()
-        for a in self.start.arrays():
-            a.assign(rng.standard_normal(a.shape, dtype=np.float32))
+        self.mat = random_materials(prop, rng)
+        self.start = random_state(prop, rng)
         self.ref = prop.new_state()
         self.copy(self.ref)  # cells the reference does not write (halo) keep their values, as in place
         with wp.Tape():  # an active tape selects the reference kernels
@@ -168,9 +182,21 @@ def variant_times(check, layout, device, reps):
     return out
 
 
+def adjoint_jobs(prop, st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch):
+    """Timing jobs of the hand-written adjoint step with prop.adjoint_layout: the whole Elastic.adjoint_step (as
+    adseismic.elastic.ElasticSweep launches it, without the receivers' adjoint) and each half step's launches
+    (Elastic.adjoint_update's parts: pass 1, pass 2 and, fused, pass 2's tiles alone)."""
+    jobs = {"step_backward_hand": lambda: prop.adjoint_step(st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch, 3)}
+    for kind, half in ((1, "stress"), (0, "velocity")):
+        for part in ("pass1", "pass2", "tiles") if prop.adjoint_layout else ("pass1", "pass2"):
+            jobs[f"{half}_adjoint_{part}"] = lambda kind=kind, part=part: prop.adjoint_update(kind, st, nxt, mat, adj_next, adj, adj_mat,
+                                                                                               scratch, part)  # fmt: skip
+    return jobs
+
+
 def backward_times(su, device, reps):
-    """Microseconds of one step's adjoint: the hand-written Elastic.adjoint_step on explicit adjoint States (as
-    adseismic.elastic.ElasticSweep launches it, without its zeroing and receiver adjoint), and the backward of one
+    """Microseconds of one step's adjoint: the hand-written one and its launches (adjoint_jobs) with the device's
+    AdjointLayout, the per-cell kernels' whole step (step_backward_cells, the CPU's path), and the backward of one
     taped step with Warp's generated adjoints."""
     prop, src = su.prop, su.source_args()
 
@@ -187,11 +213,71 @@ def backward_times(su, device, reps):
     tape = wp.Tape()
     with tape:
         prop.step(a, su.materials(requires_grad=True), src, 3, out=b)
-    jobs = {
-        "step_backward_hand": lambda: prop.adjoint_step(st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch, 3),
-        "step_backward_warp": tape.backward,
-    }
-    return timings(jobs, device, reps)
+    layout = prop.adjoint_layout
+    out = {"adjoint_layout": layout._asdict() if layout else None}
+    out.update(timings({**adjoint_jobs(prop, st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch), "step_backward_warp": tape.backward},
+                       device, reps))  # fmt: skip
+    prop.adjoint_layout = None
+    try:
+        out.update(timings({"step_backward_cells": lambda: prop.adjoint_step(st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch, 3)},
+                           device, reps))  # fmt: skip
+    finally:
+        prop.adjoint_layout = layout
+    return out
+
+
+class AdjointCheck:
+    """Random states, adjoint States, model (with a fluid patch) and materials' adjoints on su's grid, and the per-cell
+    kernels' adjoint step (no source) from them, for checking each AdjointLayout's."""
+
+    def __init__(self, su, seed=12):
+        prop = self.prop = su.prop
+        rng = np.random.default_rng(seed)
+        self.mat = random_materials(prop, rng)
+        self.st, self.nxt = random_state(prop, rng), prop.new_state()
+        prop.step(self.st, self.mat, None, 0, out=self.nxt)
+        self.start = [*random_state(prop, rng).arrays(), *random_state(prop, rng).arrays()]
+        self.start += [wp.array(rng.standard_normal(prop.padded, dtype=np.float32), dtype=prop.dtype, device=prop.device) for _ in self.mat[:-1]]
+        self.adj_next, self.adj = prop.new_state(), prop.new_state()
+        self.adj_mat = [wp.empty(prop.padded, dtype=prop.dtype, device=prop.device) for _ in self.mat[:-1]]
+        self.scratch = [wp.zeros((prop.n_shots, *prop.padded), dtype=prop.dtype, device=prop.device) for _ in range(4)]
+        layout = prop.adjoint_layout
+        prop.adjoint_layout = None
+        try:
+            self.expected = [a.numpy() for a in self.run()]
+        finally:
+            prop.adjoint_layout = layout
+
+    def outputs(self):
+        return [*self.adj_next.arrays(), *self.adj.arrays(), *self.adj_mat]
+
+    def run(self):
+        """One adjoint step from the start values with the propagator's current AdjointLayout; its outputs."""
+        for dst, src in zip(self.outputs(), self.start):
+            wp.copy(dst, src)
+        self.prop.adjoint_step(self.st, self.nxt, self.mat, self.adj_next, self.adj, self.adj_mat, None, (), self.scratch, 0)
+        return self.outputs()
+
+    def max_rel_diff(self):
+        """max over the outputs of max |step - per-cell step| / max |per-cell step|."""
+        return max(float(np.abs(a.numpy() - b).max() / max(np.abs(b).max(), 1e-30)) for a, b in zip(self.run(), self.expected))
+
+
+def adjoint_variant_times(check, layout, device, reps):
+    """One AdjointLayout: its adjoint step's difference from the per-cell kernels' and its timing jobs (adjoint_jobs)."""
+    prop = check.prop
+    default, prop.adjoint_layout = prop.adjoint_layout, layout
+    try:
+        if not prop.has_adjoint_box:
+            raise ValueError("the grid has no adjoint box")
+        out = {"layout": layout._asdict(), "max_rel_diff": check.max_rel_diff()}
+        out.update(timings(adjoint_jobs(prop, check.st, check.nxt, check.mat, check.adj_next, check.adj, check.adj_mat, None, (), check.scratch),
+                           device, reps))  # fmt: skip
+    finally:
+        prop.adjoint_layout = default
+    if isinstance(out["step_backward_hand_us"], float):
+        out["step_gcells_per_s"] = round(prop.n_shots * np.prod(prop.padded) / out["step_backward_hand_us"] / 1e3, 3)
+    return out
 
 
 def traces_vs_reference(su):
@@ -242,6 +328,7 @@ def main():
     p.add_argument("--shots", type=int, default=1, help="shots of the --size scene")
     p.add_argument("--modes", nargs="+", default=list(bench.MODES), choices=bench.MODES)
     p.add_argument("--variants", action="store_true", help="time and check every layout of kernels/elastic.LAYOUTS")
+    p.add_argument("--adjoint-variants", action="store_true", help="time and check every layout of kernels/elastic.ADJOINT_LAYOUTS")
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--reps", type=int, default=0, help="launches per kernel timing (default 200 on CUDA, 5 on the CPU)")
     args = p.parse_args()
@@ -289,6 +376,26 @@ def main():
                 emit(scene=spec.name, what="variant-best", layout=best["layout"], step_us=best["step_us"], max_rel_diff=best["max_rel_diff"])
         if "gradient" in args.modes:
             attempt(spec.name, "backward", lambda: backward_times(su, device, max(reps // 10, 2)))
+        if args.adjoint_variants:
+            checks, rows = [], []
+
+            def make_adjoint_check():
+                checks.append(AdjointCheck(su))
+                return {"reference_adjoint_step": "done"}
+
+            def adjoint_variant(layout):
+                rows.append(adjoint_variant_times(checks[0], layout, device, max(reps // 10, 2)))
+                return rows[-1]
+
+            attempt(spec.name, "adjoint-variant-check", make_adjoint_check)
+            for layout in ADJOINT_LAYOUTS if checks else ():
+                attempt(spec.name, "adjoint-variant", lambda: adjoint_variant(layout))
+            checks.clear()
+            timed = [r for r in rows if isinstance(r.get("step_backward_hand_us"), float)]
+            if timed:
+                best = min(timed, key=lambda r: r["step_backward_hand_us"])
+                emit(scene=spec.name, what="adjoint-variant-best", layout=best["layout"], step_us=best["step_backward_hand_us"],
+                     max_rel_diff=best["max_rel_diff"])  # fmt: skip
         attempt(spec.name, "reference", lambda: traces_vs_reference(su))
         for mode in args.modes:
             attempt(spec.name, "whole", lambda: whole(spec, a, mode, device, args.repeat))

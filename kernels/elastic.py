@@ -48,18 +48,20 @@ surface) on flat arrays, with the z-stencil in sliding register windows and each
 loaded once per tile, and threads doing the other interior cells (the frame) with the reference's per-cell
 code, in one launch or two. A kernel may write its outputs into its inputs (every cell reads only its own
 old value of a field it writes), so forward steps run in place, or out of place into a level's own arrays
-(under a tape, and in the hand-written adjoint sweep). Hand-written adjoints (`*_adjoint`, then
-`*_transpose`, launched by Elastic.adjoint_step on explicit adjoint arrays, which they add to) first compute
-per cell the adjoint of every raw stencil sum (CPML, materials and pointwise terms included) into scratch
-arrays, then apply the transposed stencils as gathers; rows next to a free surface, whose stencils fold or
-shrink, scatter with atomics instead. The source and receiver kernels' adjoints are Warp's generated ones,
+(under a tape, and in the hand-written adjoint sweep). Hand-written adjoints (launched by
+Elastic.adjoint_update on explicit adjoint arrays: the old fields' adjoints written, the others added to) first
+compute per cell the adjoint of every raw stencil sum (CPML, materials and pointwise terms included) into scratch
+arrays (`*_adjoint`), then apply the transposed stencils as gathers (`*_transpose`); rows next to a free surface,
+whose stencils fold or shrink, scatter with atomics instead. On a GPU (AdjointLayout, `make_adjoints`) tiles of
+the cells whose gathers read core cells alone fuse the two passes, forming those cells' raw stencil sums'
+adjoints in sliding windows and lines. The source and receiver kernels' adjoints are Warp's generated ones,
 launched directly (adjoint=True).
 """
 
 
 import functools
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import warp as wp
@@ -98,6 +100,35 @@ LAYOUTS = (
     Layout(8, 2, 256, True, False),
     Layout(8, 2, 128, True, True),
     Layout(16, 2, 128, True, True),
+)
+
+
+class AdjointLayout(NamedTuple):
+    """How the hand-written adjoint's fused kernels (make_adjoints) do the adjoint box: each thread a tile of `rows`
+    rows (z) x `cols` columns (x) of one shot, `threads` per block."""
+
+    rows: int
+    cols: int
+    threads: int = 128
+
+
+# The GPU's default: timed on an H200 (benchmarks/speed_elastic.py --adjoint-variants; whole adjoint step, us, E2000 /
+# E600x16): 4 x 2 464 / 670, 2 x 2 464 / 677, 8 x 2 474 / 684, 8 x 2 (256 threads) 480 / 692, 8 x 1 495 / 703, 16 x 2
+# 527 / 777 (the per-cell kernels: 825 / 820). Registers per thread from ptxas (sm_90, float32, velocity / stress):
+# order 4: 8 x 2, 4 x 2, 16 x 2 127-128 / 128, 8 x 1 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8 x 2 194 /
+# 230, 8 x 1 143 / 137 (a loop over the shots inside the thread had cost about 100 more). The CPU runs the per-cell
+# kernels unless told otherwise.
+ADJOINT_LAYOUT = AdjointLayout(4, 2, 128)
+ADJOINT_LAYOUTS = (
+    AdjointLayout(8, 2, 128),
+    AdjointLayout(4, 2, 128),
+    AdjointLayout(16, 2, 128),
+    AdjointLayout(8, 1, 128),
+    AdjointLayout(16, 1, 128),
+    AdjointLayout(4, 1, 128),
+    AdjointLayout(2, 2, 128),
+    AdjointLayout(8, 2, 256),
+    AdjointLayout(8, 1, 256),
 )
 TRANSPOSE_ROWS, TRANSPOSE_THREADS = 16, 128  # cells per thread along z, threads per block of the hand adjoints' gathers
 
@@ -323,11 +354,11 @@ def build(order: int, dtype, free_surface: bool):
 
     @wp.func
     def cpml_t(g: dtype, j: int, p: int, a: arr1, b: arr1, adj_old: arr3, adj_new: arr3, s: int, row: int, col: int) -> dtype:
-        # adjoint of cpml: g is the adjoint of its result; adds to adj_old, returns the adjoint of d
+        # adjoint of cpml: g is the adjoint of its result; writes adj_old (its only term), returns the adjoint of d
         if j < 0:
             return g
         q = adj_new[s, row, col] + g
-        adj_old[s, row, col] = adj_old[s, row, col] + b[p] * q
+        adj_old[s, row, col] = b[p] * q
         return g + a[p] * q
 
     @wp.func
@@ -448,19 +479,71 @@ def build(order: int, dtype, free_surface: bool):
                 x = x - core[2] + core[3]
         return z, x
 
-    def make_updates(rows: int, cols: int, lean: bool):
-        # The fast path's (velocity, stress) kernels for core tiles of rows x cols cells (see Layout). One 1D launch
-        # (unravelling a multi-dimensional thread index costs 64-bit divisions) covers threads offset + tid: those
-        # below `tiles` update a core tile each, on the flat arrays (fields S * Lz * Lx, models Lz * Lx), those from
-        # `frame` on (a block boundary) one frame cell each with the reference's per-cell code. A tile keeps the
-        # z-stencil's values in sliding windows w[j, m] (column j, row m) and loads each value of a row along x once
-        # into a line r[p], sharing it between the tile's columns; the loop over rows is unrolled. Every sum is
-        # formed in the reference's order, so a tile reproduces the per-cell kernels bit for bit where the compiler
-        # contracts no multiply-adds (the CPU).
+    # Sources of the tiles' windows and lines (`value`): a field (flat array), or what pass 1 of the hand-written
+    # adjoints stores as t_k at a core cell (no CPML, no surface), the adjoint of a raw stencil sum: Scaled, dt m g / dx
+    # for an update f += dt m (sum) / dx, g the adjoint of f; Normal, (p dt gx + q dt gz) / dx for the normal stresses'
+    # sums (normal_rates with materials p, q; gx, gz the adjoints of sxx, szz). base: flat index of the shot's first cell.
+
+    @wp.struct
+    class Scaled:
+        g: arr1
+        m: arr1
+        base: int
+        dt: dtype
+        inv_dx: dtype
+
+    @wp.struct
+    class Normal:
+        gx: arr1
+        gz: arr1
+        p: arr1
+        q: arr1
+        base: int
+        dt: dtype
+        inv_dx: dtype
+
+    @wp.func
+    def scaled(g: arr1, m: arr1, base: int, dt: dtype, inv_dx: dtype) -> Scaled:
+        a = Scaled()
+        a.g = g
+        a.m = m
+        a.base = base
+        a.dt = dt
+        a.inv_dx = inv_dx
+        return a
+
+    @wp.func
+    def normal(gx: arr1, gz: arr1, p: arr1, q: arr1, base: int, dt: dtype, inv_dx: dtype) -> Normal:
+        a = Normal()
+        a.gx = gx
+        a.gz = gz
+        a.p = p
+        a.q = q
+        a.base = base
+        a.dt = dt
+        a.inv_dx = inv_dx
+        return a
+
+    @wp.func
+    def value(f: arr1, i: int) -> dtype:
+        return f[i]
+
+    @wp.func
+    def value(a: Scaled, i: int) -> dtype:  # noqa: F811 (a Warp overload)
+        return a.dt * a.m[i - a.base] * a.g[i] * a.inv_dx
+
+    @wp.func
+    def value(a: Normal, i: int) -> dtype:  # noqa: F811
+        c = i - a.base
+        r, _ = normal_rates(a.p[c], a.q[c], a.dt * a.gx[i], a.dt * a.gz[i])
+        return r * a.inv_dx
+
+    def make_tiling(rows: int, cols: int):
+        # What tiles of rows x cols cells share (make_updates, make_adjoints): the place of tile t, and sliding z-windows
+        # w[j, m] (column j, row m) and x-lines r[p] of a source f (any `value`) with their derivative
         win = wp.types.matrix(shape=(cols, 2 * M), dtype=dtype)
         line = wp.types.vector(length=cols + 2 * M - 1, dtype=dtype)
-        nodes = wp.types.vector(length=cols + 1, dtype=dtype)  # lean: a model row at the tile's columns and the next
-        ALONE = -cols  # load_line's centre when no window holds the line's values
+        alone = -cols  # load_line's centre when no window holds the line's values
 
         @wp.func
         def dline(r: line, j: int) -> dtype:
@@ -484,34 +567,50 @@ def build(order: int, dtype, free_surface: bool):
             return s * lz * lx + c, c, z, wp.min(wp.static(cols), core[3] - x)
 
         @wp.func
-        def load_window(f: arr1, i: int, lx: int, first: int) -> win:
+        def load_window(f: Any, i: int, lx: int, first: int) -> win:
             # f at rows first .. first + 2M - 1 (relative to flat index i) of the tile's columns
             w = win()
             for j in range(wp.static(cols)):
                 for m in range(wp.static(2 * M)):
-                    w[j, m] = f[i + j + (first + m) * lx]
+                    w[j, m] = value(f, i + j + (first + m) * lx)
             return w
 
         @wp.func
-        def slide(w: win, f: arr1, i: int, lx: int, newest: int) -> win:
+        def slide(w: win, f: Any, i: int, lx: int, newest: int) -> win:
             # the window one row further down: f at row `newest` (relative to i) enters
             for j in range(wp.static(cols)):
                 for m in range(wp.static(2 * M - 1)):
                     w[j, m] = w[j, m + 1]
-                w[j, wp.static(2 * M - 1)] = f[i + j + newest * lx]
+                w[j, wp.static(2 * M - 1)] = value(f, i + j + newest * lx)
             return w
 
         @wp.func
-        def load_line(f: arr1, i: int, first: int, w: win, m: int, centre: int) -> line:
+        def load_line(f: Any, i: int, first: int, w: win, m: int, centre: int) -> line:
             # f at columns first .. first + cols + 2M - 2 (relative to i); r[centre + j], the tile's own columns, are
-            # taken from the window's row m (centre = ALONE: none are)
+            # taken from the window's row m (centre = alone: none are)
             r = line()
             for p in range(wp.static(cols + 2 * M - 1)):
                 if p >= centre and p < centre + wp.static(cols):
                     r[p] = w[p - centre, m]
                 else:
-                    r[p] = f[i + first + p]
+                    r[p] = value(f, i + first + p)
             return r
+
+        return alone, dline, tile, load_window, slide, load_line
+
+    tiling = functools.lru_cache(maxsize=None)(make_tiling)
+
+    def make_updates(rows: int, cols: int, lean: bool):
+        # The fast path's (velocity, stress) kernels for core tiles of rows x cols cells (see Layout). One 1D launch
+        # (unravelling a multi-dimensional thread index costs 64-bit divisions) covers threads offset + tid: those
+        # below `tiles` update a core tile each, on the flat arrays (fields S * Lz * Lx, models Lz * Lx), those from
+        # `frame` on (a block boundary) one frame cell each with the reference's per-cell code. A tile keeps the
+        # z-stencil's values in sliding windows w[j, m] (column j, row m) and loads each value of a row along x once
+        # into a line r[p], sharing it between the tile's columns; the loop over rows is unrolled. Every sum is
+        # formed in the reference's order, so a tile reproduces the per-cell kernels bit for bit where the compiler
+        # contracts no multiply-adds (the CPU).
+        alone, dline, tile, load_window, slide, load_line = tiling(rows, cols)
+        nodes = wp.types.vector(length=cols + 1, dtype=dtype)  # lean: a model row at the tile's columns and the next
 
         @wp.func
         def load_nodes(f: arr1, c: int) -> nodes:
@@ -542,7 +641,7 @@ def build(order: int, dtype, free_surface: bool):
                 b1 = load_nodes(m1, c)
             for k in range(wp.static(rows)):
                 if z + k < core[1]:
-                    ra = load_line(sxx, i, wp.static(1 - M), wa, 0, wp.static(ALONE))  # sxx at x - M + 1 ..
+                    ra = load_line(sxx, i, wp.static(1 - M), wa, 0, wp.static(alone))  # sxx at x - M + 1 ..
                     rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M), wp.static(M))  # sxz at x - M ..
                     if wp.static(lean):
                         b0 = b1
@@ -668,26 +767,20 @@ def build(order: int, dtype, free_surface: bool):
         return s * lz * lx + c, c, n
 
     # --- hand-written adjoints ------------------------------------------------------------------------
-    # Pass 1 (`*_adjoint`, thread per interior cell and all shots): adj(old field) += adj(new field), the
-    # materials' and CPML memory variables' adjoints, and t_k = adjoint of the k-th raw stencil sum into
-    # the scratch arrays (0 on surface rows, which scatter theirs). Pass 2 (`*_transpose`): adj(inputs)
-    # += transposed stencils of t_k, gathered.
-
-    @wp.func
-    def cell_of(t: int, lx: int):
-        # interior cell (z, x) of thread t, x fastest
-        nx = lx - wp.static(2 * M)
-        q = t // nx
-        return q + wp.static(M), t - q * nx + wp.static(M)
+    # Pass 1 (`*_adjoint`, thread per interior cell outside `hole` (frame_cell), all shots): adj(old field) =
+    # adj(new field) (written: no other term reaches it before), the materials' adjoints (added), the CPML memory
+    # variables' (written), and t_k = adjoint of the k-th raw stencil sum into the scratch arrays (0 on surface rows,
+    # which scatter theirs). Pass 2 (`*_gather`, launched by `*_transpose` or make_adjoints' kernels, which fuse it with
+    # pass 1 inside the hole): adj(inputs) += transposed stencils of t_k, gathered.
 
     @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def velocity_adjoint(
         sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2, n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
         g_vx_new: arr3, g_vz_new: arr3, g_vx: arr3, g_vz: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_bx: arr2, g_bz: arr2,
         gp_vx_x: arr3, gp_vx_z: arr3, gp_vz_x: arr3, gp_vz_z: arr3, gn_vx_x: arr3, gn_vx_z: arr3, gn_vz_x: arr3, gn_vz_z: arr3,
-        t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, hole: wp.vec4i,
     ):  # fmt: skip
-        z, x = cell_of(wp.tid(), sxx.shape[2])
+        z, x = frame_cell(wp.tid(), sxx.shape[1], sxx.shape[2], hole)
         jz = az.store[z]
         jx = ax.store[x]
         b1 = bx[z, x]
@@ -698,8 +791,8 @@ def build(order: int, dtype, free_surface: bool):
         for s in range(sxx.shape[0]):
             ga = g_vx_new[s, z, x]
             gb = g_vz_new[s, z, x]
-            g_vx[s, z, x] = g_vx[s, z, x] + ga
-            g_vz[s, z, x] = g_vz[s, z, x] + gb
+            g_vx[s, z, x] = ga
+            g_vz[s, z, x] = gb
             d1 = cpml_value(dx_of_int(sxx, s, z, x) * inv_dx, jx, n_vx_x, s, z, jx)
             d2 = cpml_value(dz_sxz(sxz, s, z, x, top) * inv_dx, jz, n_vx_z, s, jz, x)
             d3 = cpml_value(dx_of_half(sxz, s, z, x) * inv_dx, jx, n_vz_x, s, z, jx)
@@ -728,15 +821,19 @@ def build(order: int, dtype, free_surface: bool):
         g_bx[z, x] = g_bx[z, x] + acc1
         g_bz[z, x] = g_bz[z, x] + acc2
 
+    @wp.func
+    def velocity_gather(t1: arr1, t2: arr1, t3: arr1, t4: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1, i: int, lx: int):
+        # pass 2 at flat index i: t1 = adj of dx_of_int(sxx), t2 of dz_sxz (half nodes in), t3 of dx_of_half(sxz), t4 of dz_szz
+        g_sxx[i] = g_sxx[i] + gather_int(t1, i, 1)
+        g_sxz[i] = g_sxz[i] + gather_half(t2, i, lx) + gather_half(t3, i, 1)
+        g_szz[i] = g_szz[i] + gather_int(t4, i, lx)
+
     @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def velocity_transpose(t1: arr1, t2: arr1, t3: arr1, t4: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
                            lz: int, lx: int, box: wp.vec4i, rows: int):  # fmt: skip
-        # t1 = adj of dx_of_int(sxx), t2 of dz_sxz (half nodes in), t3 of dx_of_half(sxz), t4 of dz_szz
         i, c, n = column(wp.tid(), lz, lx, box, rows)
         for k in range(n):
-            g_sxx[i] = g_sxx[i] + gather_int(t1, i, 1)
-            g_sxz[i] = g_sxz[i] + gather_half(t2, i, lx) + gather_half(t3, i, 1)
-            g_szz[i] = g_szz[i] + gather_int(t4, i, lx)
+            velocity_gather(t1, t2, t3, t4, g_sxx, g_szz, g_sxz, i, lx)
             i += lx
 
     @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
@@ -745,9 +842,9 @@ def build(order: int, dtype, free_surface: bool):
         g_sxx_new: arr3, g_szz_new: arr3, g_sxz_new: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_vx: arr3, g_vz: arr3,
         g_l2m: arr2, g_lam: arr2, g_mu: arr2, g_muh: arr2,
         gp_s_x: arr3, gp_s_z: arr3, gp_xz_z: arr3, gp_xz_x: arr3, gn_s_x: arr3, gn_s_z: arr3, gn_xz_z: arr3, gn_xz_x: arr3,
-        t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, hole: wp.vec4i,
     ):  # fmt: skip
-        z, x = cell_of(wp.tid(), vx.shape[2])
+        z, x = frame_cell(wp.tid(), vx.shape[1], vx.shape[2], hole)
         jz = az.store[z]
         jx = ax.store[x]
         c1 = l2m[z, x]
@@ -766,8 +863,8 @@ def build(order: int, dtype, free_surface: bool):
             gxx = g_sxx_new[s, z, x]
             gzz = g_szz_new[s, z, x]
             gxz = g_sxz_new[s, z, x]
-            g_sxx[s, z, x] = g_sxx[s, z, x] + gxx
-            g_sxz[s, z, x] = g_sxz[s, z, x] + gxz
+            g_sxx[s, z, x] = gxx
+            g_sxz[s, z, x] = gxz
             dvx = cpml_value(dx_of_half(vx, s, z, x) * inv_dx, jx, n_s_x, s, z, jx)
             dvz = cpml_value(dvz_normal(vz, s, z, x, top) * inv_dx, jz, n_s_z, s, jz, x)
             hxx = dt * gxx
@@ -780,8 +877,9 @@ def build(order: int, dtype, free_surface: bool):
                 acc_l2m -= gq * q / c1
                 gdvx = q * hxx
                 gdvz = dtype(0.0)
+                g_szz[s, z, x] = dtype(0.0)
             else:
-                g_szz[s, z, x] = g_szz[s, z, x] + gzz
+                g_szz[s, z, x] = gzz
                 acc_l2m += hxx * dvx + hzz * dvz
                 acc_lam += hxx * dvz + hzz * dvx
                 gdvx, gdvz = normal_rates(c1, c2, hxx, hzz)
@@ -811,15 +909,183 @@ def build(order: int, dtype, free_surface: bool):
         g_mu[z, x] = g_mu[z, x] + acc_mu
         g_muh[z, x] = g_muh[z, x] + acc_muh
 
+    @wp.func
+    def stress_gather(t1: arr1, t2: arr1, t3: arr1, t4: arr1, g_vx: arr1, g_vz: arr1, i: int, lx: int):
+        # pass 2 at flat index i: t1 = adj of dx_of_half(vx), t2 of dz_vz (half nodes in), t3 of dz_vx, t4 of dx_of_int(vz)
+        g_vx[i] = g_vx[i] + gather_half(t1, i, 1) + gather_int(t3, i, lx)
+        g_vz[i] = g_vz[i] + gather_half(t2, i, lx) + gather_int(t4, i, 1)
+
     @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def stress_transpose(t1: arr1, t2: arr1, t3: arr1, t4: arr1, g_vx: arr1, g_vz: arr1,
                          lz: int, lx: int, box: wp.vec4i, rows: int):  # fmt: skip
-        # t1 = adj of dx_of_half(vx), t2 of dz_vz (half nodes in), t3 of dz_vx, t4 of dx_of_int(vz)
         i, c, n = column(wp.tid(), lz, lx, box, rows)
         for k in range(n):
-            g_vx[i] = g_vx[i] + gather_half(t1, i, 1) + gather_int(t3, i, lx)
-            g_vz[i] = g_vz[i] + gather_half(t2, i, lx) + gather_int(t4, i, 1)
+            stress_gather(t1, t2, t3, t4, g_vx, g_vz, i, lx)
             i += lx
+
+    @wp.func
+    def inside(z: int, x: int, b: wp.vec4i) -> bool:
+        return z >= b[0] and z < b[1] and x >= b[2] and x < b[3]
+
+    @wp.func
+    def add_shot(g: arr1, t: arr1, c: int, i: int, term: dtype, shots: int):
+        # one shot's term of a material's adjoint at model index c: added, as pass 1 adds 0 + term, or with several shots
+        # kept in the scratch t at the shot's flat index i for sum_shots
+        if shots == 1:
+            g[c] = g[c] + term
+        else:
+            t[i] = term
+
+    @wp.func
+    def shot_sum(t: arr1, g: arr1, c: int, cells: int, shots: int):
+        acc = dtype(0.0)
+        for s in range(shots):
+            acc += t[s * cells + c]
+        g[c] = g[c] + acc
+
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def sum_shots(t1: arr1, t2: arr1, t3: arr1, g1: arr1, g2: arr1, g3: arr1, count: int, shots: int, lz: int, lx: int, inner: wp.vec4i):
+        # g_k += the sum over the shots of t_k, k < count (2 or 3), at the cells of `inner`, in pass 1's order
+        q = wp.tid()
+        nx = inner[3] - inner[2]
+        r = q // nx
+        c = (inner[0] + r) * lx + inner[2] + q - r * nx
+        shot_sum(t1, g1, c, lz * lx, shots)
+        shot_sum(t2, g2, c, lz * lx, shots)
+        if count == 3:
+            shot_sum(t3, g3, c, lz * lx, shots)
+
+    def make_adjoints(rows: int, cols: int):
+        # The (velocity, stress) kernels of pass 2 fused with pass 1 inside the hole (Elastic.adjoint_update), one 1D
+        # launch each, laid out as make_updates': threads below `tiles` take a tile of rows x cols cells of `box` (the
+        # cells whose gathers read t_k of core cells alone) of one shot; those from `frame` (a block boundary) gather one
+        # cell outside `box` (frame_cells per shot) from the scratch. A tile gathers t_k of core cells from sliding
+        # windows and lines of their raw products (Scaled, Normal) and, inside `inner` (the hole of pass 1, which wrote
+        # t_k of the ring box - inner that the frame's gathers read), does pass 1's work too (add_shot). Every sum in the
+        # per-cell kernels' order (a transposed stencil is its derivative negated, exactly): bit for bit on the CPU.
+        alone, dline, tile, load_window, slide, load_line = tiling(rows, cols)
+
+        @wp.func
+        def velocity_tile(
+            sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx_new: arr1, g_vz_new: arr1, g_vx: arr1, g_vz: arr1,
+            g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1,
+            t: int, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+        ):  # fmt: skip
+            i, c, z, ncol = tile(t, lz, lx, box)
+            x = c - z * lx
+            ta = scaled(g_vx_new, bx, i - c, dt, inv_dx)  # t1 = t2 of velocity_adjoint
+            tb = scaled(g_vz_new, bz, i - c, dt, inv_dx)  # t3 = t4
+            wa = load_window(sxz, i, lx, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
+            wb = load_window(szz, i, lx, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (d4)
+            w2 = load_window(ta, i, lx, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
+            w4 = load_window(tb, i, lx, wp.static(-M))  # t4 at rows z - M .. z + M - 1
+            for k in range(wp.static(rows)):
+                if z + k < box[1]:
+                    ra = load_line(sxx, i, wp.static(1 - M), wa, 0, wp.static(alone))  # sxx at x - M + 1 .. (d1)
+                    rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M), wp.static(M))  # sxz at x - M .. (d3)
+                    r1 = load_line(ta, i, wp.static(-M), w2, wp.static(M - 1), wp.static(M))  # t1 at x - M ..
+                    r3 = load_line(tb, i, wp.static(1 - M), w4, wp.static(M), wp.static(M - 1))  # t3 at x - M + 1 ..
+                    for j in range(wp.static(cols)):
+                        if j < ncol:
+                            g_sxx[i + j] = g_sxx[i + j] - dline(r1, j)
+                            g_sxz[i + j] = g_sxz[i + j] - dwin(w2[j]) - dline(r3, j)
+                            g_szz[i + j] = g_szz[i + j] - dwin(w4[j])
+                            if inside(z + k, x + j, inner):
+                                ga = g_vx_new[i + j]
+                                gb = g_vz_new[i + j]
+                                g_vx[i + j] = ga
+                                g_vz[i + j] = gb
+                                add_shot(g_bx, t1, c + j, i + j, dt * ga * (dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx), shots)
+                                add_shot(g_bz, t2, c + j, i + j, dt * gb * (dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx), shots)
+                    if wp.static(k + 1 < rows):
+                        wa = slide(wa, sxz, i, lx, wp.static(M))
+                        wb = slide(wb, szz, i, lx, wp.static(M + 1))
+                        w2 = slide(w2, ta, i, lx, wp.static(M + 1))
+                        w4 = slide(w4, tb, i, lx, wp.static(M))
+                    i += lx
+                    c += lx
+
+        @wp.func
+        def stress_tile(
+            vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx_new: arr1, g_szz_new: arr1, g_sxz_new: arr1,
+            g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1, g_l2m: arr1, g_lam: arr1, g_muh: arr1,
+            t1: arr1, t2: arr1, t3: arr1, t: int, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype,
+            inv_dx: dtype,
+        ):  # fmt: skip
+            i, c, z, ncol = tile(t, lz, lx, box)
+            x = c - z * lx
+            tx = normal(g_sxx_new, g_szz_new, l2m, lam, i - c, dt, inv_dx)  # t1 of stress_adjoint
+            tz = normal(g_sxx_new, g_szz_new, lam, l2m, i - c, dt, inv_dx)  # t2
+            ts = scaled(g_sxz_new, muh, i - c, dt, inv_dx)  # t3 = t4
+            wa = load_window(vz, i, lx, wp.static(-M))  # vz at rows z - M .. z + M - 1 (dvz)
+            wb = load_window(vx, i, lx, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (e1)
+            w2 = load_window(tz, i, lx, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
+            w3 = load_window(ts, i, lx, wp.static(-M))  # t3 at rows z - M .. z + M - 1
+            for k in range(wp.static(rows)):
+                if z + k < box[1]:
+                    ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1), wp.static(M))  # vx at x - M .. (dvx)
+                    rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M), wp.static(M - 1))  # vz at x - M + 1 .. (e2)
+                    r1 = load_line(tx, i, wp.static(1 - M), w2, 0, wp.static(alone))  # t1 at x - M + 1 ..
+                    r4 = load_line(ts, i, wp.static(-M), w3, wp.static(M), wp.static(M))  # t4 at x - M ..
+                    for j in range(wp.static(cols)):
+                        if j < ncol:
+                            g_vx[i + j] = g_vx[i + j] - dline(r1, j) - dwin(w3[j])
+                            g_vz[i + j] = g_vz[i + j] - dwin(w2[j]) - dline(r4, j)
+                            if inside(z + k, x + j, inner):
+                                gxx = g_sxx_new[i + j]
+                                gzz = g_szz_new[i + j]
+                                gxz = g_sxz_new[i + j]
+                                g_sxx[i + j] = gxx
+                                g_szz[i + j] = gzz
+                                g_sxz[i + j] = gxz
+                                dvx = dline(ra, j) * inv_dx
+                                dvz = dwin(wa[j]) * inv_dx
+                                hxx = dt * gxx
+                                hzz = dt * gzz
+                                add_shot(g_l2m, t1, c + j, i + j, hxx * dvx + hzz * dvz, shots)
+                                add_shot(g_lam, t2, c + j, i + j, hxx * dvz + hzz * dvx, shots)
+                                add_shot(g_muh, t3, c + j, i + j, dt * gxz * (dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx), shots)
+                    if wp.static(k + 1 < rows):
+                        wa = slide(wa, vz, i, lx, wp.static(M))
+                        wb = slide(wb, vx, i, lx, wp.static(M + 1))
+                        w2 = slide(w2, tz, i, lx, wp.static(M + 1))
+                        w3 = slide(w3, ts, i, lx, wp.static(M))
+                    i += lx
+                    c += lx
+
+        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+        def velocity_fused(
+            sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx_new: arr1, g_vz_new: arr1, g_vx: arr1, g_vz: arr1,
+            g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1, t3: arr1, t4: arr1,
+            lz: int, lx: int, shots: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int,
+            frame_cells: int,
+        ):  # fmt: skip
+            t = wp.tid()
+            if t < tiles:
+                velocity_tile(sxx, szz, sxz, bx, bz, g_vx_new, g_vz_new, g_vx, g_vz, g_sxx, g_szz, g_sxz, g_bx, g_bz, t1, t2,
+                              t, shots, lz, lx, box, inner, dt, inv_dx)  # fmt: skip
+            elif t >= frame:
+                s = (t - frame) // frame_cells
+                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
+                velocity_gather(t1, t2, t3, t4, g_sxx, g_szz, g_sxz, (s * lz + z) * lx + x, lx)
+
+        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+        def stress_fused(
+            vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx_new: arr1, g_szz_new: arr1, g_sxz_new: arr1,
+            g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1, g_l2m: arr1, g_lam: arr1, g_muh: arr1,
+            t1: arr1, t2: arr1, t3: arr1, t4: arr1, lz: int, lx: int, shots: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype,
+            inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
+        ):  # fmt: skip
+            t = wp.tid()
+            if t < tiles:
+                stress_tile(vx, vz, l2m, lam, muh, g_sxx_new, g_szz_new, g_sxz_new, g_sxx, g_szz, g_sxz, g_vx, g_vz, g_l2m, g_lam,
+                            g_muh, t1, t2, t3, t, shots, lz, lx, box, inner, dt, inv_dx)  # fmt: skip
+            elif t >= frame:
+                s = (t - frame) // frame_cells
+                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
+                stress_gather(t1, t2, t3, t4, g_vx, g_vz, (s * lz + z) * lx + x, lx)
+
+        return velocity_fused, stress_fused
 
     @wp.kernel(module="unique")
     def materials(vp: arr2, vs: arr2, rho: arr2, bx: arr2, bz: arr2, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, b: arr2):
@@ -981,8 +1247,8 @@ def build(order: int, dtype, free_surface: bool):
     return _Kernels(
         Axis=Axis, materials=materials, velocity=velocity, stress=stress, updates=functools.lru_cache(maxsize=None)(make_updates),
         velocity_adjoint=velocity_adjoint, velocity_transpose=velocity_transpose, stress_adjoint=stress_adjoint,
-        stress_transpose=stress_transpose, inject_force=inject_force, inject_moment=inject_moment, weights=weights,
-        record=record, pad_model=pad_model, halo=M,
+        stress_transpose=stress_transpose, adjoints=functools.lru_cache(maxsize=None)(make_adjoints), sum_shots=sum_shots,
+        inject_force=inject_force, inject_moment=inject_moment, weights=weights, record=record, pad_model=pad_model, halo=M,
         operator_points=NPTS,
     )  # fmt: skip
 
@@ -1093,6 +1359,15 @@ class Elastic:
         self.inv_dx = dtype(1.0 / dx)
         self.dt_device = dtype(dt)
         self.cuda = wp.get_device(device).is_cuda
+        # The hand-written adjoint's fused tiles (make_adjoints) take the adjoint box, the core less R cells on each side:
+        # a cell's gathers read t_k of the cells up to R away along z or x, which are core cells' raw products there. Pass 1
+        # leaves them the inner box (the adjoint box less R more on each side), the cells no gather outside the adjoint
+        # box reads, and writes t_k of the ring between the two. no_hole: pass 1 everywhere (the per-cell path).
+        self.adjoint_box = wp.vec4i(self.core[0] + R, self.core[1] - R, self.core[2] + R, self.core[3] - R)
+        self.adjoint_inner = wp.vec4i(self.core[0] + 2 * R, self.core[1] - 2 * R, self.core[2] + 2 * R, self.core[3] - 2 * R)
+        self.no_hole = wp.vec4i(R, R, R, R)
+        self.has_adjoint_box = self.has_core and min(self.core[1] - self.core[0], self.core[3] - self.core[2]) > 4 * R
+        self.adjoint_layout = ADJOINT_LAYOUT if self.cuda and self.has_adjoint_box else None  # None: the per-cell kernels
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
 
     def psi_shape(self, name):
@@ -1198,38 +1473,88 @@ class Elastic:
         inject("moment")
         return out
 
-    def adjoint_step(self, st: State, out: State, mat, adj_next: State, adj: State, adj_mat, sources, adj_sources, scratch, n: int,
-                     clock=None):  # fmt: skip
-        """Adjoint of step(st, mat, sources, n, out) (out-of-place, st and out as it left them): the hand-written
-        adjoints of the half steps and Warp's generated ones of the source injection. adj_next: the adjoint State
-        of level n + 1, consumed (its velocities gain the stress update's terms); adj: that of level n, added to
-        (zero it first); adj_mat: the adjoints of MATERIALS but b (6 arrays (Lz, Lx)); adj_sources: of the sources'
-        (amplitudes, components, locations); both added to. scratch: four fields (S, Lz, Lx) whose halo is zero."""
-        clock = self.clock if clock is None else clock
+    def _outside(self, box):
+        """Interior cells per shot outside box."""
+        return math.prod(self.interior[1:]) - (box[1] - box[0]) * (box[3] - box[2])
+
+    def _fused(self):
+        return self.adjoint_layout is not None and self.has_adjoint_box
+
+    def adjoint_kernels(self):
+        """The kernels adjoint_update launches: pass 1 (velocity, stress), pass 2 (velocity, stress; fused with
+        self.adjoint_layout) and, fused with several shots, sum_shots."""
+        k, lay = self.k, self.adjoint_layout
+        if not self._fused():
+            return k.velocity_adjoint, k.stress_adjoint, k.velocity_transpose, k.stress_transpose
+        return (k.velocity_adjoint, k.stress_adjoint, *k.adjoints(lay.rows, lay.cols), *((k.sum_shots,) if self.n_shots > 1 else ()))
+
+    def adjoint_update(self, kind: int, st: State, out: State, mat, adj_next: State, adj: State, adj_mat, scratch, part=None):
+        """Adjoint of update(kind, st, out, mat) out of place (st and out as it left them), adj_next and adj the adjoint
+        States of out and st, adj_mat as in adjoint_step. Kind 1 writes adj's stresses and their update's memory
+        variables and adds to adj_next's velocities and the moduli's adjoints; kind 0 writes adj's velocities and their
+        memory variables and adds to adj's stresses and the buoyancies' adjoints. Pass 1 (per cell, outside the inner box
+        with self.adjoint_layout), then pass 2 (the gathers, or with self.adjoint_layout the fused tiles and the frame's
+        gathers); part "pass1" or "pass2" launches that alone, "tiles" pass 2's tiles alone (for timing)."""
         bx, bz, l2m, lam, mu, muh, _ = mat
         g_bx, g_bz, g_l2m, g_lam, g_mu, g_muh = adj_mat
         Q, G, GN = out.psi, adj.psi, adj_next.psi
-        dev, dt, inv_dx, top = self.device, self.dt_device, self.inv_dx, self.top
-        cells = math.prod(self.interior[1:])
+        if kind == 0:
+            args = [st.sxx, st.szz, st.sxz, bx, bz, *(Q[k] for k in PSI_V), adj_next.vx, adj_next.vz, adj.vx, adj.vz, adj.sxx, adj.szz,
+                    adj.sxz, g_bx, g_bz, *(G[k] for k in PSI_V), *(GN[k] for k in PSI_V)]  # fmt: skip
+            flat = [st.sxx, st.szz, st.sxz, bx, bz, adj_next.vx, adj_next.vz, adj.vx, adj.vz, adj.sxx, adj.szz, adj.sxz, g_bx, g_bz]
+            gathered = [adj.sxx, adj.szz, adj.sxz]
+            summed = [g_bx, g_bz, g_bz]  # sum_shots' g1, g2 (and an unused g3)
+        else:
+            args = [out.vx, out.vz, l2m, lam, mu, muh, *(Q[k] for k in PSI_S), adj_next.sxx, adj_next.szz, adj_next.sxz, adj.sxx, adj.szz,
+                    adj.sxz, adj_next.vx, adj_next.vz, g_l2m, g_lam, g_mu, g_muh, *(G[k] for k in PSI_S), *(GN[k] for k in PSI_S)]  # fmt: skip
+            flat = [out.vx, out.vz, l2m, lam, muh, adj_next.sxx, adj_next.szz, adj_next.sxz, adj.sxx, adj.szz, adj.sxz, adj_next.vx,
+                    adj_next.vz, g_l2m, g_lam, g_muh]  # fmt: skip
+            gathered = [adj_next.vx, adj_next.vz]
+            summed = [g_l2m, g_lam, g_muh]
+        kernels = self.adjoint_kernels()
+        fused = self._fused()
+        hole = self.adjoint_inner if fused else self.no_hole
+        if part in (None, "pass1"):
+            wp.launch(kernels[kind], dim=self._outside(hole), inputs=[*args, *scratch, *self.axes, self.dt_device, self.inv_dx, self.top, hole],
+                      device=self.device, record_tape=False)  # fmt: skip
+        if part == "pass1":
+            return
+        if not fused:
+            self._flat_launch(kernels[2 + kind], self.box, [*scratch, *gathered])
+            return
+        lay, box, inner = self.adjoint_layout, self.adjoint_box, self.adjoint_inner
+        tiles = self.n_shots * -(-(box[1] - box[0]) // lay.rows) * -(-(box[3] - box[2]) // lay.cols)
+        frame = -(-tiles // lay.threads) * lay.threads  # the frame's first thread, on a block boundary
+        cells = self._outside(box)
+        t = [a.flatten() for a in scratch]
+        wp.launch(kernels[2 + kind], dim=tiles if part == "tiles" else frame + self.n_shots * cells,
+                  inputs=[*(a.flatten() for a in flat), *t, *self.padded, self.n_shots, box, inner, self.dt_device, self.inv_dx, tiles, frame,
+                          cells], block_dim=lay.threads, device=self.device, record_tape=False)  # fmt: skip
+        if self.n_shots > 1 and part != "tiles":  # the materials' adjoints the tiles left in the scratch
+            wp.launch(kernels[4], dim=(inner[1] - inner[0]) * (inner[3] - inner[2]),
+                      inputs=[*t[:3], *(a.flatten() for a in summed), 2 + kind, self.n_shots, *self.padded, inner], device=self.device,
+                      record_tape=False)  # fmt: skip
+
+    def adjoint_step(self, st: State, out: State, mat, adj_next: State, adj: State, adj_mat, sources, adj_sources, scratch, n: int,
+                     clock=None):  # fmt: skip
+        """Adjoint of step(st, mat, sources, n, out) (out-of-place, st and out as it left them): the hand-written
+        adjoints of the half steps (adjoint_update) and Warp's generated ones of the source injection. adj_next: the
+        adjoint State of level n + 1, consumed (its velocities gain the stress update's terms); adj: that of level n,
+        written (every interior and CPML strip cell; its halo cells are never read); adj_mat: the adjoints of MATERIALS
+        but b (6 arrays (Lz, Lx)); adj_sources: of the sources' (amplitudes, components, locations); both added to.
+        scratch: four fields (S, Lz, Lx) whose halo is zero."""
+        clock = self.clock if clock is None else clock
 
         def source_adjoint(kind, first):  # adjoints of the injection's inputs, in launch order from `first` (the fields)
             if sources is not None and sources[0] == kind:
                 kernel, dim, inputs = self._source_launch(out, mat, sources, n, clock)
-                extra = [g_bx, g_bz] if kind == "force" else []
-                _adjoint_launch(kernel, dim, inputs, dict(enumerate([*first, *extra, *adj_sources])), dev)
+                extra = [adj_mat[0], adj_mat[1]] if kind == "force" else []
+                _adjoint_launch(kernel, dim, inputs, dict(enumerate([*first, *extra, *adj_sources])), self.device)
 
         source_adjoint("moment", [adj_next.sxx, adj_next.szz, adj_next.sxz])
-        wp.launch(self.k.stress_adjoint, dim=cells,
-                  inputs=[out.vx, out.vz, l2m, lam, mu, muh, *(Q[k] for k in PSI_S), adj_next.sxx, adj_next.szz, adj_next.sxz, adj.sxx, adj.szz,
-                          adj.sxz, adj_next.vx, adj_next.vz, g_l2m, g_lam, g_mu, g_muh, *(G[k] for k in PSI_S), *(GN[k] for k in PSI_S),
-                          *scratch, *self.axes, dt, inv_dx, top], device=dev)  # fmt: skip
-        self._flat_launch(self.k.stress_transpose, self.box, [*scratch, adj_next.vx, adj_next.vz])
+        self.adjoint_update(1, st, out, mat, adj_next, adj, adj_mat, scratch)
         source_adjoint("force", [adj_next.vx, adj_next.vz])
-        wp.launch(self.k.velocity_adjoint, dim=cells,
-                  inputs=[st.sxx, st.szz, st.sxz, bx, bz, *(Q[k] for k in PSI_V), adj_next.vx, adj_next.vz, adj.vx, adj.vz, adj.sxx,
-                          adj.szz, adj.sxz, g_bx, g_bz, *(G[k] for k in PSI_V), *(GN[k] for k in PSI_V), *scratch, *self.axes, dt, inv_dx,
-                          top], device=dev)  # fmt: skip
-        self._flat_launch(self.k.velocity_transpose, self.box, [*scratch, adj.sxx, adj.szz, adj.sxz])
+        self.adjoint_update(0, st, out, mat, adj_next, adj, adj_mat, scratch)
 
     def receivers(self, locations):
         """The receiver operator at locations (S, n_rec, 2) m: node indices and weights (4, S, n_rec, points)."""

@@ -469,19 +469,25 @@ def test_hand_adjoint_matches_warp_generated(order, free_surface, source_type, s
         assert np.abs(a - b).max() <= 1e-12 * np.abs(a).max(), k
 
 
-def random_step(prop, seed=5):
-    """One step (no source) from random fields, CPML memory variables and model (a fluid corner: zero shear
-    moduli) on prop's grid, in place with prop.layout, and by the per-cell reference kernels: (fast, reference)
-    arrays of the state."""
+def random_materials(prop, rng):
+    """MATERIALS of a random model on prop's padded grid with a fluid corner (zero shear moduli)."""
     import warp as wp
 
-    rng = np.random.default_rng(seed)
     shape = prop.padded
     vp = 2000.0 + 400.0 * rng.random(shape)
     vs = vp / 1.8 * (0.7 + 0.3 * rng.random(shape))
     vs[: shape[0] // 3, : shape[1] // 3] = 0.0
     rho = 1800.0 + 500.0 * rng.random(shape)
-    mat = prop.materials(*(wp.array(m, dtype=prop.dtype, device=prop.device) for m in (vp, vs, rho)))
+    return prop.materials(*(wp.array(m, dtype=prop.dtype, device=prop.device) for m in (vp, vs, rho)))
+
+
+def random_step(prop, seed=5):
+    """One step (no source) from random fields, CPML memory variables and model (random_materials) on prop's grid,
+    in place with prop.layout, and by the per-cell reference kernels: (fast, reference) arrays of the state."""
+    import warp as wp
+
+    rng = np.random.default_rng(seed)
+    mat = random_materials(prop, rng)
     st, ref = prop.new_state(), prop.new_state()
     for a, b in zip(st.arrays(), ref.arrays()):
         a.assign(rng.standard_normal(a.shape))
@@ -511,6 +517,82 @@ def test_core_layouts_equal_reference_kernels(layout, order, free_surface):
     limit = 0.0 if DEVICE == "cpu" else 1e-5
     for a, b in zip(fast, ref):
         assert np.abs(a - b).max() <= limit * np.abs(b).max()
+
+
+def adjoint_step_arrays(prop, layout, source_type, seed=7):
+    """One hand-written adjoint step (Elastic.adjoint_step, with two sources per shot) from random states, adjoint
+    States, model (random_materials), materials' adjoints and sources on prop's grid, with prop.adjoint_layout =
+    layout (None: the per-cell kernels): every array it writes or adds to."""
+    import warp as wp
+
+    def device(a):
+        return wp.array(a, dtype=prop.dtype, device=prop.device)
+
+    rng = np.random.default_rng(seed)
+    prop.adjoint_layout = layout
+    shape, shots = prop.padded, prop.n_shots
+    mat = random_materials(prop, rng)
+    st, out, adj_next, adj = (prop.new_state() for _ in range(4))
+    for a in (*st.arrays(), *adj_next.arrays(), *adj.arrays()):
+        a.assign(rng.standard_normal(a.shape))
+    prop.step(st, mat, None, 0, out=out)
+    adj_mat = [device(rng.standard_normal(shape)) for _ in mat[:-1]]
+    extent = (np.array(prop.shape) - 1) * prop.dx
+    sources = (source_type, device(rng.standard_normal((shots, 2, 8))),
+               device(rng.standard_normal((shots, 2, 2 if source_type == "force" else 3))), device(rng.random((shots, 2, 2)) * extent))  # fmt: skip
+    adj_sources = [wp.zeros(a.shape, dtype=prop.dtype, device=prop.device) for a in sources[1:]]
+    scratch = [wp.zeros((shots, *shape), dtype=prop.dtype, device=prop.device) for _ in range(4)]
+    prop.adjoint_step(st, out, mat, adj_next, adj, adj_mat, sources, adj_sources, scratch, 3)
+    return [a.numpy() for a in (*adj_next.arrays(), *adj.arrays(), *adj_mat, *adj_sources)]
+
+
+@pytest.mark.parametrize("layout, order, free_surface, shots", [(K.ADJOINT_LAYOUT, o, fs, s) for o in (4, 8) for fs in (False, True) for s in (1, 3)] +
+                         [(lay, 4, True, 2) for lay in K.ADJOINT_LAYOUTS if lay != K.ADJOINT_LAYOUT])  # fmt: skip
+def test_fused_adjoint_step_equals_per_cell_kernels(layout, order, free_surface, shots):
+    # The GPU's hand-written adjoint step (pass 1 outside the inner box; tiles of the adjoint box fusing both passes,
+    # the frame's gathers and, with several shots, sum_shots), forced here on any device, against the per-cell kernels'
+    # (the CPU's) for one step from random inputs, sources included (float64), on a grid whose adjoint box is no
+    # multiple of the tile (11-19 x 19-23 cells). Measured: bit for bit on the CPU (the same sums in the same order);
+    # FMA contraction may differ on a GPU.
+    import warp as wp
+
+    prop = K.Elastic((24, 28), 10.0, 1e-3, order, shots, 5, 1e-3, 15.0, 2500.0, free_surface=free_surface, dtype=wp.float64, device=DEVICE)
+    box = prop.adjoint_box
+    assert prop.has_adjoint_box and (box[1] - box[0]) % 2 and (box[3] - box[2]) % 2  # odd: partial tiles
+    source_type = "moment" if free_surface else "force"
+    ref = adjoint_step_arrays(prop, None, source_type)
+    fused = adjoint_step_arrays(prop, layout, source_type)
+    for a, b in zip(fused, ref):
+        assert np.abs(b).max() > 0
+        assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()
+
+
+def test_sweep_with_fused_adjoint_equals_per_cell_kernels(monkeypatch):
+    # gradient_elastic's ElasticSweep (adjoint States written by each step, not zeroed) with the fused adjoint kernels
+    # (the GPU's path) against the per-cell kernels, both forced: the same gradients (float64; measured bit for bit
+    # on the CPU)
+    args, kw = small_problem(True, "moment", shape=(20, 26), nt=60)
+    rng = np.random.default_rng(9)
+    common = dict(observed={c: rng.standard_normal((2, 7, 60)) * (1e-3 if c == "pressure" else 1e-9) for c in E.COMPONENTS}, wrt=E.WRT,
+                  precision="float64", segment_length=16, **kw)  # fmt: skip
+    setup = E.setup_elastic
+
+    def forced(layout, *a, **k):
+        su = setup(*a, **k)
+        assert su.prop.has_adjoint_box
+        su.prop.adjoint_layout = layout
+        return su
+
+    grads = []
+    for layout in (None, K.ADJOINT_LAYOUT):
+        monkeypatch.setattr(E, "setup_elastic", functools.partial(forced, layout))
+        grads.append(E.gradient_elastic(*args, **common))
+    ref, fused = grads
+    assert fused.loss == ref.loss
+    for k in E.WRT:
+        a, b = getattr(fused, k), getattr(ref, k)
+        assert np.abs(b).max() > 0
+        assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max(), k
 
 
 def test_device_array_models():
