@@ -1,6 +1,6 @@
 """Check and time the 2D elastic propagator on one device: per-kernel microseconds (CUDA-graph replays on
-a GPU, a synchronised loop on the CPU), with --variants every core layout of kernels/elastic.LAYOUTS (its
-half steps and whole step, and its step against the per-cell reference kernels on random fields), one
+a GPU, a synchronised loop on the CPU), with --variants every core layout of kernels/elastic.LAYOUTS (its vector
+width, half steps and whole step, and its step against the per-cell reference kernels on random fields), one
 step's adjoint (with --modes gradient: the hand-written one with the device's AdjointLayout, each of its launches,
 the per-cell kernels', and Warp's generated adjoints), with --adjoint-variants every AdjointLayout of
 kernels/elastic.ADJOINT_LAYOUTS (its adjoint step and launches, and its step against the per-cell kernels' on
@@ -107,7 +107,7 @@ def kernel_times(su, device, reps):
                                                   prop.dtype(prop.dt / prop.dx**2), prop.inv_dx, prop.top], device=device),  # fmt: skip
         "monitor": lambda: prop.monitor((st.vx, st.vz), wp.zeros(2, dtype=prop.dtype, device=device)),
     }
-    out = {"layout": CORE_LAYOUT._asdict(), "core_cells": int((prop.core[1] - prop.core[0]) * (prop.core[3] - prop.core[2])),
+    out = {"layout": CORE_LAYOUT._asdict(), "width": prop.width, "core_cells": int((prop.core[1] - prop.core[0]) * (prop.core[3] - prop.core[2])),
            "frame_cells": prop.frame_cells, **timings(jobs, device, reps)}  # fmt: skip
     if isinstance(out["step_in_place_us"], float):
         out["step_gcells_per_s"] = round(prop.n_shots * np.prod(prop.padded) / out["step_in_place_us"] / 1e3, 3)
@@ -166,7 +166,7 @@ def variant_times(check, layout, device, reps):
     prop, mat, st = check.prop, check.mat, check.work
     prop.layout = layout
     try:
-        out = {"layout": layout._asdict(), "max_rel_diff": check.max_rel_diff()}
+        out = {"layout": layout._asdict(), "width": prop.width, "max_rel_diff": check.max_rel_diff()}
         jobs = {
             "velocity": lambda: prop.update(0, st, st, mat),
             "stress": lambda: prop.update(1, st, st, mat),

@@ -41,21 +41,21 @@ C^1 in the position) at each field's own staggered position. Near a free surface
 above it are folded onto their mirror nodes, with a sign change for szz and sxz (odd images) and
 without for vx, vz, sxx; a normal-stress node on the surface gets no szz weight.
 
-Kernels. A step is `velocity` then `stress`, each as per-cell reference kernels (what Warp
-differentiates for adjoint="warp") or as the fast path (`make_updates`, one kernel per half step and
-Layout): threads updating tiles of rows x cols cells of the core (the cells with neither CPML nor free
-surface) on flat arrays, with the z-stencil in sliding register windows and each row's values along x
-loaded once per tile, and threads doing the other interior cells (the frame) with the reference's per-cell
-code, in one launch or two. A kernel may write its outputs into its inputs (every cell reads only its own
-old value of a field it writes), so forward steps run in place, or out of place into a level's own arrays
-(under a tape, and in the hand-written adjoint sweep). Hand-written adjoints (launched by
-Elastic.adjoint_update on explicit adjoint arrays: the old fields' adjoints written, the others added to) first
-compute per cell the adjoint of every raw stencil sum (CPML, materials and pointwise terms included) into scratch
-arrays (`*_adjoint`), then apply the transposed stencils as gathers (`*_transpose`); rows next to a free surface,
-whose stencils fold or shrink, scatter with atomics instead. On a GPU (AdjointLayout, `make_adjoints`) tiles of
-the cells whose gathers read core cells alone fuse the two passes, forming those cells' raw stencil sums'
-adjoints in sliding windows and lines. The source and receiver kernels' adjoints are Warp's generated ones,
-launched directly (adjoint=True).
+Kernels. A step is `velocity` then `stress`, each as per-cell reference kernels (what Warp differentiates for
+adjoint="warp") or as the fast path (`make_updates`, one kernel per half step and Layout): threads updating
+tiles of rows x cols cells of the core (the cells with neither CPML nor free surface, its columns from and to
+multiples of the vector width) on flat arrays viewed as vectors of cols values, with the z-stencil in sliding
+register windows and each row's values along x loaded once per tile, and threads doing the other interior cells
+(the frame) with the reference's per-cell code, in one launch or two. A kernel may write its outputs into its
+inputs (every cell reads only its own old value of a field it writes), so forward steps run in place, or out of
+place into a level's own arrays (under a tape, and in the hand-written adjoint sweep). Hand-written adjoints
+(launched by Elastic.adjoint_update on explicit adjoint arrays: the old fields' adjoints written, the others
+added to) first compute per cell the adjoint of every raw stencil sum (CPML, materials and pointwise terms
+included) into scratch arrays (`*_adjoint`), then apply the transposed stencils as gathers (`*_transpose`); rows
+next to a free surface, whose stencils fold or shrink, scatter with atomics instead. On a GPU (AdjointLayout,
+`make_adjoints`) tiles of the cells whose gathers read core cells alone fuse the two passes, forming those
+cells' raw stencil sums' adjoints in sliding windows and lines. The source and receiver kernels' adjoints are
+Warp's generated ones, launched directly (adjoint=True).
 """
 
 
@@ -66,13 +66,14 @@ from typing import Any, NamedTuple
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _adjoint_launch, _i0, field_stats
+from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _adjoint_launch, _aligned, _i0, field_stats
 from adseismic.numerics import STAGGERED_DERIVATIVE
 
 
 class Layout(NamedTuple):
-    """How the fast path does the core: each thread updates a tile of `rows` consecutive rows (z) x `cols`
-    adjacent columns (x), `threads` per block. lean: the core reads one model array fewer per cell in each
+    """How the fast path does the core: each thread updates a tile of `rows` consecutive rows (z) x `cols` adjacent
+    columns (x), `threads` per block; a tile's row is one vector of `cols` (1, 2 or 4) values per array (fewer where
+    the padded row length is no multiple: Elastic.width). lean: the core reads one model array fewer per cell in each
     half step, deriving bx, bz from 1/rho at the normal-stress nodes and lambda and the shear nodes' mu from
     lambda + 2 mu and mu, with `materials`' operations (36 -> 32 and 44 -> 40 bytes per cell). merged: the
     core and the frame in one launch instead of two."""
@@ -84,22 +85,22 @@ class Layout(NamedTuple):
     merged: bool = True
 
 
-# From `benchmarks/speed_elastic.py --variants` on the H200 (step us, E2000 / E600x16): 8 x 2 merged 173 / 283; split 191 / 302;
-# 16 x 2 188 / 331; 8 x 1 193 / 305; 16 x 1 (the previous tile) 220 / 324; lean (one model array fewer) 209-264 / 307-406.
-CORE_LAYOUT = Layout(8, 2, 128, lean=False, merged=True)
+# From `benchmarks/speed_elastic.py --variants` on the H200 (step us, E2000 / E600x16), vector tiles (rows x columns,
+# the columns one vector): 4 x 2 merged 122.8 / 211.7 (chosen), 4 x 4 120.1 / 230.0, 8 x 2 132.7 / 222.3, 8 x 4 126.0 /
+# 238.7, 16 x 2 132.2 / 222.4, 8 x 1 160.4 / 252.1, 8 x 2 split 148.9 / 241.0, lean 8 x 2 130.2 / 232.4; the scalar
+# tiles before them: 8 x 2 merged 173 / 283.
+CORE_LAYOUT = Layout(4, 2, 128, lean=False, merged=True)
 LAYOUTS = (
-    Layout(16, 1, 128, False, False),  # the tile of the previous core kernels
-    Layout(8, 1, 128, False, False),
-    Layout(8, 2, 128, False, False),
-    Layout(16, 2, 128, False, False),
     Layout(8, 2, 128, False, True),
-    Layout(8, 1, 128, True, False),
-    Layout(8, 2, 128, True, False),
-    Layout(16, 2, 128, True, False),
-    Layout(8, 4, 128, True, False),
-    Layout(8, 2, 256, True, False),
+    Layout(8, 4, 128, False, True),
+    Layout(4, 4, 128, False, True),
+    Layout(4, 2, 128, False, True),
+    Layout(8, 1, 128, False, True),
+    Layout(16, 2, 128, False, True),
+    Layout(8, 2, 256, False, True),
+    Layout(8, 2, 128, False, False),
     Layout(8, 2, 128, True, True),
-    Layout(16, 2, 128, True, True),
+    Layout(8, 4, 128, True, True),
 )
 
 
@@ -538,12 +539,28 @@ def build(order: int, dtype, free_surface: bool):
         r, _ = normal_rates(a.p[c], a.q[c], a.dt * a.gx[i], a.dt * a.gz[i])
         return r * a.inv_dx
 
-    def make_tiling(rows: int, cols: int):
+    def make_tiling(rows: int, cols: int, width: int):
         # What tiles of rows x cols cells share (make_updates, make_adjoints): the place of tile t, and sliding z-windows
-        # w[j, m] (column j, row m) and x-lines r[p] of a source f (any `value`) with their derivative
+        # w[j, m] (column j, row m) and x-lines r[p] of a source f with their derivative. The loaders read f in blocks of
+        # `width` adjacent cells (get), their indices in blocks: a vector of an array of vectors (arrv; the forward's
+        # fields and models), or with width 1 any `value` (flat indices; the adjoint's). width divides cols.
         win = wp.types.matrix(shape=(cols, 2 * M), dtype=dtype)
         line = wp.types.vector(length=cols + 2 * M - 1, dtype=dtype)
-        alone = -cols  # load_line's centre when no window holds the line's values
+        vec = wp.types.vector(length=width, dtype=dtype)
+        arrv = wp.array(dtype=vec)
+        alone = -1  # load_line's window row when no window holds the line's values
+        lo, hi = -M // width, (cols + M - 1) // width  # the blocks a line reaches, relative to the tile's first
+
+        @wp.func
+        def get(f: arrv, i: int) -> vec:
+            return f[i]
+
+        @wp.func
+        def get(f: Any, i: int) -> vec:  # noqa: F811 (a Warp overload)
+            r = vec()
+            for j in range(wp.static(width)):
+                r[j] = value(f, i * wp.static(width) + j)
+            return r
 
         @wp.func
         def dline(r: line, j: int) -> dtype:
@@ -567,56 +584,74 @@ def build(order: int, dtype, free_surface: bool):
             return s * lz * lx + c, c, z, wp.min(wp.static(cols), core[3] - x)
 
         @wp.func
-        def load_window(f: Any, i: int, lx: int, first: int) -> win:
-            # f at rows first .. first + 2M - 1 (relative to flat index i) of the tile's columns
+        def load_window(f: Any, i: int, n: int, first: int) -> win:
+            # f at rows first .. first + 2M - 1 (relative to block i, n blocks per row) of the tile's columns
             w = win()
-            for j in range(wp.static(cols)):
-                for m in range(wp.static(2 * M)):
-                    w[j, m] = value(f, i + j + (first + m) * lx)
+            for m in range(wp.static(2 * M)):
+                for b in range(wp.static(cols // width)):
+                    a = get(f, i + b + (first + m) * n)
+                    for j in range(wp.static(width)):
+                        w[wp.static(b * width) + j, m] = a[j]
             return w
 
         @wp.func
-        def slide(w: win, f: Any, i: int, lx: int, newest: int) -> win:
+        def slide(w: win, f: Any, i: int, n: int, newest: int) -> win:
             # the window one row further down: f at row `newest` (relative to i) enters
             for j in range(wp.static(cols)):
                 for m in range(wp.static(2 * M - 1)):
                     w[j, m] = w[j, m + 1]
-                w[j, wp.static(2 * M - 1)] = value(f, i + j + newest * lx)
+            for b in range(wp.static(cols // width)):
+                a = get(f, i + b + newest * n)
+                for j in range(wp.static(width)):
+                    w[wp.static(b * width) + j, wp.static(2 * M - 1)] = a[j]
             return w
 
         @wp.func
-        def load_line(f: Any, i: int, first: int, w: win, m: int, centre: int) -> line:
-            # f at columns first .. first + cols + 2M - 2 (relative to i); r[centre + j], the tile's own columns, are
-            # taken from the window's row m (centre = alone: none are)
+        def load_line(f: Any, i: int, first: int, w: win, m: int) -> line:
+            # f at columns first .. first + cols + 2M - 2 (relative to the tile's first, block i), read from the blocks
+            # that hold them (the neighbours' too); the tile's own columns r[j - first] are taken from the window's
+            # row m (m = alone: from f)
             r = line()
-            for p in range(wp.static(cols + 2 * M - 1)):
-                if p >= centre and p < centre + wp.static(cols):
-                    r[p] = w[p - centre, m]
-                else:
-                    r[p] = value(f, i + first + p)
+            for q in range(wp.static(hi - lo + 1)):
+                b = q + wp.static(lo)
+                o = b * wp.static(width)  # the block's first column
+                if o + wp.static(width) > first and o < first + wp.static(cols + 2 * M - 1):
+                    if m == wp.static(alone) or o < 0 or o >= wp.static(cols):
+                        a = get(f, i + b)
+                        for j in range(wp.static(width)):
+                            p = o + j - first
+                            if p >= 0 and p < wp.static(cols + 2 * M - 1):
+                                r[p] = a[j]
+                    else:
+                        for j in range(wp.static(width)):
+                            r[o + j - first] = w[o + j, m]
             return r
 
-        return alone, dline, tile, load_window, slide, load_line
+        return vec, arrv, alone, get, dline, tile, load_window, slide, load_line
 
     tiling = functools.lru_cache(maxsize=None)(make_tiling)
 
     def make_updates(rows: int, cols: int, lean: bool):
         # The fast path's (velocity, stress) kernels for core tiles of rows x cols cells (see Layout). One 1D launch
         # (unravelling a multi-dimensional thread index costs 64-bit divisions) covers threads offset + tid: those
-        # below `tiles` update a core tile each, on the flat arrays (fields S * Lz * Lx, models Lz * Lx), those from
-        # `frame` on (a block boundary) one frame cell each with the reference's per-cell code. A tile keeps the
-        # z-stencil's values in sliding windows w[j, m] (column j, row m) and loads each value of a row along x once
-        # into a line r[p], sharing it between the tile's columns; the loop over rows is unrolled. Every sum is
-        # formed in the reference's order, so a tile reproduces the per-cell kernels bit for bit where the compiler
-        # contracts no multiply-adds (the CPU).
-        alone, dline, tile, load_window, slide, load_line = tiling(rows, cols)
+        # below `tiles` update a core tile each, on the flat arrays viewed as vectors of cols values (arrv; fields
+        # S * Lz * Lx / cols, models Lz * Lx / cols; the core's columns start and end at multiples of cols), those
+        # from `frame` on (a block boundary) one frame cell each with the reference's per-cell code. A tile loads and
+        # stores its cells of a row as one vector per array, keeps the z-stencil's values in sliding windows w[j, m]
+        # (column j, row m) and loads each value of a row along x once into a line r[p], sharing it between the
+        # tile's columns; the loop over rows is unrolled. Every sum is formed in the reference's order, so a tile
+        # reproduces the per-cell kernels bit for bit where the compiler contracts no multiply-adds (the CPU).
+        vec, arrv, alone, get, dline, tile, load_window, slide, load_line = tiling(rows, cols, cols)
         nodes = wp.types.vector(length=cols + 1, dtype=dtype)  # lean: a model row at the tile's columns and the next
 
         @wp.func
-        def load_nodes(f: arr1, c: int) -> nodes:
+        def load_nodes(f: arrv, c: int) -> nodes:
+            a = get(f, c)
             r = nodes()
-            for p in range(wp.static(cols + 1)):
-                r[p] = f[c + p]
+            for p in range(wp.static(cols)):
+                r[p] = a[p]
+            e = get(f, c + 1)
+            r[wp.static(cols)] = e[0]
             return r
 
         @wp.func
@@ -627,51 +662,65 @@ def build(order: int, dtype, free_surface: bool):
             return r
 
         @wp.func
+        def place(t: int, lz: int, lx: int, core: wp.vec4i):
+            # tile t's field and model vector indices, first row, and vectors per row
+            i, c, z, _ = tile(t, lz, lx, core)
+            return i // wp.static(cols), c // wp.static(cols), z, lx // wp.static(cols)
+
+        @wp.func
         def velocity_tile(
-            vx: arr1, vz: arr1, sxx: arr1, szz: arr1, sxz: arr1, m1: arr1, m2: arr1, vx_new: arr1, vz_new: arr1,
+            vx: arrv, vz: arrv, sxx: arrv, szz: arrv, sxz: arrv, m1: arrv, m2: arrv, vx_new: arrv, vz_new: arrv,
             t: int, lz: int, lx: int, core: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
             # velocity_cell without CPML and surface; m1, m2 = bx, bz, or (lean) m1 = 1/rho and bx, bz its means
-            i, c, z, ncol = tile(t, lz, lx, core)
-            wa = load_window(sxz, i, lx, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (for vx)
-            wb = load_window(szz, i, lx, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (for vz)
+            i, c, z, n = place(t, lz, lx, core)
+            wa = load_window(sxz, i, n, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (for vx)
+            wb = load_window(szz, i, n, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (for vz)
             b0 = nodes()  # lean: 1/rho at row z and z + 1, columns x .. x + cols
             b1 = nodes()
             if wp.static(lean):
                 b1 = load_nodes(m1, c)
             for k in range(wp.static(rows)):
                 if z + k < core[1]:
-                    ra = load_line(sxx, i, wp.static(1 - M), wa, 0, wp.static(alone))  # sxx at x - M + 1 ..
-                    rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M), wp.static(M))  # sxz at x - M ..
+                    ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 ..
+                    rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M ..
+                    ux = vx[i]
+                    uz = vz[i]
                     if wp.static(lean):
                         b0 = b1
-                        b1 = load_nodes(m1, c + lx)
+                        b1 = load_nodes(m1, c + n)
+                    else:
+                        bx = m1[c]
+                        bz = m2[c]
+                    ox = vec()
+                    oz = vec()
                     for j in range(wp.static(cols)):
-                        if j < ncol:
-                            if wp.static(lean):
-                                mx = dtype(0.5) * (b0[j] + b0[j + 1])
-                                mz = dtype(0.5) * (b0[j] + b1[j])
-                            else:
-                                mx = m1[c + j]
-                                mz = m2[c + j]
-                            vx_new[i + j] = advance(vx[i + j], dt, mx, dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
-                            vz_new[i + j] = advance(vz[i + j], dt, mz, dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
+                        if wp.static(lean):
+                            mx = dtype(0.5) * (b0[j] + b0[j + 1])
+                            mz = dtype(0.5) * (b0[j] + b1[j])
+                        else:
+                            mx = bx[j]
+                            mz = bz[j]
+                        ox[j] = advance(ux[j], dt, mx, dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
+                        oz[j] = advance(uz[j], dt, mz, dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
+                    vx_new[i] = ox
+                    vz_new[i] = oz
                     if wp.static(k + 1 < rows):
-                        wa = slide(wa, sxz, i, lx, wp.static(M))
-                        wb = slide(wb, szz, i, lx, wp.static(M + 1))
-                    i += lx
-                    c += lx
+                        wa = slide(wa, sxz, i, n, wp.static(M))
+                        wb = slide(wb, szz, i, n, wp.static(M + 1))
+                    i += n
+                    c += n
 
         @wp.func
         def stress_tile(
-            vx: arr1, vz: arr1, sxx: arr1, szz: arr1, sxz: arr1, m1: arr1, m2: arr1, m3: arr1,
-            sxx_new: arr1, szz_new: arr1, sxz_new: arr1, t: int, lz: int, lx: int, core: wp.vec4i, dt: dtype, inv_dx: dtype,
+            vx: arrv, vz: arrv, sxx: arrv, szz: arrv, sxz: arrv, m1: arrv, m2: arrv, m3: arrv,
+            sxx_new: arrv, szz_new: arrv, sxz_new: arrv, t: int, lz: int, lx: int, core: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
             # stress_cell without CPML and surface; m1, m2, m3 = l2m, lam, muh, or (lean) m1 = l2m, m2 = mu with
             # lam = l2m - 2 mu and muh the harmonic mean of mu at the shear node's four neighbours (0 if one is 0)
-            i, c, z, ncol = tile(t, lz, lx, core)
-            wa = load_window(vz, i, lx, wp.static(-M))  # vz at rows z - M .. z + M - 1 (normal stresses)
-            wb = load_window(vx, i, lx, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (sxz)
+            i, c, z, n = place(t, lz, lx, core)
+            wa = load_window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1 (normal stresses)
+            wb = load_window(vx, i, n, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (sxz)
             u0 = nodes()  # lean: mu and 1/mu at rows z and z + 1, columns x .. x + cols
             u1 = nodes()
             q0 = nodes()
@@ -681,33 +730,45 @@ def build(order: int, dtype, free_surface: bool):
                 q1 = reciprocals(u1)
             for k in range(wp.static(rows)):
                 if z + k < core[1]:
-                    ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1), wp.static(M))  # vx at x - M ..
-                    rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M), wp.static(M - 1))  # vz at x - M + 1 ..
+                    ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M ..
+                    rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 ..
+                    axx = sxx[i]
+                    azz = szz[i]
+                    axz = sxz[i]
+                    l2m = m1[c]
                     if wp.static(lean):
                         u0 = u1
                         q0 = q1
-                        u1 = load_nodes(m2, c + lx)
+                        u1 = load_nodes(m2, c + n)
                         q1 = reciprocals(u1)
+                    else:
+                        lam = m2[c]
+                        muh = m3[c]
+                    oxx = vec()
+                    ozz = vec()
+                    oxz = vec()
                     for j in range(wp.static(cols)):
-                        if j < ncol:
-                            c1 = m1[c + j]
-                            if wp.static(lean):
-                                c2 = c1 - dtype(2.0) * u0[j]
-                                h = dtype(0.0)
-                                if u0[j] > dtype(0.0) and u1[j] > dtype(0.0) and u0[j + 1] > dtype(0.0) and u1[j + 1] > dtype(0.0):
-                                    h = dtype(4.0) / (q0[j] + q1[j] + q0[j + 1] + q1[j + 1])
-                            else:
-                                c2 = m2[c + j]
-                                h = m3[c + j]
-                            sxx_rate, szz_rate = normal_rates(c1, c2, dline(ra, j) * inv_dx, dwin(wa[j]) * inv_dx)
-                            sxx_new[i + j] = sxx[i + j] + dt * sxx_rate
-                            szz_new[i + j] = szz[i + j] + dt * szz_rate
-                            sxz_new[i + j] = advance(sxz[i + j], dt, h, dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
+                        c1 = l2m[j]
+                        if wp.static(lean):
+                            c2 = c1 - dtype(2.0) * u0[j]
+                            h = dtype(0.0)
+                            if u0[j] > dtype(0.0) and u1[j] > dtype(0.0) and u0[j + 1] > dtype(0.0) and u1[j + 1] > dtype(0.0):
+                                h = dtype(4.0) / (q0[j] + q1[j] + q0[j + 1] + q1[j + 1])
+                        else:
+                            c2 = lam[j]
+                            h = muh[j]
+                        sxx_rate, szz_rate = normal_rates(c1, c2, dline(ra, j) * inv_dx, dwin(wa[j]) * inv_dx)
+                        oxx[j] = axx[j] + dt * sxx_rate
+                        ozz[j] = azz[j] + dt * szz_rate
+                        oxz[j] = advance(axz[j], dt, h, dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
+                    sxx_new[i] = oxx
+                    szz_new[i] = ozz
+                    sxz_new[i] = oxz
                     if wp.static(k + 1 < rows):
-                        wa = slide(wa, vz, i, lx, wp.static(M))
-                        wb = slide(wb, vx, i, lx, wp.static(M + 1))
-                    i += lx
-                    c += lx
+                        wa = slide(wa, vz, i, n, wp.static(M))
+                        wb = slide(wb, vx, i, n, wp.static(M + 1))
+                    i += n
+                    c += n
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def velocity_update(
@@ -715,10 +776,10 @@ def build(order: int, dtype, free_surface: bool):
             p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
             n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
             vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
-            f_vx: arr1, f_vz: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1, m1: arr1, m2: arr1, f_vx_new: arr1, f_vz_new: arr1,
+            f_vx: arrv, f_vz: arrv, f_sxx: arrv, f_szz: arrv, f_sxz: arrv, m1: arrv, m2: arrv, f_vx_new: arrv, f_vz_new: arrv,
             tiles: int, frame: int, frame_cells: int, offset: int,
         ):  # fmt: skip
-            # f_*: flat views of the fields; m1, m2: the core's model arrays (see velocity_tile)
+            # f_*: the fields as vectors; m1, m2: the core's model arrays (see velocity_tile)
             t = wp.tid() + offset
             lz = vx.shape[1]
             lx = vx.shape[2]
@@ -736,8 +797,8 @@ def build(order: int, dtype, free_surface: bool):
             p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
             n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
             sxx_new: arr3, szz_new: arr3, sxz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
-            f_vx: arr1, f_vz: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1, m1: arr1, m2: arr1, m3: arr1,
-            f_sxx_new: arr1, f_szz_new: arr1, f_sxz_new: arr1, tiles: int, frame: int, frame_cells: int, offset: int,
+            f_vx: arrv, f_vz: arrv, f_sxx: arrv, f_szz: arrv, f_sxz: arrv, m1: arrv, m2: arrv, m3: arrv,
+            f_sxx_new: arrv, f_szz_new: arrv, f_sxz_new: arrv, tiles: int, frame: int, frame_cells: int, offset: int,
         ):  # fmt: skip
             t = wp.tid() + offset
             lz = vx.shape[1]
@@ -963,7 +1024,7 @@ def build(order: int, dtype, free_surface: bool):
         # windows and lines of their raw products (Scaled, Normal) and, inside `inner` (the hole of pass 1, which wrote
         # t_k of the ring box - inner that the frame's gathers read), does pass 1's work too (add_shot). Every sum in the
         # per-cell kernels' order (a transposed stencil is its derivative negated, exactly): bit for bit on the CPU.
-        alone, dline, tile, load_window, slide, load_line = tiling(rows, cols)
+        _, _, alone, _, dline, tile, load_window, slide, load_line = tiling(rows, cols, 1)
 
         @wp.func
         def velocity_tile(
@@ -981,10 +1042,10 @@ def build(order: int, dtype, free_surface: bool):
             w4 = load_window(tb, i, lx, wp.static(-M))  # t4 at rows z - M .. z + M - 1
             for k in range(wp.static(rows)):
                 if z + k < box[1]:
-                    ra = load_line(sxx, i, wp.static(1 - M), wa, 0, wp.static(alone))  # sxx at x - M + 1 .. (d1)
-                    rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M), wp.static(M))  # sxz at x - M .. (d3)
-                    r1 = load_line(ta, i, wp.static(-M), w2, wp.static(M - 1), wp.static(M))  # t1 at x - M ..
-                    r3 = load_line(tb, i, wp.static(1 - M), w4, wp.static(M), wp.static(M - 1))  # t3 at x - M + 1 ..
+                    ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 .. (d1)
+                    rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M .. (d3)
+                    r1 = load_line(ta, i, wp.static(-M), w2, wp.static(M - 1))  # t1 at x - M ..
+                    r3 = load_line(tb, i, wp.static(1 - M), w4, wp.static(M))  # t3 at x - M + 1 ..
                     for j in range(wp.static(cols)):
                         if j < ncol:
                             g_sxx[i + j] = g_sxx[i + j] - dline(r1, j)
@@ -1023,10 +1084,10 @@ def build(order: int, dtype, free_surface: bool):
             w3 = load_window(ts, i, lx, wp.static(-M))  # t3 at rows z - M .. z + M - 1
             for k in range(wp.static(rows)):
                 if z + k < box[1]:
-                    ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1), wp.static(M))  # vx at x - M .. (dvx)
-                    rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M), wp.static(M - 1))  # vz at x - M + 1 .. (e2)
-                    r1 = load_line(tx, i, wp.static(1 - M), w2, 0, wp.static(alone))  # t1 at x - M + 1 ..
-                    r4 = load_line(ts, i, wp.static(-M), w3, wp.static(M), wp.static(M))  # t4 at x - M ..
+                    ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M .. (dvx)
+                    rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 .. (e2)
+                    r1 = load_line(tx, i, wp.static(1 - M), w2, wp.static(alone))  # t1 at x - M + 1 ..
+                    r4 = load_line(ts, i, wp.static(-M), w3, wp.static(M))  # t4 at x - M ..
                     for j in range(wp.static(cols)):
                         if j < ncol:
                             g_vx[i + j] = g_vx[i + j] - dline(r1, j) - dwin(w3[j])
@@ -1345,13 +1406,17 @@ class Elastic:
             self.axes.append(axis)
             self.strip_width.append(width)
         Lz, Lx = self.padded
-        # the core (padded rows core[0]:core[1], columns core[2]:core[3]) needs neither CPML (cpml_axis's
-        # strips) nor the free surface's folded or shortened stencils (rows top .. top + R - 1)
+        # the cells that need neither CPML (cpml_axis's strips) nor the free surface's folded or shortened stencils
+        # (rows top .. top + R - 1); the core (padded rows core[0]:core[1], columns core[2]:core[3]), their columns from
+        # and to multiples of `lanes`, which the vector width of the core tiles divides (Elastic.width)
         z0 = 2 * R if free_surface else R + nb
-        self.core = wp.vec4i(z0, Lz - R - nb - 1, R + nb, Lx - R - nb - 1)
+        plain = (z0, Lz - R - nb - 1, R + nb, Lx - R - nb - 1)
+        self.lanes = next(V for V in (4, 2, 1) if Lx % V == 0)
+        self.core = _aligned(*plain, self.lanes)
         core_cells = max(self.core[1] - self.core[0], 0) * max(self.core[3] - self.core[2], 0)
         self.frame_cells = (Lz - 2 * R) * (Lx - 2 * R) - core_cells
-        self.has_core = core_cells > 0 and self.n_shots * Lz * Lx < 2**31  # int32 flat indices
+        fits = self.n_shots * Lz * Lx < 2**31  # int32 flat indices
+        self.has_core = core_cells > 0 and fits
         self.box = wp.vec4i(R, Lz - R, R, Lx - R)  # the interior
         self.rows, self.block = TRANSPOSE_ROWS, TRANSPOSE_THREADS  # of the hand adjoints' gathers (_flat_launch)
         self.layout = CORE_LAYOUT
@@ -1359,14 +1424,15 @@ class Elastic:
         self.inv_dx = dtype(1.0 / dx)
         self.dt_device = dtype(dt)
         self.cuda = wp.get_device(device).is_cuda
-        # The hand-written adjoint's fused tiles (make_adjoints) take the adjoint box, the core less R cells on each side:
-        # a cell's gathers read t_k of the cells up to R away along z or x, which are core cells' raw products there. Pass 1
-        # leaves them the inner box (the adjoint box less R more on each side), the cells no gather outside the adjoint
-        # box reads, and writes t_k of the ring between the two. no_hole: pass 1 everywhere (the per-cell path).
-        self.adjoint_box = wp.vec4i(self.core[0] + R, self.core[1] - R, self.core[2] + R, self.core[3] - R)
-        self.adjoint_inner = wp.vec4i(self.core[0] + 2 * R, self.core[1] - 2 * R, self.core[2] + 2 * R, self.core[3] - 2 * R)
+        # The hand-written adjoint's fused tiles (make_adjoints; scalar, not aligned) take the adjoint box, the plain cells
+        # less R on each side: a cell's gathers read t_k of the cells up to R away along z or x, which are plain cells' raw
+        # products there. Pass 1 leaves them the inner box (the adjoint box less R more on each side), the cells no gather
+        # outside the adjoint box reads, and writes t_k of the ring between the two. no_hole: pass 1 everywhere (the
+        # per-cell path).
+        self.adjoint_box = wp.vec4i(plain[0] + R, plain[1] - R, plain[2] + R, plain[3] - R)
+        self.adjoint_inner = wp.vec4i(plain[0] + 2 * R, plain[1] - 2 * R, plain[2] + 2 * R, plain[3] - 2 * R)
         self.no_hole = wp.vec4i(R, R, R, R)
-        self.has_adjoint_box = self.has_core and min(self.core[1] - self.core[0], self.core[3] - self.core[2]) > 4 * R
+        self.has_adjoint_box = fits and min(plain[1] - plain[0], plain[3] - plain[2]) > 4 * R
         self.adjoint_layout = ADJOINT_LAYOUT if self.cuda and self.has_adjoint_box else None  # None: the per-cell kernels
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
 
@@ -1402,9 +1468,19 @@ class Elastic:
         wp.launch(kernel, dim=self._threads(box), inputs=[*(a.flatten() for a in arrays), *self.padded, box, self.rows, *extra],
                   block_dim=self.block, device=self.device, record_tape=False)  # fmt: skip
 
+    @property
+    def width(self):
+        """The core tiles' columns, a vector of each array: self.layout's, or fewer where the row length is no multiple."""
+        return min(self.layout.cols, self.lanes)
+
+    def _vectors(self, a):
+        """a's memory as a flat array of vectors of self.width values (the core tiles' loads and stores)."""
+        V, flat = self.width, a.flatten()
+        return (flat if V == 1 else flat.reshape((a.size // V, V))).view(wp.types.vector(length=V, dtype=self.dtype))
+
     def update_kernels(self):
         """The fast path's (velocity, stress) kernels of self.layout."""
-        return self.k.updates(self.layout.rows, self.layout.cols, self.layout.lean)
+        return self.k.updates(self.layout.rows, self.width, self.layout.lean)
 
     def update(self, kind: int, st: State, out: State, mat, generated=False, part=None):
         """Half step `kind`: 0 = out's velocities from st's velocities and stresses, 1 = out's stresses from st's
@@ -1427,10 +1503,10 @@ class Elastic:
             wp.launch(reference, dim=self.interior, inputs=args, device=self.device, record_tape=generated)
             return
         lay, c = self.layout, self.core
-        tiles = self.n_shots * -(-(c[1] - c[0]) // lay.rows) * -(-(c[3] - c[2]) // lay.cols)
+        tiles = self.n_shots * -(-(c[1] - c[0]) // lay.rows) * ((c[3] - c[2]) // self.width)
         frame = -(-tiles // lay.threads) * lay.threads  # the frame's first thread, on a block boundary
         cells = self.n_shots * self.frame_cells
-        inputs = [*args, c, *(a.flatten() for a in flat), tiles, frame, self.frame_cells]
+        inputs = [*args, c, *(self._vectors(a) for a in flat), tiles, frame, self.frame_cells]
         launches = {"core": (tiles, 0), "frame": (cells, frame)}
         if part is not None:
             launches = {part: launches[part]}

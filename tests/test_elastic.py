@@ -507,9 +507,15 @@ def test_core_layouts_equal_reference_kernels(layout, order, free_surface):
     # order, and the lean core derives bx, bz, lambda and the shear nodes' mu with `materials`' operations). On a
     # GPU, FMA contraction differs between the kernels: a field's update sums ~10 products of O(max) size, so
     # float32 rounding (6e-8) stays below 1e-6 of the largest value; 1e-5 leaves headroom.
+    assert_core_equals_reference((23, 28), order, free_surface, layout)
+
+
+def assert_core_equals_reference(shape, order, free_surface, layout):
+    """One step of a 2-shot grid of `shape` cells (PML 5) with `layout`: its propagator, after checking that the step equals the
+    reference kernels' (test_core_layouts_equal_reference_kernels)."""
     import warp as wp
 
-    prop = K.Elastic((23, 28), 10.0, 1e-3, order, 2, 5, 1e-3, 15.0, 2500.0, free_surface=free_surface, dtype=wp.float32, device=DEVICE)
+    prop = K.Elastic(shape, 10.0, 1e-3, order, 2, 5, 1e-3, 15.0, 2500.0, free_surface=free_surface, dtype=wp.float32, device=DEVICE)
     prop.layout = layout
     core = prop.core
     assert prop.has_core and min(core[1] - core[0], core[3] - core[2]) > layout.rows
@@ -517,6 +523,21 @@ def test_core_layouts_equal_reference_kernels(layout, order, free_surface):
     limit = 0.0 if DEVICE == "cpu" else 1e-5
     for a, b in zip(fast, ref):
         assert np.abs(a - b).max() <= limit * np.abs(b).max()
+    return prop
+
+
+@pytest.mark.parametrize("nx, order, free_surface, layout, width",
+                         [(30, 4, False, K.Layout(8, w, 128, False), w) for w in (1, 2, 4)] +
+                         [(30, 4, False, K.Layout(4, 4, 128, True, False), 4), (30, 8, False, K.Layout(8, 4, 128, False), 4),
+                          (32, 2, True, K.Layout(8, 4, 128, False), 4), (28, 4, False, K.Layout(8, 4, 128, False), 2),
+                          (29, 4, True, K.Layout(8, 2, 128, False), 1)])  # fmt: skip
+def test_core_vector_widths_equal_reference_kernels(nx, order, free_surface, layout, width):
+    # A core tile's row is one vector per array: widths 1, 2 and 4 where the padded row length is a multiple of 4 (44,
+    # 48 cells; orders 2, 4, 8: a line reaches 1-2 vectors each side), and the narrower vector where it is not (42: 2,
+    # 43: 1), the core's columns starting and ending at multiples of the width. Bitwise the reference kernels' step on
+    # the CPU, as test_core_layouts_equal_reference_kernels.
+    prop = assert_core_equals_reference((23, nx), order, free_surface, layout)
+    assert prop.width == width and prop.core[2] % width == 0 and prop.core[3] % width == 0
 
 
 def adjoint_step_arrays(prop, layout, source_type, seed=7):
