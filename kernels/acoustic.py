@@ -479,7 +479,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     def make_lanes(V: int):
         # Types and row reads of tiles of V adjacent columns held as V-vectors: the flat arrays are viewed as
         # arrays of vector(V) (the box's columns and the row length are multiples of V), so that a thread loads
-        # and stores V cells at once. Returns (vector, its array, window (V, 2R + 1), line (V + 2R), row).
+        # and stores V cells at once. Returns (vector, its array, window (V, 2R + 1), line (V + 2R), sides, row).
         NB = -(-R // V)  # vectors each side that hold a row's R neighbours
         vec = wp.types.vector(length=V, dtype=dtype)
         arrv = wp.array(dtype=vec)
@@ -1211,6 +1211,12 @@ class _Kernels:
         self.__dict__.update(kw)
 
 
+def as_vectors(a: wp.array, V: int) -> wp.array:
+    """a's memory as a flat array of vector(V) (the core tiles' loads and stores; a.size a multiple of V)."""
+    flat = a.flatten()
+    return (flat if V == 1 else flat.reshape((a.size // V, V))).view(wp.types.vector(length=V, dtype=a.dtype))
+
+
 def _aligned(z0: int, z1: int, x0: int, x1: int, V: int) -> wp.vec4i:
     """The box of rows [z0, z1) and of the columns of [x0, x1) from and to a multiple of V."""
     return wp.vec4i(z0, z1, -(-x0 // V) * V, x1 // V * V)
@@ -1461,19 +1467,14 @@ class Acoustic:
         for dim, offset in [launches[part]] if part else [(frame + cells, 0)]:
             wp.launch(kernel, dim=dim, inputs=[*inputs, tiles, frame, offset], block_dim=self.core_threads, device=self.device, record_tape=False)
 
-    def _lanes(self, a):
-        """a's memory as a flat array of vectors of core_cols values (the core kernels' loads and stores)."""
-        V, flat = self.core_cols, a.flatten()
-        return (flat if V == 1 else flat.reshape((a.size // V, V))).view(wp.types.vector(length=V, dtype=self.dtype))
-
     def step_core(self, step_args, u, u_prev, u_next, vpad, part=None):
         """The 2D GPU step but psi (step_args: the reference step's arguments)."""
-        flat = [self._lanes(a) for a in (u, u_prev, u_next, vpad)]
+        flat = [as_vectors(a, self.core_cols) for a in (u, u_prev, u_next, vpad)]
         self._merged(self.core_kernel(), [*step_args, self.core, self.frame_cells, *flat], self.core, self.frame_cells, part)
 
     def adjoint_core(self, args, u, lam, adj, g, adj_out, g_out, w, part=None):
         """The 2D adjoint step but psi and receivers (args: adjoint_step's arguments)."""
-        flat = [self._lanes(a) for a in (u, lam, adj, g, adj_out, g_out, w)]
+        flat = [as_vectors(a, self.core_cols) for a in (u, lam, adj, g, adj_out, g_out, w)]
         box = self.adjoint_box
         self._merged(self.adjoint_kernel(), [*args, box, self.adjoint_frame_cells, *flat], box, self.adjoint_frame_cells, part)
 

@@ -66,7 +66,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _adjoint_launch, _aligned, _i0, field_stats
+from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _adjoint_launch, _aligned, _i0, as_vectors, field_stats
 from adseismic.numerics import STAGGERED_DERIVATIVE
 
 
@@ -1473,11 +1473,6 @@ class Elastic:
         """The core tiles' columns, a vector of each array: self.layout's, or fewer where the row length is no multiple."""
         return min(self.layout.cols, self.lanes)
 
-    def _vectors(self, a):
-        """a's memory as a flat array of vectors of self.width values (the core tiles' loads and stores)."""
-        V, flat = self.width, a.flatten()
-        return (flat if V == 1 else flat.reshape((a.size // V, V))).view(wp.types.vector(length=V, dtype=self.dtype))
-
     def update_kernels(self):
         """The fast path's (velocity, stress) kernels of self.layout."""
         return self.k.updates(self.layout.rows, self.width, self.layout.lean)
@@ -1506,7 +1501,7 @@ class Elastic:
         tiles = self.n_shots * -(-(c[1] - c[0]) // lay.rows) * ((c[3] - c[2]) // self.width)
         frame = -(-tiles // lay.threads) * lay.threads  # the frame's first thread, on a block boundary
         cells = self.n_shots * self.frame_cells
-        inputs = [*args, c, *(self._vectors(a) for a in flat), tiles, frame, self.frame_cells]
+        inputs = [*args, c, *(as_vectors(a, self.width) for a in flat), tiles, frame, self.frame_cells]
         launches = {"core": (tiles, 0), "frame": (cells, frame)}
         if part is not None:
             launches = {part: launches[part]}
