@@ -31,6 +31,7 @@ import warp as wp
 from tqdm.auto import tqdm
 
 from adseismic import graphs
+from adseismic.gradient import choose_segment
 from adseismic.kernels.acoustic import HICKS_RADIUS, reduction_kernels, value_range
 from adseismic.kernels.elastic import MATERIALS, PSI, Elastic, shear_ratio
 from adseismic.misfits import misfit as named_misfit
@@ -383,27 +384,13 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
     # hand: two adjoint States, four scratch fields, MATERIALS and their adjoints (sweep and model tape), padded models
     fixed = 2 * state + item * (4 * fields + 33 * model) if hand else 0
 
-    def length(seg):
-        return -(-seg // step) * step
-
     def total(seg):
         n_seg = math.ceil(nt / seg)
         if hand:  # no checkpoint of the first and the last segments' starts
             return fixed + max(n_seg - 2, 0) * state + (seg + 1) * state
         return (n_seg - 1) * state + (seg + 2) * 2 * state  # taped levels and two starts, with adjoints
 
-    if segment_length is not None:
-        seg = length(min(max(int(segment_length), 1), nt))
-    elif memory_budget is not None and total(length(nt)) <= memory_budget:
-        seg = length(nt)
-    else:
-        candidates = range(step, length(nt) + 1, step)
-        fits = [s for s in candidates if memory_budget is None or total(s) <= memory_budget]
-        if not fits:
-            need = min(total(s) for s in candidates)
-            raise ValueError(f"memory_budget = {memory_budget / 2**20:.1f} MiB is below the minimum {need / 2**20:.1f} MiB this gradient needs; raise it or use fewer shots per call")
-        seg = min(fits, key=total) if memory_budget is None else max(fits)
-    return int(seg), int(total(seg))
+    return choose_segment(nt, step, total, memory_budget, segment_length)
 
 
 def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,

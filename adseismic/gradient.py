@@ -68,26 +68,35 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
     fixed = item * (5 * cells + 4 * strips + 3 * math.prod(prop.padded)) if hand else 0  # adjoint ring, g pair, strips' adjoints, vpad, w
     step = 6 if hand else 1
 
-    def length(seg):
-        return -(-seg // step) * step
-
     def total(seg):
         n_seg = math.ceil(nt / seg)
         kept = max(n_seg - 2, 0) if hand else n_seg - 1  # the Sweep keeps no checkpoint of the first and last starts
         return fixed + kept * per_ckpt + (seg + 1) * per_level
 
+    return choose_segment(nt, step, total, memory_budget, segment_length)
+
+
+def choose_segment(nt: int, step: int, total, memory_budget: float | None, segment_length: int | None):
+    """(segment length, total(it)) of a checkpointed sweep of nt steps whose segments are a multiple of `step`
+    long and whose peak bytes are total(segment length): segment_length (clipped to 1..nt, rounded up) if
+    given, else every step in one segment if that fits memory_budget, else the memory minimum (budget None)
+    or the longest segment that fits; raises ValueError when none fits."""
+
+    def length(seg):
+        return -(-seg // step) * step
+
     if segment_length is not None:
-        segment_length = length(int(segment_length))
+        seg = length(min(max(int(segment_length), 1), nt))
     elif memory_budget is not None and total(length(nt)) <= memory_budget:
-        segment_length = length(nt)
+        seg = length(nt)
     else:
         candidates = range(step, length(nt) + 1, step)
         fits = [s for s in candidates if memory_budget is None or total(s) <= memory_budget]
         if not fits:
             need = min(total(s) for s in candidates)
-            raise ValueError(f"memory_budget = {memory_budget / 2**20:.0f} MiB is below the minimum {need / 2**20:.0f} MiB this gradient needs; raise it or use fewer shots per call")
-        segment_length = min(fits, key=total) if memory_budget is None else max(fits)
-    return int(segment_length), int(total(int(segment_length)))
+            raise ValueError(f"memory_budget = {memory_budget / 2**20:.1f} MiB is below the minimum {need / 2**20:.1f} MiB this gradient needs; raise it or use fewer shots per call")
+        seg = min(fits, key=total) if memory_budget is None else max(fits)
+    return int(seg), int(total(seg))
 
 
 def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
@@ -103,7 +112,7 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
     (numpy array theta) and `velocity(theta: wp.array) -> wp.array` (nz, [ny,] nx) written with Warp
     kernels; velocity is then ignored except for its shape and the gradient is returned for theta.
     memory_budget: bytes for checkpoints plus one segment's levels; segment_length pins the checkpoint
-    spacing instead (rounded up to a multiple of 6 for adjoint="hand").
+    spacing instead (at most nt, rounded up to a multiple of 6 for adjoint="hand").
     adjoint: "hand" (the hand-written adjoint time loop; on a GPU captured as CUDA graphs and kept, with
     its arrays, for the next call with the same grid, steps, shots and geometry: graphs.release() frees it)
     or "warp" (Warp's generated adjoints of every kernel under wp.Tape; the reference the hand-written one
