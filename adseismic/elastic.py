@@ -64,9 +64,10 @@ class ElasticResult:
 
 @dataclass
 class ElasticGradient:
-    """Misfit and its gradients: vp, vs (per m/s) and rho (per kg/m^3) (nz, nx); source_amplitudes
-    (n_shots, n_src, nt); source_components (n_shots, n_src, 2 or 3); source_locations (n_shots, n_src, 2)
-    per metre; None where not requested; in the simulation's precision. synthetic: {"vx", "vz", "pressure"} data. segment_length (steps) and
+    """Misfit and its gradients: vp, vs (per m/s) and rho (per kg/m^3) (nz, nx), each a Warp array on the model's
+    device where that model was given as a Warp array, else a NumPy array; source_amplitudes (n_shots, n_src, nt);
+    source_components (n_shots, n_src, 2 or 3); source_locations (n_shots, n_src, 2) per metre; None where not
+    requested; in the simulation's precision. synthetic: {"vx", "vz", "pressure"} data. segment_length (steps) and
     n_segments of the checkpointed sweep, peak_bytes_estimate its planned memory (plan_segments)."""
 
     loss: float
@@ -439,19 +440,23 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
     loss, synthetic, grads = sweep(su, seg, n_seg, loss_fn, bar)
     bar.close()
     res = ElasticGradient(loss=float(loss), synthetic=synthetic, segment_length=seg, n_segments=n_seg, peak_bytes_estimate=peak)
-    for name in wrt:
-        setattr(res, name, grads[name])
+    models = dict(zip(("vp", "vs", "rho"), (vp, vs, rho)))
+    for name in wrt:  # a model given as a Warp array keeps its gradient on its device (E2000: 3 x 16 MB not copied)
+        setattr(res, name, grads[name] if isinstance(models.get(name), wp.array) else _on_host(name, grads[name], su.nt))
     return res
 
 
 def _gradients(su: ElasticSetup, sources) -> dict:
-    """{name in WRT: gradient as NumPy array}: vp, vs, rho from the models' .grad, the sources' from `sources` (the
-    adjoints of the amplitudes, cut to nt samples, the components and the locations); names without one are left out."""
+    """{name in WRT: gradient as a Warp array}: vp, vs, rho from the models' .grad, the sources' from `sources` (the
+    adjoints of the amplitudes (nt or more samples), the components and the locations); names without one are left out."""
     arrays = {**dict(zip(("vp", "vs", "rho"), (m.grad for m in su.model))), **dict(zip(WRT[3:], sources))}
-    out = {k: np.array(a.numpy()) for k, a in arrays.items() if a is not None}  # copies, in the simulation's precision
-    if "source_amplitudes" in out:
-        out["source_amplitudes"] = out["source_amplitudes"][:, :, : su.nt]
-    return out
+    return {k: a for k, a in arrays.items() if a is not None}
+
+
+def _on_host(name: str, a: wp.array, nt: int) -> np.ndarray:
+    """A gradient copied to the host, in the simulation's precision (source amplitudes cut to nt samples)."""
+    out = np.array(a.numpy())
+    return out[:, :, :nt] if name == "source_amplitudes" else out
 
 
 def _taped_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar):

@@ -185,10 +185,12 @@ def variant_times(check, layout, device, reps):
 def adjoint_jobs(prop, st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch):
     """Timing jobs of the hand-written adjoint step with prop.adjoint_layout: the whole Elastic.adjoint_step (as
     adseismic.elastic.ElasticSweep launches it, without the receivers' adjoint) and each half step's launches
-    (Elastic.adjoint_update's parts: pass 1, pass 2 and, fused, pass 2's tiles alone)."""
+    (Elastic.adjoint_update's parts: pass 1, pass 2 and, fused, pass 2's tiles alone and, split, the sums' tiles)."""
     jobs = {"step_backward_hand": lambda: prop.adjoint_step(st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch, 3)}
+    lay = prop.adjoint_layout
+    parts = ("pass1", "pass2") + (("tiles",) if lay else ()) + (("sums",) if lay and lay.split else ())
     for kind, half in ((1, "stress"), (0, "velocity")):
-        for part in ("pass1", "pass2", "tiles") if prop.adjoint_layout else ("pass1", "pass2"):
+        for part in parts:
             jobs[f"{half}_adjoint_{part}"] = lambda kind=kind, part=part: prop.adjoint_update(kind, st, nxt, mat, adj_next, adj, adj_mat,
                                                                                                scratch, part)  # fmt: skip
     return jobs

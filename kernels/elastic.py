@@ -54,8 +54,9 @@ added to) first compute per cell the adjoint of every raw stencil sum (CPML, mat
 included) into scratch arrays (`*_adjoint`), then apply the transposed stencils as gathers (`*_transpose`); rows
 next to a free surface, whose stencils fold or shrink, scatter with atomics instead. On a GPU (AdjointLayout,
 `make_adjoints`) tiles of the cells whose gathers read core cells alone fuse the two passes, forming those
-cells' raw stencil sums' adjoints in sliding windows and lines. The source and receiver kernels' adjoints are
-Warp's generated ones, launched directly (adjoint=True).
+cells' raw stencil sums' adjoints in sliding windows and lines (or, AdjointLayout.split, `make_split_adjoints`: the
+gathers in one kernel and pass 1's work in another, each with fewer live values, on vectors). The source and receiver
+kernels' adjoints are Warp's generated ones, launched directly (adjoint=True).
 """
 
 
@@ -106,20 +107,27 @@ LAYOUTS = (
 
 class AdjointLayout(NamedTuple):
     """How the hand-written adjoint's fused kernels (make_adjoints) do the adjoint box: each thread a tile of `rows`
-    rows (z) x `cols` columns (x) of one shot, `threads` per block."""
+    rows (z) x `cols` columns (x) of one shot, `threads` per block. split: each half step's two passes in separate
+    kernels (make_split_adjoints; gathers over the adjoint box, pass 1's work inside the inner box), fewer live values
+    per thread, a tile's row one vector of `cols` values per array (fewer where the padded row length is no multiple:
+    Elastic.adjoint_width), the boxes' columns from and to multiples of it."""
 
     rows: int
     cols: int
     threads: int = 128
+    split: bool = False
 
 
-# The GPU's default: timed on an H200 (benchmarks/speed_elastic.py --adjoint-variants; whole adjoint step, us, E2000 /
-# E600x16): 4 x 2 464 / 670, 2 x 2 464 / 677, 8 x 2 474 / 684, 8 x 2 (256 threads) 480 / 692, 8 x 1 495 / 703, 16 x 2
-# 527 / 777 (the per-cell kernels: 825 / 820). Registers per thread from ptxas (sm_90, float32, velocity / stress):
-# order 4: 8 x 2, 4 x 2, 16 x 2 127-128 / 128, 8 x 1 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8 x 2 194 /
-# 230, 8 x 1 143 / 137 (a loop over the shots inside the thread had cost about 100 more). The CPU runs the per-cell
-# kernels unless told otherwise.
-ADJOINT_LAYOUT = AdjointLayout(4, 2, 128)
+# The GPU's default: timed on an H200 (benchmarks/speed_elastic.py --adjoint-variants; whole adjoint step on E2000,
+# us, 2026-11-21): split 4 x 4 328, split 4 x 2 337, 8 x 4 350, 8 x 2 (64, 128 or 256 threads) 378-379, 16 x 2 418, 8 x 1
+# 446, 16 x 1 520; fused (one kernel per half step) 4 x 2 465, 8 x 1 496, 2 x 2 499, 8 x 2 505, 4 x 1 506, 16 x 2 628
+# (the per-cell kernels: 828). Split 4 x 2 rather than 4 x 4: 3% slower at order 4, but its order-8 tiles stay near 128
+# registers. Registers per thread from ptxas (sm_90, float32, velocity / stress): fused, order 4: 8 x 2, 4 x 2, 16 x 2
+# 127-128 / 128, 8 x 1 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8 x 2 194 / 230, 8 x 1 143 / 137. Split
+# (gathers velocity / stress, sums velocity / stress): order 4: 4 x 2 72 / 80, 48 / 48, 8 x 2 and 16 x 2 72 / 80, 48-56 /
+# 56, 8 x 1 56 / 64, 40 / 40, 4 x 4 and 8 x 4 122 / 128, 80 / 94; order 8: 8 x 2 122 / 128, 80 / 96, 8 x 1 72 / 72, 64 /
+# 62. The CPU runs the per-cell kernels unless told otherwise.
+ADJOINT_LAYOUT = AdjointLayout(4, 2, 128, split=True)
 ADJOINT_LAYOUTS = (
     AdjointLayout(8, 2, 128),
     AdjointLayout(4, 2, 128),
@@ -130,6 +138,15 @@ ADJOINT_LAYOUTS = (
     AdjointLayout(2, 2, 128),
     AdjointLayout(8, 2, 256),
     AdjointLayout(8, 1, 256),
+    AdjointLayout(4, 2, 128, split=True),
+    AdjointLayout(8, 2, 128, split=True),
+    AdjointLayout(16, 2, 128, split=True),
+    AdjointLayout(8, 1, 128, split=True),
+    AdjointLayout(16, 1, 128, split=True),
+    AdjointLayout(4, 4, 128, split=True),
+    AdjointLayout(8, 4, 128, split=True),
+    AdjointLayout(8, 2, 256, split=True),
+    AdjointLayout(8, 2, 64, split=True),
 )
 TRANSPOSE_ROWS, TRANSPOSE_THREADS = 16, 128  # cells per thread along z, threads per block of the hand adjoints' gathers
 
@@ -542,8 +559,9 @@ def build(order: int, dtype, free_surface: bool):
     def make_tiling(rows: int, cols: int, width: int):
         # What tiles of rows x cols cells share (make_updates, make_adjoints): the place of tile t, and sliding z-windows
         # w[j, m] (column j, row m) and x-lines r[p] of a source f with their derivative. The loaders read f in blocks of
-        # `width` adjacent cells (get), their indices in blocks: a vector of an array of vectors (arrv; the forward's
-        # fields and models), or with width 1 any `value` (flat indices; the adjoint's). width divides cols.
+        # `width` adjacent cells (get), their indices in blocks: a vector of an array of vectors (arrv; the forward's and
+        # the split adjoint's fields and models), of ScaledV or NormalV (the split adjoint's t_k), or with width 1 any
+        # `value` (flat indices; the fused adjoint's). width divides cols.
         win = wp.types.matrix(shape=(cols, 2 * M), dtype=dtype)
         line = wp.types.vector(length=cols + 2 * M - 1, dtype=dtype)
         vec = wp.types.vector(length=width, dtype=dtype)
@@ -560,6 +578,69 @@ def build(order: int, dtype, free_surface: bool):
             r = vec()
             for j in range(wp.static(width)):
                 r[j] = value(f, i * wp.static(width) + j)
+            return r
+
+        # Scaled and Normal on arrays of vectors (base in vectors): their `value`s a block at a time
+
+        @wp.struct
+        class ScaledV:
+            g: arrv
+            m: arrv
+            base: int
+            dt: dtype
+            inv_dx: dtype
+
+        @wp.struct
+        class NormalV:
+            gx: arrv
+            gz: arrv
+            p: arrv
+            q: arrv
+            base: int
+            dt: dtype
+            inv_dx: dtype
+
+        @wp.func
+        def scaled_v(g: arrv, m: arrv, base: int, dt: dtype, inv_dx: dtype) -> ScaledV:
+            a = ScaledV()
+            a.g = g
+            a.m = m
+            a.base = base
+            a.dt = dt
+            a.inv_dx = inv_dx
+            return a
+
+        @wp.func
+        def normal_v(gx: arrv, gz: arrv, p: arrv, q: arrv, base: int, dt: dtype, inv_dx: dtype) -> NormalV:
+            a = NormalV()
+            a.gx = gx
+            a.gz = gz
+            a.p = p
+            a.q = q
+            a.base = base
+            a.dt = dt
+            a.inv_dx = inv_dx
+            return a
+
+        @wp.func
+        def get(a: ScaledV, i: int) -> vec:  # noqa: F811
+            g = a.g[i]
+            m = a.m[i - a.base]
+            r = vec()
+            for j in range(wp.static(width)):
+                r[j] = a.dt * m[j] * g[j] * a.inv_dx
+            return r
+
+        @wp.func
+        def get(a: NormalV, i: int) -> vec:  # noqa: F811
+            gx = a.gx[i]
+            gz = a.gz[i]
+            p = a.p[i - a.base]
+            q = a.q[i - a.base]
+            r = vec()
+            for j in range(wp.static(width)):
+                u, _ = normal_rates(p[j], q[j], a.dt * gx[j], a.dt * gz[j])
+                r[j] = u * a.inv_dx
             return r
 
         @wp.func
@@ -582,6 +663,13 @@ def build(order: int, dtype, free_surface: bool):
             z = core[0] + (q - s * blocks) * wp.static(rows)
             c = z * lx + x
             return s * lz * lx + c, c, z, wp.min(wp.static(cols), core[3] - x)
+
+        @wp.func
+        def place(t: int, lz: int, lx: int, core: wp.vec4i):
+            # tile t's field and model vector indices, first row, and vectors per row (cols = width, core's columns
+            # from and to multiples of it)
+            i, c, z, _ = tile(t, lz, lx, core)
+            return i // wp.static(width), c // wp.static(width), z, lx // wp.static(width)
 
         @wp.func
         def load_window(f: Any, i: int, n: int, first: int) -> win:
@@ -627,7 +715,7 @@ def build(order: int, dtype, free_surface: bool):
                             r[o + j - first] = w[o + j, m]
             return r
 
-        return vec, arrv, alone, get, dline, tile, load_window, slide, load_line
+        return vec, arrv, alone, get, dline, tile, place, load_window, slide, load_line, scaled_v, normal_v
 
     tiling = functools.lru_cache(maxsize=None)(make_tiling)
 
@@ -641,7 +729,7 @@ def build(order: int, dtype, free_surface: bool):
         # (column j, row m) and loads each value of a row along x once into a line r[p], sharing it between the
         # tile's columns; the loop over rows is unrolled. Every sum is formed in the reference's order, so a tile
         # reproduces the per-cell kernels bit for bit where the compiler contracts no multiply-adds (the CPU).
-        vec, arrv, alone, get, dline, tile, load_window, slide, load_line = tiling(rows, cols, cols)
+        vec, arrv, alone, get, dline, _, place, load_window, slide, load_line, _, _ = tiling(rows, cols, cols)
         nodes = wp.types.vector(length=cols + 1, dtype=dtype)  # lean: a model row at the tile's columns and the next
 
         @wp.func
@@ -660,12 +748,6 @@ def build(order: int, dtype, free_surface: bool):
             for p in range(wp.static(cols + 1)):
                 r[p] = dtype(1.0) / u[p]
             return r
-
-        @wp.func
-        def place(t: int, lz: int, lx: int, core: wp.vec4i):
-            # tile t's field and model vector indices, first row, and vectors per row
-            i, c, z, _ = tile(t, lz, lx, core)
-            return i // wp.static(cols), c // wp.static(cols), z, lx // wp.static(cols)
 
         @wp.func
         def velocity_tile(
@@ -989,9 +1071,9 @@ def build(order: int, dtype, free_surface: bool):
         return z >= b[0] and z < b[1] and x >= b[2] and x < b[3]
 
     @wp.func
-    def add_shot(g: arr1, t: arr1, c: int, i: int, term: dtype, shots: int):
+    def add_shot(g: Any, t: Any, c: int, i: int, term: Any, shots: int):
         # one shot's term of a material's adjoint at model index c: added, as pass 1 adds 0 + term, or with several shots
-        # kept in the scratch t at the shot's flat index i for sum_shots
+        # kept in the scratch t at the shot's flat index i for sum_shots (values, or vectors at vector indices)
         if shots == 1:
             g[c] = g[c] + term
         else:
@@ -1024,7 +1106,7 @@ def build(order: int, dtype, free_surface: bool):
         # windows and lines of their raw products (Scaled, Normal) and, inside `inner` (the hole of pass 1, which wrote
         # t_k of the ring box - inner that the frame's gathers read), does pass 1's work too (add_shot). Every sum in the
         # per-cell kernels' order (a transposed stencil is its derivative negated, exactly): bit for bit on the CPU.
-        _, _, alone, _, dline, tile, load_window, slide, load_line = tiling(rows, cols, 1)
+        _, _, alone, _, dline, tile, _, load_window, slide, load_line, _, _ = tiling(rows, cols, 1)
 
         @wp.func
         def velocity_tile(
@@ -1147,6 +1229,190 @@ def build(order: int, dtype, free_surface: bool):
                 stress_gather(t1, t2, t3, t4, g_vx, g_vz, (s * lz + z) * lx + x, lx)
 
         return velocity_fused, stress_fused
+
+    def make_split_adjoints(rows: int, width: int):
+        # The adjoint box's two passes as separate kernels with fewer live values (AdjointLayout.split), on the flat arrays
+        # viewed as vectors of `width` values (arrv), each tile row one vector (the boxes' columns from and to multiples of
+        # it): `*_gathers` take make_adjoints' tiles' and frame's gathers (box: their `box`), `*_sums` the tiles' pass 1
+        # work inside `inner` (whole tiles, a thread each). The same sums as make_adjoints', in the same order.
+        vec, arrv, alone, _, dline, _, place, load_window, slide, load_line, scaled_v, normal_v = tiling(rows, width, width)
+
+        @wp.func
+        def velocity_gathers_tile(
+            bx: arrv, bz: arrv, g_vx_new: arrv, g_vz_new: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
+            t: int, lz: int, lx: int, box: wp.vec4i, dt: dtype, inv_dx: dtype,
+        ):  # fmt: skip
+            i, c, z, n = place(t, lz, lx, box)
+            ta = scaled_v(g_vx_new, bx, i - c, dt, inv_dx)  # t1 = t2 of velocity_adjoint
+            tb = scaled_v(g_vz_new, bz, i - c, dt, inv_dx)  # t3 = t4
+            w2 = load_window(ta, i, n, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
+            w4 = load_window(tb, i, n, wp.static(-M))  # t4 at rows z - M .. z + M - 1
+            for k in range(wp.static(rows)):
+                if z + k < box[1]:
+                    r1 = load_line(ta, i, wp.static(-M), w2, wp.static(M - 1))  # t1 at x - M ..
+                    r3 = load_line(tb, i, wp.static(1 - M), w4, wp.static(M))  # t3 at x - M + 1 ..
+                    a = g_sxx[i]
+                    b = g_sxz[i]
+                    d = g_szz[i]
+                    oa = vec()
+                    ob = vec()
+                    od = vec()
+                    for j in range(wp.static(width)):
+                        oa[j] = a[j] - dline(r1, j)
+                        ob[j] = b[j] - dwin(w2[j]) - dline(r3, j)
+                        od[j] = d[j] - dwin(w4[j])
+                    g_sxx[i] = oa
+                    g_sxz[i] = ob
+                    g_szz[i] = od
+                    if wp.static(k + 1 < rows):
+                        w2 = slide(w2, ta, i, n, wp.static(M + 1))
+                        w4 = slide(w4, tb, i, n, wp.static(M))
+                    i += n
+
+        @wp.func
+        def velocity_sums_tile(
+            sxx: arrv, szz: arrv, sxz: arrv, g_vx_new: arrv, g_vz_new: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv,
+            t1: arrv, t2: arrv, t: int, shots: int, lz: int, lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+        ):  # fmt: skip
+            i, c, z, n = place(t, lz, lx, inner)
+            wa = load_window(sxz, i, n, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
+            wb = load_window(szz, i, n, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (d4)
+            for k in range(wp.static(rows)):
+                if z + k < inner[1]:
+                    ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 .. (d1)
+                    rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M .. (d3)
+                    ga = g_vx_new[i]
+                    gb = g_vz_new[i]
+                    g_vx[i] = ga
+                    g_vz[i] = gb
+                    ea = vec()
+                    eb = vec()
+                    for j in range(wp.static(width)):
+                        ea[j] = dt * ga[j] * (dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
+                        eb[j] = dt * gb[j] * (dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
+                    add_shot(g_bx, t1, c, i, ea, shots)
+                    add_shot(g_bz, t2, c, i, eb, shots)
+                    if wp.static(k + 1 < rows):
+                        wa = slide(wa, sxz, i, n, wp.static(M))
+                        wb = slide(wb, szz, i, n, wp.static(M + 1))
+                    i += n
+                    c += n
+
+        @wp.func
+        def stress_gathers_tile(
+            l2m: arrv, lam: arrv, muh: arrv, g_sxx_new: arrv, g_szz_new: arrv, g_sxz_new: arrv, g_vx: arrv, g_vz: arrv,
+            t: int, lz: int, lx: int, box: wp.vec4i, dt: dtype, inv_dx: dtype,
+        ):  # fmt: skip
+            i, c, z, n = place(t, lz, lx, box)
+            tx = normal_v(g_sxx_new, g_szz_new, l2m, lam, i - c, dt, inv_dx)  # t1 of stress_adjoint
+            tz = normal_v(g_sxx_new, g_szz_new, lam, l2m, i - c, dt, inv_dx)  # t2
+            ts = scaled_v(g_sxz_new, muh, i - c, dt, inv_dx)  # t3 = t4
+            w2 = load_window(tz, i, n, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
+            w3 = load_window(ts, i, n, wp.static(-M))  # t3 at rows z - M .. z + M - 1
+            for k in range(wp.static(rows)):
+                if z + k < box[1]:
+                    r1 = load_line(tx, i, wp.static(1 - M), w2, wp.static(alone))  # t1 at x - M + 1 ..
+                    r4 = load_line(ts, i, wp.static(-M), w3, wp.static(M))  # t4 at x - M ..
+                    a = g_vx[i]
+                    b = g_vz[i]
+                    oa = vec()
+                    ob = vec()
+                    for j in range(wp.static(width)):
+                        oa[j] = a[j] - dline(r1, j) - dwin(w3[j])
+                        ob[j] = b[j] - dwin(w2[j]) - dline(r4, j)
+                    g_vx[i] = oa
+                    g_vz[i] = ob
+                    if wp.static(k + 1 < rows):
+                        w2 = slide(w2, tz, i, n, wp.static(M + 1))
+                        w3 = slide(w3, ts, i, n, wp.static(M))
+                    i += n
+
+        @wp.func
+        def stress_sums_tile(
+            vx: arrv, vz: arrv, g_sxx_new: arrv, g_szz_new: arrv, g_sxz_new: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
+            g_l2m: arrv, g_lam: arrv, g_muh: arrv, t1: arrv, t2: arrv, t3: arrv, t: int, shots: int, lz: int, lx: int,
+            inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+        ):  # fmt: skip
+            i, c, z, n = place(t, lz, lx, inner)
+            wa = load_window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1 (dvz)
+            wb = load_window(vx, i, n, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (e1)
+            for k in range(wp.static(rows)):
+                if z + k < inner[1]:
+                    ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M .. (dvx)
+                    rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 .. (e2)
+                    gxx = g_sxx_new[i]
+                    gzz = g_szz_new[i]
+                    gxz = g_sxz_new[i]
+                    g_sxx[i] = gxx
+                    g_szz[i] = gzz
+                    g_sxz[i] = gxz
+                    e1 = vec()
+                    e2 = vec()
+                    e3 = vec()
+                    for j in range(wp.static(width)):
+                        dvx = dline(ra, j) * inv_dx
+                        dvz = dwin(wa[j]) * inv_dx
+                        hxx = dt * gxx[j]
+                        hzz = dt * gzz[j]
+                        e1[j] = hxx * dvx + hzz * dvz
+                        e2[j] = hxx * dvz + hzz * dvx
+                        e3[j] = dt * gxz[j] * (dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
+                    add_shot(g_l2m, t1, c, i, e1, shots)
+                    add_shot(g_lam, t2, c, i, e2, shots)
+                    add_shot(g_muh, t3, c, i, e3, shots)
+                    if wp.static(k + 1 < rows):
+                        wa = slide(wa, vz, i, n, wp.static(M))
+                        wb = slide(wb, vx, i, n, wp.static(M + 1))
+                    i += n
+                    c += n
+
+        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+        def velocity_gathers(
+            bx: arrv, bz: arrv, g_vx_new: arrv, g_vz_new: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
+            t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1, lz: int, lx: int, box: wp.vec4i,
+            dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
+        ):  # fmt: skip
+            # f_*: g_sxx, g_szz, g_sxz as flat arrays (the frame's)
+            t = wp.tid()
+            if t < tiles:
+                velocity_gathers_tile(bx, bz, g_vx_new, g_vz_new, g_sxx, g_szz, g_sxz, t, lz, lx, box, dt, inv_dx)
+            elif t >= frame:
+                s = (t - frame) // frame_cells
+                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
+                velocity_gather(t1, t2, t3, t4, f_sxx, f_szz, f_sxz, (s * lz + z) * lx + x, lx)
+
+        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+        def stress_gathers(
+            l2m: arrv, lam: arrv, muh: arrv, g_sxx_new: arrv, g_szz_new: arrv, g_sxz_new: arrv, g_vx: arrv, g_vz: arrv,
+            t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_vx: arr1, f_vz: arr1, lz: int, lx: int, box: wp.vec4i,
+            dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
+        ):  # fmt: skip
+            t = wp.tid()
+            if t < tiles:
+                stress_gathers_tile(l2m, lam, muh, g_sxx_new, g_szz_new, g_sxz_new, g_vx, g_vz, t, lz, lx, box, dt, inv_dx)
+            elif t >= frame:
+                s = (t - frame) // frame_cells
+                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
+                stress_gather(t1, t2, t3, t4, f_vx, f_vz, (s * lz + z) * lx + x, lx)
+
+        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+        def velocity_sums(
+            sxx: arrv, szz: arrv, sxz: arrv, g_vx_new: arrv, g_vz_new: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv,
+            t1: arrv, t2: arrv, shots: int, lz: int, lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+        ):  # fmt: skip
+            velocity_sums_tile(sxx, szz, sxz, g_vx_new, g_vz_new, g_vx, g_vz, g_bx, g_bz, t1, t2, wp.tid(), shots, lz, lx, inner, dt,
+                               inv_dx)  # fmt: skip
+
+        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+        def stress_sums(
+            vx: arrv, vz: arrv, g_sxx_new: arrv, g_szz_new: arrv, g_sxz_new: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
+            g_l2m: arrv, g_lam: arrv, g_muh: arrv, t1: arrv, t2: arrv, t3: arrv, shots: int, lz: int, lx: int, inner: wp.vec4i,
+            dt: dtype, inv_dx: dtype,
+        ):  # fmt: skip
+            stress_sums_tile(vx, vz, g_sxx_new, g_szz_new, g_sxz_new, g_sxx, g_szz, g_sxz, g_l2m, g_lam, g_muh, t1, t2, t3, wp.tid(),
+                             shots, lz, lx, inner, dt, inv_dx)  # fmt: skip
+
+        return velocity_gathers, stress_gathers, velocity_sums, stress_sums
 
     @wp.kernel(module="unique")
     def materials(vp: arr2, vs: arr2, rho: arr2, bx: arr2, bz: arr2, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, b: arr2):
@@ -1308,7 +1574,8 @@ def build(order: int, dtype, free_surface: bool):
     return _Kernels(
         Axis=Axis, materials=materials, velocity=velocity, stress=stress, updates=functools.lru_cache(maxsize=None)(make_updates),
         velocity_adjoint=velocity_adjoint, velocity_transpose=velocity_transpose, stress_adjoint=stress_adjoint,
-        stress_transpose=stress_transpose, adjoints=functools.lru_cache(maxsize=None)(make_adjoints), sum_shots=sum_shots,
+        stress_transpose=stress_transpose, adjoints=functools.lru_cache(maxsize=None)(make_adjoints),
+        split_adjoints=functools.lru_cache(maxsize=None)(make_split_adjoints), sum_shots=sum_shots,
         inject_force=inject_force, inject_moment=inject_moment, weights=weights, record=record, pad_model=pad_model, halo=M,
         operator_points=NPTS,
     )  # fmt: skip
@@ -1551,13 +1818,35 @@ class Elastic:
     def _fused(self):
         return self.adjoint_layout is not None and self.has_adjoint_box
 
+    @property
+    def adjoint_width(self):
+        """The split adjoint tiles' columns, a vector of each array: self.adjoint_layout's, or fewer where the row length is
+        no multiple."""
+        return min(self.adjoint_layout.cols, self.lanes)
+
+    def adjoint_boxes(self):
+        """(box, inner) of self.adjoint_layout: the adjoint box and the inner box, split their columns from and to
+        multiples of adjoint_width (inner still R inside box along x, so that the frame's gathers read pass 1's t_k)."""
+        if not self.adjoint_layout.split:
+            return self.adjoint_box, self.adjoint_inner
+        R, V = self.k.halo, self.adjoint_width
+        b = _aligned(*self.adjoint_box, V)
+        inner = _aligned(b[0] + R, b[1] - R, b[2] + R, b[3] - R, V)
+        return (*(wp.vec4i(c[0], c[1], c[2], max(c[3], c[2])) for c in (b, inner)),)
+
+    def _tiles(self, box, rows, cols):
+        """Tiles of rows x cols cells covering box in every shot."""
+        return self.n_shots * -(-(box[1] - box[0]) // rows) * -(-(box[3] - box[2]) // cols)
+
     def adjoint_kernels(self):
         """The kernels adjoint_update launches: pass 1 (velocity, stress), pass 2 (velocity, stress; fused with
-        self.adjoint_layout) and, fused with several shots, sum_shots."""
+        self.adjoint_layout, or split: its gathers and then its sums (velocity, stress)) and, fused with several shots,
+        sum_shots."""
         k, lay = self.k, self.adjoint_layout
         if not self._fused():
             return k.velocity_adjoint, k.stress_adjoint, k.velocity_transpose, k.stress_transpose
-        return (k.velocity_adjoint, k.stress_adjoint, *k.adjoints(lay.rows, lay.cols), *((k.sum_shots,) if self.n_shots > 1 else ()))
+        tiles = k.split_adjoints(lay.rows, self.adjoint_width) if lay.split else k.adjoints(lay.rows, lay.cols)
+        return (k.velocity_adjoint, k.stress_adjoint, *tiles, *((k.sum_shots,) if self.n_shots > 1 else ()))
 
     def adjoint_update(self, kind: int, st: State, out: State, mat, adj_next: State, adj: State, adj_mat, scratch, part=None):
         """Adjoint of update(kind, st, out, mat) out of place (st and out as it left them), adj_next and adj the adjoint
@@ -1565,7 +1854,8 @@ class Elastic:
         variables and adds to adj_next's velocities and the moduli's adjoints; kind 0 writes adj's velocities and their
         memory variables and adds to adj's stresses and the buoyancies' adjoints. Pass 1 (per cell, outside the inner box
         with self.adjoint_layout), then pass 2 (the gathers, or with self.adjoint_layout the fused tiles and the frame's
-        gathers); part "pass1" or "pass2" launches that alone, "tiles" pass 2's tiles alone (for timing)."""
+        gathers; split: the sums' tiles, then the gathers' tiles and the frame's); part "pass1", "sums" (split) or
+        "pass2" launches that alone, "tiles" pass 2's tiles alone (for timing)."""
         bx, bz, l2m, lam, mu, muh, _ = mat
         g_bx, g_bz, g_l2m, g_lam, g_mu, g_muh = adj_mat
         Q, G, GN = out.psi, adj.psi, adj_next.psi
@@ -1575,6 +1865,8 @@ class Elastic:
             flat = [st.sxx, st.szz, st.sxz, bx, bz, adj_next.vx, adj_next.vz, adj.vx, adj.vz, adj.sxx, adj.szz, adj.sxz, g_bx, g_bz]
             gathered = [adj.sxx, adj.szz, adj.sxz]
             summed = [g_bx, g_bz, g_bz]  # sum_shots' g1, g2 (and an unused g3)
+            split = ([bx, bz, adj_next.vx, adj_next.vz, *gathered],  # the split's gathers' and sums' vector arrays
+                     [st.sxx, st.szz, st.sxz, adj_next.vx, adj_next.vz, adj.vx, adj.vz, g_bx, g_bz])  # fmt: skip
         else:
             args = [out.vx, out.vz, l2m, lam, mu, muh, *(Q[k] for k in PSI_S), adj_next.sxx, adj_next.szz, adj_next.sxz, adj.sxx, adj.szz,
                     adj.sxz, adj_next.vx, adj_next.vz, g_l2m, g_lam, g_mu, g_muh, *(G[k] for k in PSI_S), *(GN[k] for k in PSI_S)]  # fmt: skip
@@ -1582,27 +1874,41 @@ class Elastic:
                     adj_next.vz, g_l2m, g_lam, g_muh]  # fmt: skip
             gathered = [adj_next.vx, adj_next.vz]
             summed = [g_l2m, g_lam, g_muh]
+            split = ([l2m, lam, muh, adj_next.sxx, adj_next.szz, adj_next.sxz, *gathered],
+                     [out.vx, out.vz, adj_next.sxx, adj_next.szz, adj_next.sxz, adj.sxx, adj.szz, adj.sxz, g_l2m, g_lam, g_muh])  # fmt: skip
         kernels = self.adjoint_kernels()
         fused = self._fused()
-        hole = self.adjoint_inner if fused else self.no_hole
+        box, inner = self.adjoint_boxes() if fused else (self.box, self.no_hole)
         if part in (None, "pass1"):
-            wp.launch(kernels[kind], dim=self._outside(hole), inputs=[*args, *scratch, *self.axes, self.dt_device, self.inv_dx, self.top, hole],
+            wp.launch(kernels[kind], dim=self._outside(inner), inputs=[*args, *scratch, *self.axes, self.dt_device, self.inv_dx, self.top, inner],
                       device=self.device, record_tape=False)  # fmt: skip
         if part == "pass1":
             return
         if not fused:
             self._flat_launch(kernels[2 + kind], self.box, [*scratch, *gathered])
             return
-        lay, box, inner = self.adjoint_layout, self.adjoint_box, self.adjoint_inner
-        tiles = self.n_shots * -(-(box[1] - box[0]) // lay.rows) * -(-(box[3] - box[2]) // lay.cols)
+        lay = self.adjoint_layout
+        t = [a.flatten() for a in scratch]
+        if lay.split:
+            V = self.adjoint_width
+            if part in (None, "sums"):
+                wp.launch(kernels[4 + kind], dim=self._tiles(inner, lay.rows, V),
+                          inputs=[*(as_vectors(a, V) for a in split[1] + scratch[: 2 + kind]), self.n_shots, *self.padded, inner, self.dt_device,
+                                  self.inv_dx], block_dim=lay.threads, device=self.device, record_tape=False)  # fmt: skip
+            if part == "sums":
+                return
+            tiles = self._tiles(box, lay.rows, V)
+            inputs = [*(as_vectors(a, V) for a in split[0]), *t, *(a.flatten() for a in gathered), *self.padded, box]
+        else:
+            tiles = self._tiles(box, lay.rows, lay.cols)
+            inputs = [*(a.flatten() for a in flat), *t, *self.padded, self.n_shots, box, inner]
         frame = -(-tiles // lay.threads) * lay.threads  # the frame's first thread, on a block boundary
         cells = self._outside(box)
-        t = [a.flatten() for a in scratch]
         wp.launch(kernels[2 + kind], dim=tiles if part == "tiles" else frame + self.n_shots * cells,
-                  inputs=[*(a.flatten() for a in flat), *t, *self.padded, self.n_shots, box, inner, self.dt_device, self.inv_dx, tiles, frame,
-                          cells], block_dim=lay.threads, device=self.device, record_tape=False)  # fmt: skip
+                  inputs=[*inputs, self.dt_device, self.inv_dx, tiles, frame, cells], block_dim=lay.threads, device=self.device,
+                  record_tape=False)  # fmt: skip
         if self.n_shots > 1 and part != "tiles":  # the materials' adjoints the tiles left in the scratch
-            wp.launch(kernels[4], dim=(inner[1] - inner[0]) * (inner[3] - inner[2]),
+            wp.launch(kernels[-1], dim=(inner[1] - inner[0]) * (inner[3] - inner[2]),
                       inputs=[*t[:3], *(a.flatten() for a in summed), 2 + kind, self.n_shots, *self.padded, inner], device=self.device,
                       record_tape=False)  # fmt: skip
 

@@ -567,19 +567,31 @@ def adjoint_step_arrays(prop, layout, source_type, seed=7):
     return [a.numpy() for a in (*adj_next.arrays(), *adj.arrays(), *adj_mat, *adj_sources)]
 
 
-@pytest.mark.parametrize("layout, order, free_surface, shots", [(K.ADJOINT_LAYOUT, o, fs, s) for o in (4, 8) for fs in (False, True) for s in (1, 3)] +
-                         [(lay, 4, True, 2) for lay in K.ADJOINT_LAYOUTS if lay != K.ADJOINT_LAYOUT])  # fmt: skip
-def test_fused_adjoint_step_equals_per_cell_kernels(layout, order, free_surface, shots):
+FUSED = K.AdjointLayout(4, 2, 128)  # the best of the fused layouts
+assert K.ADJOINT_LAYOUT.split
+
+
+@pytest.mark.parametrize("layout, order, free_surface, shots, nx",
+                         [(FUSED, o, fs, s, 28) for o in (4, 8) for fs in (False, True) for s in (1, 3)] +
+                         [(lay, 4, True, 2, 28) for lay in K.ADJOINT_LAYOUTS if lay != FUSED and not lay.split] +
+                         [(K.ADJOINT_LAYOUT, o, fs, s, 30) for o, fs, s in ((4, False, 1), (4, True, 3), (8, True, 1), (8, False, 3))] +
+                         [(lay, 4, True, 2, 30) for lay in K.ADJOINT_LAYOUTS if lay.split and lay != K.ADJOINT_LAYOUT] +
+                         [(K.AdjointLayout(4, 4, 128, split=True), 4, False, 1, 28)])  # fmt: skip
+def test_fused_adjoint_step_equals_per_cell_kernels(layout, order, free_surface, shots, nx):
     # The GPU's hand-written adjoint step (pass 1 outside the inner box; tiles of the adjoint box fusing both passes,
-    # the frame's gathers and, with several shots, sum_shots), forced here on any device, against the per-cell kernels'
-    # (the CPU's) for one step from random inputs, sources included (float64), on a grid whose adjoint box is no
-    # multiple of the tile (11-19 x 19-23 cells). Measured: bit for bit on the CPU (the same sums in the same order);
-    # FMA contraction may differ on a GPU.
+    # or split into the gathers' and the sums' kernels; the frame's gathers and, with several shots, sum_shots), forced
+    # here on any device, against the per-cell kernels' (the CPU's) for one step from random inputs, sources included
+    # (float64), on a grid whose adjoint box is no multiple of the tile (11-19 x 19-25 cells; split: padded rows of 44
+    # or 48 cells, vectors of up to 4, or 42, narrowed to 2). Measured: bit for bit on the CPU (the same sums in the same
+    # order); FMA contraction may differ on a GPU.
     import warp as wp
 
-    prop = K.Elastic((24, 28), 10.0, 1e-3, order, shots, 5, 1e-3, 15.0, 2500.0, free_surface=free_surface, dtype=wp.float64, device=DEVICE)
+    prop = K.Elastic((24, nx), 10.0, 1e-3, order, shots, 5, 1e-3, 15.0, 2500.0, free_surface=free_surface, dtype=wp.float64, device=DEVICE)
     box = prop.adjoint_box
     assert prop.has_adjoint_box and (box[1] - box[0]) % 2 and (box[3] - box[2]) % 2  # odd: partial tiles
+    if layout.split:
+        prop.adjoint_layout = layout
+        assert prop.adjoint_width == min(layout.cols, 2 if nx == 28 else 4)
     source_type = "moment" if free_surface else "force"
     ref = adjoint_step_arrays(prop, None, source_type)
     fused = adjoint_step_arrays(prop, layout, source_type)
@@ -588,10 +600,11 @@ def test_fused_adjoint_step_equals_per_cell_kernels(layout, order, free_surface,
         assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()
 
 
-def test_sweep_with_fused_adjoint_equals_per_cell_kernels(monkeypatch):
-    # gradient_elastic's ElasticSweep (adjoint States written by each step, not zeroed) with the fused adjoint kernels
-    # (the GPU's path) against the per-cell kernels, both forced: the same gradients (float64; measured bit for bit
-    # on the CPU)
+@pytest.mark.parametrize("fast", [FUSED, K.ADJOINT_LAYOUT])
+def test_sweep_with_fused_adjoint_equals_per_cell_kernels(monkeypatch, fast):
+    # gradient_elastic's ElasticSweep (adjoint States written by each step, not zeroed) with the fused (or split) adjoint
+    # kernels (the GPU's path) against the per-cell kernels, both forced: the same gradients (float64; measured bit for
+    # bit on the CPU)
     args, kw = small_problem(True, "moment", shape=(20, 26), nt=60)
     rng = np.random.default_rng(9)
     common = dict(observed={c: rng.standard_normal((2, 7, 60)) * (1e-3 if c == "pressure" else 1e-9) for c in E.COMPONENTS}, wrt=E.WRT,
@@ -605,7 +618,7 @@ def test_sweep_with_fused_adjoint_equals_per_cell_kernels(monkeypatch):
         return su
 
     grads = []
-    for layout in (None, K.ADJOINT_LAYOUT):
+    for layout in (None, fast):
         monkeypatch.setattr(E, "setup_elastic", functools.partial(forced, layout))
         grads.append(E.gradient_elastic(*args, **common))
     ref, fused = grads
@@ -634,9 +647,10 @@ def test_device_array_models():
     common = dict(observed={c: np.zeros_like(getattr(host, c)) for c in E.COMPONENTS}, wrt=("vp", "vs", "rho"), precision="float64", **kw)
     g_host = E.gradient_elastic(*models, *rest, **common)
     g_dev = E.gradient_elastic(*(wp.array(m, dtype=wp.float64, device=DEVICE) for m in models), *rest, **common)
-    for name in ("vp", "vs", "rho"):
-        ref = getattr(g_host, name)
-        assert np.abs(getattr(g_dev, name) - ref).max() <= 1e-12 * np.abs(ref).max(), name
+    for name in ("vp", "vs", "rho"):  # a model on the device keeps its gradient there
+        ref, got = getattr(g_host, name), getattr(g_dev, name)
+        assert isinstance(got, wp.array) and str(got.device) == str(wp.get_device(DEVICE)), name
+        assert np.abs(got.numpy() - ref).max() <= 1e-12 * np.abs(ref).max(), name
     bad_vs = models[1].copy()
     bad_vs[3, 4] = -1.0
     lame = models[1].copy()
