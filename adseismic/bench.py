@@ -16,7 +16,8 @@ prod(n + 2 PML + order over the axes) x nt x shots / seconds, the unit of the De
 On the CPU the per-core rate divides the cell updates by the process CPU time (user + system)
 of the timed run instead of the wall time. On a GPU the model (acoustic velocity, elastic vp, vs, rho) is
 passed as device arrays (as Deepwave's benchmark passes CUDA tensors); sources, receivers and wavelets
-come from the host and the traces go back to it inside the timing. The best of the repeats is
+come from the host. The acoustic traces and gradients then stay on the device (as Deepwave's tensors do),
+the elastic traces go back to the host inside the timing. The best of the repeats is
 reported: forward then reuses the time loop it captured in the first (as in an inversion loop); the
 first repeat's time is in bench.json ("times").
 
@@ -411,14 +412,14 @@ def run_job(job: BenchJob) -> list[BenchRow]:
         rows.append(row)
         try:
             if mode == "gradient" and observed is None:
-                observed = np.zeros_like(engine("forward", ours).receiver_amplitudes)
+                observed = np.zeros(engine("forward", ours).receiver_amplitudes.shape)
             row.seconds, row.times, row.cpu_seconds, out = _timed(lambda: engine(mode, ours, observed), job.repeat, sync)
         except Exception as exc:
             row.status = _failure(exc)
             log.error("%s %s on %s: %s", spec.name, mode, device, row.status)
             continue
         if mode == "forward":
-            observed = np.zeros_like(out.receiver_amplitudes)
+            observed = np.zeros(out.receiver_amplitudes.shape)
         else:
             est = getattr(out, "peak_bytes_estimate", None)
             row.peak_estimate_bytes = int(est) if est else None

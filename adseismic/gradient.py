@@ -24,6 +24,7 @@ import warp as wp
 from tqdm.auto import tqdm
 
 from adseismic import graphs
+from adseismic.kernels.acoustic import operator_shape
 from adseismic.misfits import misfit as named_misfit
 from adseismic.propagate import run_steps, setup, velocity_3d
 
@@ -371,7 +372,7 @@ def kernels_of(prop):
 def _sweep_key(su, seg: int, n_seg: int, illumination: bool) -> tuple:
     p = su.prop
     return ("gradient", p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, seg, n_seg, su.amplitudes.shape, su.receivers.shape,
-            isinstance(su.source_op, tuple), su.amplitudes.requires_grad, illumination)  # fmt: skip
+            operator_shape(su.source_op), operator_shape(su.receiver_op), su.amplitudes.requires_grad, illumination)  # fmt: skip
 
 
 def _kept_sweep(su, seg: int, n_seg: int, illumination: bool) -> Sweep:

@@ -950,7 +950,13 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         pd = dtype(wp.static(math.pi)) * d
         sinc = dtype(1.0) - pd * pd / dtype(6.0)
         if wp.abs(pd) > dtype(1.0e-3):
-            sinc = wp.sin(pd) / pd
+            # sin(pi d) from the argument reduced by the nearest whole k: exactly 0 at whole d (a point on a node
+            # has one weight per axis; sin(pi d) itself gives ~1e-8 in float32 there), same derivative in d
+            k = wp.round(d)
+            sp = wp.sin(dtype(wp.static(math.pi)) * (d - k))
+            if int(k) % 2 != 0:
+                sp = -sp
+            sinc = sp / pd
         y2 = dtype(wp.static(HICKS_B * HICKS_B / 4.0)) * q
         term = dtype(1.0)
         total = dtype(0.0)
@@ -989,18 +995,18 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     ):  # fmt: skip
         # u_next += v^2 dt^2 s[n] w / dx^ndim at the operator's nodes (scale = dt^2 / dx^ndim); here and
         # in the other source/receiver kernels the sample is n + clock[0] (a device counter, for graphs).
+        # Every point adds, also one of weight 0 (at a whole distance from a location on a node): its weight's
+        # derivative in the location is not 0.
         s, src, q = wp.tid()
         idx, w = point(loc, s, src, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            vv = v[idx[0], idx[1], idx[2]]
-            wp.atomic_add(u_next, s, idx[0], idx[1], idx[2], scale * vv * vv * w * amp[s, src, n + clock[0]])
+        vv = v[idx[0], idx[1], idx[2]]
+        wp.atomic_add(u_next, s, idx[0], idx[1], idx[2], scale * vv * vv * w * amp[s, src, n + clock[0]])
 
     @wp.kernel(module="unique")
     def record(u: arr4, data: arr3, loc: arr3, n: int, clock: iarr1, origin: wp.vec3i, inv_dx: dtype, top: int):
         s, rec, q = wp.tid()
         idx, w = point(loc, s, rec, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            wp.atomic_add(data, s, rec, n + clock[0], w * u[s, idx[0], idx[1], idx[2]])
+        wp.atomic_add(data, s, rec, n + clock[0], w * u[s, idx[0], idx[1], idx[2]])
 
     # Precomputed operator (positions that are not differentiated, e.g. receivers): the node index and
     # weight of every stencil point, computed once per run instead of at every time step.
@@ -1010,6 +1016,22 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         i, wq = point(loc, s, n, q, origin, inv_dx, top)
         idx[s, n, q] = i
         w[s, n, q] = wq
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def compact(idx: wp.array3d(dtype=wp.vec3i), w: arr3, most: iarr1):
+        # moves the points of operator (s, n) with a non-zero weight to its front, in order, zeroing the rest's
+        # weights; most[0] = the largest count
+        s, n = wp.tid()
+        c = int(0)
+        for q in range(idx.shape[2]):
+            wq = w[s, n, q]
+            if wq != dtype(0.0):
+                idx[s, n, c] = idx[s, n, q]
+                w[s, n, c] = wq
+                c += 1
+        for q in range(c, idx.shape[2]):
+            w[s, n, q] = dtype(0.0)
+        wp.atomic_max(most, 0, c)
 
     @wp.kernel(module="unique")
     def inject_fixed(u_next: arr4, v: arr3, amp: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1, scale: dtype):
@@ -1089,7 +1111,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         Axis=Axis, step=step, step_core=functools.lru_cache(maxsize=None)(make_step_core), step_rows=step_rows, step_core_rows=step_core_rows, psi=psi, inject=inject,
         adjoint_step=adjoint_step, adjoint_core=functools.lru_cache(maxsize=None)(make_adjoint_core),
         squared=squared, model_gradient=model_gradient, psi_adjoint=tuple(k for _, k in psi_adjoints), post_adjoint=post_adjoint, pre_step=pre_step,
-        record=record, weights=weights, inject_fixed=inject_fixed, record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS), pad_model=pad_model, scatter=scatter, energy=energy, halo=R, operator_points=NPTS,
+        record=record, weights=weights, compact=compact, inject_fixed=inject_fixed, record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS), pad_model=pad_model, scatter=scatter, energy=energy, halo=R, operator_points=NPTS,
     )  # fmt: skip
 
 
@@ -1209,6 +1231,12 @@ class _Kernels:
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
+
+
+def operator_shape(op) -> tuple:
+    """What a captured loop bakes in of a source/receiver operator (Acoustic.operator): its points' shape (S, n,
+    points) or, for locations, theirs."""
+    return tuple((op[1] if isinstance(op, tuple) else op).shape) + (isinstance(op, tuple),)
 
 
 def as_vectors(a: wp.array, V: int) -> wp.array:
@@ -1549,7 +1577,16 @@ class Acoustic:
         idx = wp.empty(shape, dtype=wp.vec3i, device=self.device)
         w = wp.empty(shape, dtype=self.dtype, device=self.device)
         wp.launch(self.k.weights, dim=shape, inputs=[locations, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
-        return (idx, w)
+        return self.compact(idx, w) if self.cuda else (idx, w)
+
+    def compact(self, idx, w):
+        """The operator (idx, w) with only as many points per location as the one with most non-zero weights has
+        (a location on a node has one in 2D and 3D, not 64 or 512): each GPU thread records one point. (The CPU
+        keeps every point: it sums a location's points in one thread, compiled for their number.)"""
+        most = wp.zeros(1, dtype=wp.int32, device=self.device)
+        wp.launch(self.k.compact, dim=idx.shape[:2], inputs=[idx, w, most], device=self.device)
+        points = max(int(most.numpy()[0]), 1)
+        return wp.clone(idx[:, :, :points]), wp.clone(w[:, :, :points])
 
     def _inject_launch(self, u, vpad, amplitudes, op, n: int, clock):
         clock = self.clock if clock is None else clock

@@ -250,5 +250,32 @@ def test_kept_time_loop_is_refilled():
     graphs.release()
     fresh = forward(v2, dx, dt, s2, src2, rec2).receiver_amplitudes
     on_device = forward(wp.array(v2, dtype=wp.float32, device=DEVICE), dx, dt, s2, src2, rec2).receiver_amplitudes
+    assert isinstance(on_device, wp.array) and on_device.shape == fresh.shape  # a model on the device keeps its traces there
+    on_device = on_device.numpy()
+    forward(v2 * 1.1, dx, dt, s2, src2, rec2)  # the next call with the kept loop leaves them alone
     for got in (reused, on_device):
         assert np.abs(got - fresh).max() <= SAME_KERNELS * np.abs(fresh).max()
+
+
+def test_compacted_operator_keeps_the_non_zero_weights():
+    # Acoustic.compact (a GPU's fixed operators): the points of non-zero weight in order, as many per location as the
+    # one with most; a location on a node has one point (the Hicks weights are exactly 0 at whole distances, also in
+    # float32), one between nodes all 8 x 8
+    import warp as wp
+
+    prop = propagate.setup(*small_scene(), device=DEVICE, precision="float32", pml_width=10).prop
+    for locs, points in (([[30.0, 0.0, 40.0], [100.0, 0.0, 250.0]], 1), ([[30.0, 0.0, 40.0], [101.3, 0.0, 252.5]], 64)):
+        loc = wp.array(np.array([locs] * prop.n_shots), dtype=prop.dtype, device=prop.device)
+        prop.cuda = False  # the full operator, as the CPU keeps it
+        idx, w = prop.operator(loc)
+        full_idx, full_w = idx.numpy(), w.numpy()
+        c_idx, c_w = (a.numpy() for a in prop.compact(idx, w))
+        assert c_w.shape == (prop.n_shots, 2, points)
+        for s in range(prop.n_shots):
+            for r in range(2):
+                keep = full_w[s, r] != 0
+                n = int(keep.sum())
+                assert n == (1 if r == 0 or points == 1 else 64)
+                np.testing.assert_array_equal(c_w[s, r, :n], full_w[s, r][keep])
+                np.testing.assert_array_equal(c_idx[s, r, :n], full_idx[s, r][keep])
+                assert not c_w[s, r, n:].any()
