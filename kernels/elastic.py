@@ -502,45 +502,51 @@ def build(order: int, dtype, free_surface: bool):
     # for an update f += dt m (sum) / dx, g the adjoint of f; Normal, (p dt gx + q dt gz) / dx for the normal stresses'
     # sums (normal_rates with materials p, q; gx, gz the adjoints of sxx, szz). base: flat index of the shot's first cell.
 
-    @wp.struct
-    class Scaled:
-        g: arr1
-        m: arr1
-        base: int
-        dt: dtype
-        inv_dx: dtype
+    def make_products(arr):
+        # Scaled and Normal on flat arrays (arr1) or on arrays of vectors (base then in vectors), and their constructors
+        @wp.struct
+        class Scaled:
+            g: arr
+            m: arr
+            base: int
+            dt: dtype
+            inv_dx: dtype
 
-    @wp.struct
-    class Normal:
-        gx: arr1
-        gz: arr1
-        p: arr1
-        q: arr1
-        base: int
-        dt: dtype
-        inv_dx: dtype
+        @wp.struct
+        class Normal:
+            gx: arr
+            gz: arr
+            p: arr
+            q: arr
+            base: int
+            dt: dtype
+            inv_dx: dtype
 
-    @wp.func
-    def scaled(g: arr1, m: arr1, base: int, dt: dtype, inv_dx: dtype) -> Scaled:
-        a = Scaled()
-        a.g = g
-        a.m = m
-        a.base = base
-        a.dt = dt
-        a.inv_dx = inv_dx
-        return a
+        @wp.func
+        def scaled(g: arr, m: arr, base: int, dt: dtype, inv_dx: dtype) -> Scaled:
+            a = Scaled()
+            a.g = g
+            a.m = m
+            a.base = base
+            a.dt = dt
+            a.inv_dx = inv_dx
+            return a
 
-    @wp.func
-    def normal(gx: arr1, gz: arr1, p: arr1, q: arr1, base: int, dt: dtype, inv_dx: dtype) -> Normal:
-        a = Normal()
-        a.gx = gx
-        a.gz = gz
-        a.p = p
-        a.q = q
-        a.base = base
-        a.dt = dt
-        a.inv_dx = inv_dx
-        return a
+        @wp.func
+        def normal(gx: arr, gz: arr, p: arr, q: arr, base: int, dt: dtype, inv_dx: dtype) -> Normal:
+            a = Normal()
+            a.gx = gx
+            a.gz = gz
+            a.p = p
+            a.q = q
+            a.base = base
+            a.dt = dt
+            a.inv_dx = inv_dx
+            return a
+
+        return Scaled, Normal, scaled, normal
+
+    Scaled, Normal, scaled, normal = make_products(arr1)
 
     @wp.func
     def value(f: arr1, i: int) -> dtype:
@@ -581,46 +587,7 @@ def build(order: int, dtype, free_surface: bool):
             return r
 
         # Scaled and Normal on arrays of vectors (base in vectors): their `value`s a block at a time
-
-        @wp.struct
-        class ScaledV:
-            g: arrv
-            m: arrv
-            base: int
-            dt: dtype
-            inv_dx: dtype
-
-        @wp.struct
-        class NormalV:
-            gx: arrv
-            gz: arrv
-            p: arrv
-            q: arrv
-            base: int
-            dt: dtype
-            inv_dx: dtype
-
-        @wp.func
-        def scaled_v(g: arrv, m: arrv, base: int, dt: dtype, inv_dx: dtype) -> ScaledV:
-            a = ScaledV()
-            a.g = g
-            a.m = m
-            a.base = base
-            a.dt = dt
-            a.inv_dx = inv_dx
-            return a
-
-        @wp.func
-        def normal_v(gx: arrv, gz: arrv, p: arrv, q: arrv, base: int, dt: dtype, inv_dx: dtype) -> NormalV:
-            a = NormalV()
-            a.gx = gx
-            a.gz = gz
-            a.p = p
-            a.q = q
-            a.base = base
-            a.dt = dt
-            a.inv_dx = inv_dx
-            return a
+        ScaledV, NormalV, scaled_v, normal_v = make_products(arrv)
 
         @wp.func
         def get(a: ScaledV, i: int) -> vec:  # noqa: F811
