@@ -183,7 +183,7 @@ class ElasticSetup:
     components: wp.array
     sources: wp.array
     receivers: wp.array
-    receiver_op: tuple  # Elastic.receivers
+    receiver_op: tuple  # Elastic.operator
 
     def materials(self, requires_grad=False):
         """The padded model's MATERIALS (kernels/elastic.py); differentiable under a tape."""
@@ -220,7 +220,7 @@ def setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, rece
     kind = "force" if source_type == "force" else "moment"
     receivers = put(receiver_locations, "receiver_locations")
     return ElasticSetup(prop, amp.shape[2], kind, model, put(amp, "source_amplitudes"), put(comp, "source_components"),
-                        put(source_locations, "source_locations"), receivers, prop.receivers(receivers))  # fmt: skip
+                        put(source_locations, "source_locations"), receivers, prop.operator(receivers))  # fmt: skip
 
 
 class ElasticBlowupGuard:
@@ -373,17 +373,15 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
 
     memory_budget (bytes) caps the checkpoints (States) plus one segment's levels (and, for adjoint="hand", the
     sweep's fixed arrays); None picks the memory minimum (~sqrt(nt) steps); segment_length (at most nt) pins the
-    length instead. The hand-written sweep keeps a State per level and its segments have an even length (its
-    adjoint States alternate; the last segment runs past nt into zero sources and residuals); Warp's tape keeps
-    each level's adjoint too.
+    length instead. The hand-written sweep keeps a State per level (its last segment runs past nt into zero sources
+    and residuals); Warp's tape keeps each level's adjoint too.
     """
     item = 4 if prop.dtype == wp.float32 else 8
     fields, model = prop.n_shots * math.prod(prop.padded), math.prod(prop.padded)
     state = item * (5 * fields + sum(math.prod(prop.psi_shape(k)) for k in PSI))
     hand = adjoint == "hand"
-    step = 2 if hand else 1
-    # hand: two adjoint States, four scratch fields, MATERIALS and their adjoints (sweep and model tape), padded models
-    fixed = 2 * state + item * (4 * fields + 33 * model) if hand else 0
+    # hand: the adjoint State, four scratch fields, MATERIALS and their adjoints (sweep and model tape), padded models
+    fixed = state + item * (4 * fields + 33 * model) if hand else 0
 
     def total(seg):
         n_seg = math.ceil(nt / seg)
@@ -391,7 +389,7 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
             return fixed + max(n_seg - 2, 0) * state + (seg + 1) * state
         return (n_seg - 1) * state + (seg + 2) * 2 * state  # taped levels and two starts, with adjoints
 
-    return choose_segment(nt, step, total, memory_budget, segment_length)
+    return choose_segment(nt, 1, total, memory_budget, segment_length)
 
 
 def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
@@ -405,7 +403,7 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
     `components`; misfit: a name in misfits.MISFITS (summed over components) or a callable
     synthetic dict -> (J, {name: dJ/d synthetic}). wrt: any of WRT. Memory is bounded by checkpointing
     (plan_segments): memory_budget bytes, None for the minimum (~sqrt(nt) steps per segment); segment_length
-    pins the checkpoint spacing instead (rounded up to even for adjoint="hand"). adjoint: "hand" (ElasticSweep:
+    pins the checkpoint spacing instead. adjoint: "hand" (ElasticSweep:
     the hand-written adjoints of the stencil kernels in an explicit time loop; on a GPU captured as CUDA graphs
     and kept, with its arrays, for the next call with the same grid, steps, shots and geometry: graphs.release()
     frees it) or "warp" (Warp's generated adjoints of every kernel under wp.Tape, the reference the hand-written
@@ -546,9 +544,8 @@ class ElasticSweep:
     The forward sweep runs the segments of `seg` steps, each from levels[0] (its start State) out of place into
     levels[1..seg], and keeps the start of every segment but the first (zero) and the last (still in `levels` when
     the backward sweep begins) as a checkpoint. The backward sweep runs the segments last first: the forward steps
-    again from the checkpoint, then the adjoint steps back through the levels, the adjoint State of level j in
-    adj[j % 2], written by its step (Elastic.adjoint_step; seg is even, so adj[0] carries the adjoint of a
-    segment's start to the previous segment). The adjoints of MATERIALS (adj_mat) and of the sources' amplitudes,
+    again from the checkpoint, then the adjoint steps back through the levels, taking the adjoint State `adj` from
+    level j + 1's to level j's in place (Elastic.adjoint_step) and on to the previous segment. The adjoints of MATERIALS (adj_mat) and of the sources' amplitudes,
     components and locations (adj_sources) accumulate over all steps. Time indices are j + clock[0] (the segment's
     first level), so one captured graph per direction serves every segment; nt is padded to n_seg * seg levels with
     zero source samples and residuals. data and residual: (vx, vz, pressure) arrays (S, n_rec, n_seg * seg).
@@ -567,11 +564,13 @@ class ElasticSweep:
         self.mat = tuple(zeros(prop.padded) for _ in MATERIALS)
         self.adj_mat = tuple(zeros(prop.padded) for _ in MATERIALS[:-1])  # b is the lean core's alone (not differentiated)
         self.amplitudes = zeros((*su.amplitudes.shape[:2], levels + 1))  # + 1: a moment source reads sample n + 1
-        self.sources = (su.kind, self.amplitudes, su.components, su.sources)
-        self.adj_sources = tuple(zeros(a.shape) for a in self.sources[1:])
+        # the sources' fixed operator unless their locations are differentiated (the generated adjoint of the injection
+        # at its locations evaluates the operator and its derivative every step: E2000 23 us a step)
+        self.sources = (su.kind, self.amplitudes, su.components, su.sources if su.sources.requires_grad else prop.operator(su.sources))
+        self.adj_sources = tuple(zeros(a.shape) for a in (self.amplitudes, su.components, su.sources))
         self.data = _new_data(su, levels)
         self.residual = _new_data(su, levels)
-        self.adj = [prop.new_state() for _ in range(2)]
+        self.adj = prop.new_state()
         self.scratch = [zeros((prop.n_shots, *prop.padded)) for _ in range(4)]  # their halo stays zero
         self.clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
         self.segments = graphs.Segments(prop.device, self.clock, _sweep_kernels(su), (self._forward_segment, self._adjoint_segment))
@@ -585,10 +584,9 @@ class ElasticSweep:
     def _adjoint_segment(self):
         su, lv = self.su, self.levels
         for j in reversed(range(self.seg)):
-            adj = self.adj[j % 2]  # written by the step, not zeroed first
-            su.prop.adjoint_step(lv[j], lv[j + 1], self.mat, self.adj[(j + 1) % 2], adj, self.adj_mat, self.sources, self.adj_sources,
-                                 self.scratch, j, self.clock)  # fmt: skip
-            su.prop.record_adjoint(adj, self.residual, su.receiver_op, j, self.clock)
+            su.prop.adjoint_step(lv[j], lv[j + 1], self.mat, self.adj, self.adj_mat, self.sources, self.adj_sources, self.scratch, j,
+                                 self.clock)  # fmt: skip
+            su.prop.record_adjoint(self.adj, self.residual, su.receiver_op, j, self.clock)
 
     def forward_sweep(self, bar):
         """The forward steps of every segment; data then holds the synthetic (the backward sweep adds to it again)."""
@@ -618,8 +616,11 @@ class ElasticSweep:
         """Copy su's inputs (CPML coefficients, MATERIALS mat, operators, source samples) into the kept arrays and
         zero the start State, data, residuals and adjoints."""
         _refill(self.su, self.mat, su, mat)
+        if isinstance(self.sources[3], tuple):
+            for a, b in zip(self.sources[3], su.prop.operator(su.sources)):
+                wp.copy(a, b)
         self.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], su.prop.dtype))
-        for a in (*self.levels[0].arrays(), *self.data, *self.residual, *(a for st in self.adj for a in st.arrays()), *self.adj_mat,
+        for a in (*self.levels[0].arrays(), *self.data, *self.residual, *self.adj.arrays(), *self.adj_mat,
                   *self.adj_sources):  # fmt: skip
             a.zero_()
 
@@ -633,13 +634,14 @@ def _sweep_kernels(su: ElasticSetup):
     """Every kernel an ElasticSweep launches (loaded before a capture, which cannot compile)."""
     prop, k = su.prop, su.prop.k
     updates = prop.update_kernels() if prop.has_core else (k.velocity, k.stress)
-    return (*updates, k.record, k.inject_force if su.kind == "force" else k.inject_moment, *prop.adjoint_kernels())
+    inject = {"force": (k.inject_force, k.inject_force_op), "moment": (k.inject_moment, k.inject_moment_op)}[su.kind]
+    return (*updates, k.record, inject[not su.sources.requires_grad], *prop.adjoint_kernels())
 
 
 def _sweep_key(su: ElasticSetup, seg: int, n_seg: int) -> tuple:
     p = su.prop
     return ("elastic_gradient", p.k, p.layout, p.adjoint_layout, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, seg, n_seg,
-            su.amplitudes.shape, su.receivers.shape, su.kind)  # fmt: skip
+            su.amplitudes.shape, su.receivers.shape, su.kind, su.sources.requires_grad)  # fmt: skip
 
 
 def _kept_sweep(su: ElasticSetup, seg: int, n_seg: int) -> ElasticSweep:

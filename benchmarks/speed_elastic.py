@@ -182,16 +182,16 @@ def variant_times(check, layout, device, reps):
     return out
 
 
-def adjoint_jobs(prop, st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch):
+def adjoint_jobs(prop, st, nxt, mat, adj, adj_mat, src, adj_src, scratch):
     """Timing jobs of the hand-written adjoint step with prop.adjoint_layout: the whole Elastic.adjoint_step (as
     adseismic.elastic.ElasticSweep launches it, without the receivers' adjoint) and each half step's launches
     (Elastic.adjoint_update's parts: pass 1, pass 2 and, fused, pass 2's tiles alone and, split, the sums' tiles)."""
-    jobs = {"step_backward_hand": lambda: prop.adjoint_step(st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch, 3)}
+    jobs = {"step_backward_hand": lambda: prop.adjoint_step(st, nxt, mat, adj, adj_mat, src, adj_src, scratch, 3)}
     lay = prop.adjoint_layout
     parts = ("pass1", "pass2") + (("tiles",) if lay else ()) + (("sums",) if lay and lay.split else ())
     for kind, half in ((1, "stress"), (0, "velocity")):
         for part in parts:
-            jobs[f"{half}_adjoint_{part}"] = lambda kind=kind, part=part: prop.adjoint_update(kind, st, nxt, mat, adj_next, adj, adj_mat,
+            jobs[f"{half}_adjoint_{part}"] = lambda kind=kind, part=part: prop.adjoint_update(kind, st, nxt, mat, adj, adj_mat,
                                                                                                scratch, part)  # fmt: skip
     return jobs
 
@@ -205,7 +205,7 @@ def backward_times(su, device, reps):
     def zeros(shape):
         return wp.zeros(shape, dtype=prop.dtype, device=device)
 
-    st, nxt, adj_next, adj = (prop.new_state() for _ in range(4))
+    st, nxt, adj = (prop.new_state() for _ in range(3))
     mat = su.materials()
     prop.step(st, mat, src, 3, out=nxt)
     adj_mat = [zeros(prop.padded) for _ in mat[:-1]]
@@ -217,11 +217,11 @@ def backward_times(su, device, reps):
         prop.step(a, su.materials(requires_grad=True), src, 3, out=b)
     layout = prop.adjoint_layout
     out = {"adjoint_layout": layout._asdict() if layout else None}
-    out.update(timings({**adjoint_jobs(prop, st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch), "step_backward_warp": tape.backward},
+    out.update(timings({**adjoint_jobs(prop, st, nxt, mat, adj, adj_mat, src, adj_src, scratch), "step_backward_warp": tape.backward},
                        device, reps))  # fmt: skip
     prop.adjoint_layout = None
     try:
-        out.update(timings({"step_backward_cells": lambda: prop.adjoint_step(st, nxt, mat, adj_next, adj, adj_mat, src, adj_src, scratch, 3)},
+        out.update(timings({"step_backward_cells": lambda: prop.adjoint_step(st, nxt, mat, adj, adj_mat, src, adj_src, scratch, 3)},
                            device, reps))  # fmt: skip
     finally:
         prop.adjoint_layout = layout
@@ -238,9 +238,9 @@ class AdjointCheck:
         self.mat = random_materials(prop, rng)
         self.st, self.nxt = random_state(prop, rng), prop.new_state()
         prop.step(self.st, self.mat, None, 0, out=self.nxt)
-        self.start = [*random_state(prop, rng).arrays(), *random_state(prop, rng).arrays()]
+        self.start = random_state(prop, rng).arrays()
         self.start += [wp.array(rng.standard_normal(prop.padded, dtype=np.float32), dtype=prop.dtype, device=prop.device) for _ in self.mat[:-1]]
-        self.adj_next, self.adj = prop.new_state(), prop.new_state()
+        self.adj = prop.new_state()
         self.adj_mat = [wp.empty(prop.padded, dtype=prop.dtype, device=prop.device) for _ in self.mat[:-1]]
         self.scratch = [wp.zeros((prop.n_shots, *prop.padded), dtype=prop.dtype, device=prop.device) for _ in range(4)]
         layout = prop.adjoint_layout
@@ -251,13 +251,13 @@ class AdjointCheck:
             prop.adjoint_layout = layout
 
     def outputs(self):
-        return [*self.adj_next.arrays(), *self.adj.arrays(), *self.adj_mat]
+        return [*self.adj.arrays(), *self.adj_mat]
 
     def run(self):
         """One adjoint step from the start values with the propagator's current AdjointLayout; its outputs."""
         for dst, src in zip(self.outputs(), self.start):
             wp.copy(dst, src)
-        self.prop.adjoint_step(self.st, self.nxt, self.mat, self.adj_next, self.adj, self.adj_mat, None, (), self.scratch, 0)
+        self.prop.adjoint_step(self.st, self.nxt, self.mat, self.adj, self.adj_mat, None, (), self.scratch, 0)
         return self.outputs()
 
     def max_rel_diff(self):
@@ -273,7 +273,7 @@ def adjoint_variant_times(check, layout, device, reps):
         if not prop.has_adjoint_box:
             raise ValueError("the grid has no adjoint box")
         out = {"layout": layout._asdict(), "max_rel_diff": check.max_rel_diff()}
-        out.update(timings(adjoint_jobs(prop, check.st, check.nxt, check.mat, check.adj_next, check.adj, check.adj_mat, None, (), check.scratch),
+        out.update(timings(adjoint_jobs(prop, check.st, check.nxt, check.mat, check.adj, check.adj_mat, None, (), check.scratch),
                            device, reps))  # fmt: skip
     finally:
         prop.adjoint_layout = default

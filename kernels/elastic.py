@@ -371,12 +371,13 @@ def build(order: int, dtype, free_surface: bool):
         return d + new[s, row, col]
 
     @wp.func
-    def cpml_t(g: dtype, j: int, p: int, a: arr1, b: arr1, adj_old: arr3, adj_new: arr3, s: int, row: int, col: int) -> dtype:
-        # adjoint of cpml: g is the adjoint of its result; writes adj_old (its only term), returns the adjoint of d
+    def cpml_t(g: dtype, j: int, p: int, a: arr1, b: arr1, adj: arr3, s: int, row: int, col: int) -> dtype:
+        # adjoint of cpml in place: g is the adjoint of its result; adj (psi's adjoint) goes from psi_new's to psi_old's
+        # (its only term); returns the adjoint of d
         if j < 0:
             return g
-        q = adj_new[s, row, col] + g
-        adj_old[s, row, col] = b[p] * q
+        q = adj[s, row, col] + g
+        adj[s, row, col] = b[p] * q
         return g + a[p] * q
 
     @wp.func
@@ -877,18 +878,18 @@ def build(order: int, dtype, free_surface: bool):
         return s * lz * lx + c, c, n
 
     # --- hand-written adjoints ------------------------------------------------------------------------
-    # Pass 1 (`*_adjoint`, thread per interior cell outside `hole` (frame_cell), all shots): adj(old field) =
-    # adj(new field) (written: no other term reaches it before), the materials' adjoints (added), the CPML memory
-    # variables' (written), and t_k = adjoint of the k-th raw stencil sum into the scratch arrays (0 on surface rows,
+    # In place: one adjoint State goes from level n + 1's to level n's (adj(old field) = adj(new field) + the gathers' terms;
+    # each thread reads an adjoint field's cell before writing it and writes no other thread's). Pass 1 (`*_adjoint`,
+    # thread per interior cell outside `hole` (frame_cell), all shots): the materials' adjoints (added), the CPML memory
+    # variables' (in place), and t_k = adjoint of the k-th raw stencil sum into the scratch arrays (0 on surface rows,
     # which scatter theirs). Pass 2 (`*_gather`, launched by `*_transpose` or make_adjoints' kernels, which fuse it with
     # pass 1 inside the hole): adj(inputs) += transposed stencils of t_k, gathered.
 
     @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def velocity_adjoint(
         sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2, n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
-        g_vx_new: arr3, g_vz_new: arr3, g_vx: arr3, g_vz: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_bx: arr2, g_bz: arr2,
-        gp_vx_x: arr3, gp_vx_z: arr3, gp_vz_x: arr3, gp_vz_z: arr3, gn_vx_x: arr3, gn_vx_z: arr3, gn_vz_x: arr3, gn_vz_z: arr3,
-        t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, hole: wp.vec4i,
+        g_vx: arr3, g_vz: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_bx: arr2, g_bz: arr2,
+        gp_vx_x: arr3, gp_vx_z: arr3, gp_vz_x: arr3, gp_vz_z: arr3, t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, hole: wp.vec4i,
     ):  # fmt: skip
         z, x = frame_cell(wp.tid(), sxx.shape[1], sxx.shape[2], hole)
         jz = az.store[z]
@@ -899,10 +900,8 @@ def build(order: int, dtype, free_surface: bool):
         acc2 = dtype(0.0)
         scatter = surface_row(z, top)
         for s in range(sxx.shape[0]):
-            ga = g_vx_new[s, z, x]
-            gb = g_vz_new[s, z, x]
-            g_vx[s, z, x] = ga
-            g_vz[s, z, x] = gb
+            ga = g_vx[s, z, x]
+            gb = g_vz[s, z, x]
             d1 = cpml_value(dx_of_int(sxx, s, z, x) * inv_dx, jx, n_vx_x, s, z, jx)
             d2 = cpml_value(dz_sxz(sxz, s, z, x, top) * inv_dx, jz, n_vx_z, s, jz, x)
             d3 = cpml_value(dx_of_half(sxz, s, z, x) * inv_dx, jx, n_vz_x, s, z, jx)
@@ -911,10 +910,10 @@ def build(order: int, dtype, free_surface: bool):
             acc2 += dt * gb * (d3 + d4)
             ha = dt * b1 * ga
             hb = dt * b2 * gb
-            a1 = cpml_t(ha, jx, x, ax.ah, ax.bh, gp_vx_x, gn_vx_x, s, z, jx) * inv_dx
-            a2 = cpml_t(ha, jz, z, az.a, az.b, gp_vx_z, gn_vx_z, s, jz, x) * inv_dx
-            a3 = cpml_t(hb, jx, x, ax.a, ax.b, gp_vz_x, gn_vz_x, s, z, jx) * inv_dx
-            a4 = cpml_t(hb, jz, z, az.ah, az.bh, gp_vz_z, gn_vz_z, s, jz, x) * inv_dx
+            a1 = cpml_t(ha, jx, x, ax.ah, ax.bh, gp_vx_x, s, z, jx) * inv_dx
+            a2 = cpml_t(ha, jz, z, az.a, az.b, gp_vx_z, s, jz, x) * inv_dx
+            a3 = cpml_t(hb, jx, x, ax.a, ax.b, gp_vz_x, s, z, jx) * inv_dx
+            a4 = cpml_t(hb, jz, z, az.ah, az.bh, gp_vz_z, s, jz, x) * inv_dx
             if scatter:
                 dxt_of_int(g_sxx, s, z, x, a1)
                 dzt_sxz(g_sxz, s, z, x, top, a2)
@@ -949,10 +948,8 @@ def build(order: int, dtype, free_surface: bool):
     @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def stress_adjoint(
         vx: arr3, vz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
-        g_sxx_new: arr3, g_szz_new: arr3, g_sxz_new: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_vx: arr3, g_vz: arr3,
-        g_l2m: arr2, g_lam: arr2, g_mu: arr2, g_muh: arr2,
-        gp_s_x: arr3, gp_s_z: arr3, gp_xz_z: arr3, gp_xz_x: arr3, gn_s_x: arr3, gn_s_z: arr3, gn_xz_z: arr3, gn_xz_x: arr3,
-        t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, hole: wp.vec4i,
+        g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_vx: arr3, g_vz: arr3, g_l2m: arr2, g_lam: arr2, g_mu: arr2, g_muh: arr2,
+        gp_s_x: arr3, gp_s_z: arr3, gp_xz_z: arr3, gp_xz_x: arr3, t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, hole: wp.vec4i,
     ):  # fmt: skip
         z, x = frame_cell(wp.tid(), vx.shape[1], vx.shape[2], hole)
         jz = az.store[z]
@@ -970,11 +967,9 @@ def build(order: int, dtype, free_surface: bool):
         if wp.static(fs):
             surface = z == top
         for s in range(vx.shape[0]):
-            gxx = g_sxx_new[s, z, x]
-            gzz = g_szz_new[s, z, x]
-            gxz = g_sxz_new[s, z, x]
-            g_sxx[s, z, x] = gxx
-            g_sxz[s, z, x] = gxz
+            gxx = g_sxx[s, z, x]
+            gzz = g_szz[s, z, x]
+            gxz = g_sxz[s, z, x]
             dvx = cpml_value(dx_of_half(vx, s, z, x) * inv_dx, jx, n_s_x, s, z, jx)
             dvz = cpml_value(dvz_normal(vz, s, z, x, top) * inv_dx, jz, n_s_z, s, jz, x)
             hxx = dt * gxx
@@ -989,7 +984,6 @@ def build(order: int, dtype, free_surface: bool):
                 gdvz = dtype(0.0)
                 g_szz[s, z, x] = dtype(0.0)
             else:
-                g_szz[s, z, x] = gzz
                 acc_l2m += hxx * dvx + hzz * dvz
                 acc_lam += hxx * dvz + hzz * dvx
                 gdvx, gdvz = normal_rates(c1, c2, hxx, hzz)
@@ -997,10 +991,10 @@ def build(order: int, dtype, free_surface: bool):
             e2 = cpml_value(dx_of_int(vz, s, z, x) * inv_dx, jx, n_xz_x, s, z, jx)
             acc_muh += dt * gxz * (e1 + e2)
             he = dt * c4 * gxz
-            a1 = cpml_t(gdvx, jx, x, ax.a, ax.b, gp_s_x, gn_s_x, s, z, jx) * inv_dx
-            a2 = cpml_t(gdvz, jz, z, az.a, az.b, gp_s_z, gn_s_z, s, jz, x) * inv_dx
-            a3 = cpml_t(he, jz, z, az.ah, az.bh, gp_xz_z, gn_xz_z, s, jz, x) * inv_dx
-            a4 = cpml_t(he, jx, x, ax.ah, ax.bh, gp_xz_x, gn_xz_x, s, z, jx) * inv_dx
+            a1 = cpml_t(gdvx, jx, x, ax.a, ax.b, gp_s_x, s, z, jx) * inv_dx
+            a2 = cpml_t(gdvz, jz, z, az.a, az.b, gp_s_z, s, jz, x) * inv_dx
+            a3 = cpml_t(he, jz, z, az.ah, az.bh, gp_xz_z, s, jz, x) * inv_dx
+            a4 = cpml_t(he, jx, x, ax.ah, ax.bh, gp_xz_x, s, z, jx) * inv_dx
             if scatter:
                 dxt_of_half(g_vx, s, z, x, a1)
                 dvz_normal_t(g_vz, s, z, x, top, a2)
@@ -1077,14 +1071,13 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.func
         def velocity_tile(
-            sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx_new: arr1, g_vz_new: arr1, g_vx: arr1, g_vz: arr1,
-            g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1,
-            t: int, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+            sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx: arr1, g_vz: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
+            g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1, t: int, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
             i, c, z, ncol = tile(t, lz, lx, box)
             x = c - z * lx
-            ta = scaled(g_vx_new, bx, i - c, dt, inv_dx)  # t1 = t2 of velocity_adjoint
-            tb = scaled(g_vz_new, bz, i - c, dt, inv_dx)  # t3 = t4
+            ta = scaled(g_vx, bx, i - c, dt, inv_dx)  # t1 = t2 of velocity_adjoint
+            tb = scaled(g_vz, bz, i - c, dt, inv_dx)  # t3 = t4
             wa = load_window(sxz, i, lx, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
             wb = load_window(szz, i, lx, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (d4)
             w2 = load_window(ta, i, lx, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
@@ -1101,10 +1094,8 @@ def build(order: int, dtype, free_surface: bool):
                             g_sxz[i + j] = g_sxz[i + j] - dwin(w2[j]) - dline(r3, j)
                             g_szz[i + j] = g_szz[i + j] - dwin(w4[j])
                             if inside(z + k, x + j, inner):
-                                ga = g_vx_new[i + j]
-                                gb = g_vz_new[i + j]
-                                g_vx[i + j] = ga
-                                g_vz[i + j] = gb
+                                ga = g_vx[i + j]
+                                gb = g_vz[i + j]
                                 add_shot(g_bx, t1, c + j, i + j, dt * ga * (dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx), shots)
                                 add_shot(g_bz, t2, c + j, i + j, dt * gb * (dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx), shots)
                     if wp.static(k + 1 < rows):
@@ -1117,16 +1108,15 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.func
         def stress_tile(
-            vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx_new: arr1, g_szz_new: arr1, g_sxz_new: arr1,
-            g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1, g_l2m: arr1, g_lam: arr1, g_muh: arr1,
-            t1: arr1, t2: arr1, t3: arr1, t: int, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype,
-            inv_dx: dtype,
+            vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1,
+            g_l2m: arr1, g_lam: arr1, g_muh: arr1, t1: arr1, t2: arr1, t3: arr1, t: int, shots: int, lz: int, lx: int, box: wp.vec4i,
+            inner: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
             i, c, z, ncol = tile(t, lz, lx, box)
             x = c - z * lx
-            tx = normal(g_sxx_new, g_szz_new, l2m, lam, i - c, dt, inv_dx)  # t1 of stress_adjoint
-            tz = normal(g_sxx_new, g_szz_new, lam, l2m, i - c, dt, inv_dx)  # t2
-            ts = scaled(g_sxz_new, muh, i - c, dt, inv_dx)  # t3 = t4
+            tx = normal(g_sxx, g_szz, l2m, lam, i - c, dt, inv_dx)  # t1 of stress_adjoint
+            tz = normal(g_sxx, g_szz, lam, l2m, i - c, dt, inv_dx)  # t2
+            ts = scaled(g_sxz, muh, i - c, dt, inv_dx)  # t3 = t4
             wa = load_window(vz, i, lx, wp.static(-M))  # vz at rows z - M .. z + M - 1 (dvz)
             wb = load_window(vx, i, lx, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (e1)
             w2 = load_window(tz, i, lx, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
@@ -1142,12 +1132,9 @@ def build(order: int, dtype, free_surface: bool):
                             g_vx[i + j] = g_vx[i + j] - dline(r1, j) - dwin(w3[j])
                             g_vz[i + j] = g_vz[i + j] - dwin(w2[j]) - dline(r4, j)
                             if inside(z + k, x + j, inner):
-                                gxx = g_sxx_new[i + j]
-                                gzz = g_szz_new[i + j]
-                                gxz = g_sxz_new[i + j]
-                                g_sxx[i + j] = gxx
-                                g_szz[i + j] = gzz
-                                g_sxz[i + j] = gxz
+                                gxx = g_sxx[i + j]
+                                gzz = g_szz[i + j]
+                                gxz = g_sxz[i + j]
                                 dvx = dline(ra, j) * inv_dx
                                 dvz = dwin(wa[j]) * inv_dx
                                 hxx = dt * gxx
@@ -1165,15 +1152,15 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def velocity_fused(
-            sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx_new: arr1, g_vz_new: arr1, g_vx: arr1, g_vz: arr1,
-            g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1, t3: arr1, t4: arr1,
+            sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx: arr1, g_vz: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
+            g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1, t3: arr1, t4: arr1,
             lz: int, lx: int, shots: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int,
             frame_cells: int,
         ):  # fmt: skip
             t = wp.tid()
             if t < tiles:
-                velocity_tile(sxx, szz, sxz, bx, bz, g_vx_new, g_vz_new, g_vx, g_vz, g_sxx, g_szz, g_sxz, g_bx, g_bz, t1, t2,
-                              t, shots, lz, lx, box, inner, dt, inv_dx)  # fmt: skip
+                velocity_tile(sxx, szz, sxz, bx, bz, g_vx, g_vz, g_sxx, g_szz, g_sxz, g_bx, g_bz, t1, t2, t, shots, lz, lx, box, inner,
+                              dt, inv_dx)  # fmt: skip
             elif t >= frame:
                 s = (t - frame) // frame_cells
                 z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
@@ -1181,15 +1168,14 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def stress_fused(
-            vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx_new: arr1, g_szz_new: arr1, g_sxz_new: arr1,
-            g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1, g_l2m: arr1, g_lam: arr1, g_muh: arr1,
-            t1: arr1, t2: arr1, t3: arr1, t4: arr1, lz: int, lx: int, shots: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype,
-            inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
+            vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1,
+            g_l2m: arr1, g_lam: arr1, g_muh: arr1, t1: arr1, t2: arr1, t3: arr1, t4: arr1, lz: int, lx: int, shots: int, box: wp.vec4i,
+            inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
         ):  # fmt: skip
             t = wp.tid()
             if t < tiles:
-                stress_tile(vx, vz, l2m, lam, muh, g_sxx_new, g_szz_new, g_sxz_new, g_sxx, g_szz, g_sxz, g_vx, g_vz, g_l2m, g_lam,
-                            g_muh, t1, t2, t3, t, shots, lz, lx, box, inner, dt, inv_dx)  # fmt: skip
+                stress_tile(vx, vz, l2m, lam, muh, g_sxx, g_szz, g_sxz, g_vx, g_vz, g_l2m, g_lam, g_muh, t1, t2, t3, t, shots, lz, lx, box,
+                            inner, dt, inv_dx)  # fmt: skip
             elif t >= frame:
                 s = (t - frame) // frame_cells
                 z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
@@ -1206,12 +1192,12 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.func
         def velocity_gathers_tile(
-            bx: arrv, bz: arrv, g_vx_new: arrv, g_vz_new: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
+            bx: arrv, bz: arrv, g_vx: arrv, g_vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
             t: int, lz: int, lx: int, box: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
             i, c, z, n = place(t, lz, lx, box)
-            ta = scaled_v(g_vx_new, bx, i - c, dt, inv_dx)  # t1 = t2 of velocity_adjoint
-            tb = scaled_v(g_vz_new, bz, i - c, dt, inv_dx)  # t3 = t4
+            ta = scaled_v(g_vx, bx, i - c, dt, inv_dx)  # t1 = t2 of velocity_adjoint
+            tb = scaled_v(g_vz, bz, i - c, dt, inv_dx)  # t3 = t4
             w2 = load_window(ta, i, n, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
             w4 = load_window(tb, i, n, wp.static(-M))  # t4 at rows z - M .. z + M - 1
             for k in range(wp.static(rows)):
@@ -1238,8 +1224,7 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.func
         def velocity_sums_tile(
-            sxx: arrv, szz: arrv, sxz: arrv, g_vx_new: arrv, g_vz_new: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv,
-            t1: arrv, t2: arrv, t: int, shots: int, lz: int, lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+            sxx: arrv, szz: arrv, sxz: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv, t1: arrv, t2: arrv, t: int, shots: int, lz: int, lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
             i, c, z, n = place(t, lz, lx, inner)
             wa = load_window(sxz, i, n, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
@@ -1248,10 +1233,8 @@ def build(order: int, dtype, free_surface: bool):
                 if z + k < inner[1]:
                     ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 .. (d1)
                     rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M .. (d3)
-                    ga = g_vx_new[i]
-                    gb = g_vz_new[i]
-                    g_vx[i] = ga
-                    g_vz[i] = gb
+                    ga = g_vx[i]
+                    gb = g_vz[i]
                     ea = vec()
                     eb = vec()
                     for j in range(wp.static(width)):
@@ -1267,13 +1250,13 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.func
         def stress_gathers_tile(
-            l2m: arrv, lam: arrv, muh: arrv, g_sxx_new: arrv, g_szz_new: arrv, g_sxz_new: arrv, g_vx: arrv, g_vz: arrv,
+            l2m: arrv, lam: arrv, muh: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_vx: arrv, g_vz: arrv,
             t: int, lz: int, lx: int, box: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
             i, c, z, n = place(t, lz, lx, box)
-            tx = normal_v(g_sxx_new, g_szz_new, l2m, lam, i - c, dt, inv_dx)  # t1 of stress_adjoint
-            tz = normal_v(g_sxx_new, g_szz_new, lam, l2m, i - c, dt, inv_dx)  # t2
-            ts = scaled_v(g_sxz_new, muh, i - c, dt, inv_dx)  # t3 = t4
+            tx = normal_v(g_sxx, g_szz, l2m, lam, i - c, dt, inv_dx)  # t1 of stress_adjoint
+            tz = normal_v(g_sxx, g_szz, lam, l2m, i - c, dt, inv_dx)  # t2
+            ts = scaled_v(g_sxz, muh, i - c, dt, inv_dx)  # t3 = t4
             w2 = load_window(tz, i, n, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
             w3 = load_window(ts, i, n, wp.static(-M))  # t3 at rows z - M .. z + M - 1
             for k in range(wp.static(rows)):
@@ -1296,9 +1279,8 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.func
         def stress_sums_tile(
-            vx: arrv, vz: arrv, g_sxx_new: arrv, g_szz_new: arrv, g_sxz_new: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
-            g_l2m: arrv, g_lam: arrv, g_muh: arrv, t1: arrv, t2: arrv, t3: arrv, t: int, shots: int, lz: int, lx: int,
-            inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+            vx: arrv, vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_l2m: arrv, g_lam: arrv, g_muh: arrv, t1: arrv, t2: arrv,
+            t3: arrv, t: int, shots: int, lz: int, lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
             i, c, z, n = place(t, lz, lx, inner)
             wa = load_window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1 (dvz)
@@ -1307,12 +1289,9 @@ def build(order: int, dtype, free_surface: bool):
                 if z + k < inner[1]:
                     ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M .. (dvx)
                     rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 .. (e2)
-                    gxx = g_sxx_new[i]
-                    gzz = g_szz_new[i]
-                    gxz = g_sxz_new[i]
-                    g_sxx[i] = gxx
-                    g_szz[i] = gzz
-                    g_sxz[i] = gxz
+                    gxx = g_sxx[i]
+                    gzz = g_szz[i]
+                    gxz = g_sxz[i]
                     e1 = vec()
                     e2 = vec()
                     e3 = vec()
@@ -1335,14 +1314,14 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def velocity_gathers(
-            bx: arrv, bz: arrv, g_vx_new: arrv, g_vz_new: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
+            bx: arrv, bz: arrv, g_vx: arrv, g_vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
             t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1, lz: int, lx: int, box: wp.vec4i,
             dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
         ):  # fmt: skip
             # f_*: g_sxx, g_szz, g_sxz as flat arrays (the frame's)
             t = wp.tid()
             if t < tiles:
-                velocity_gathers_tile(bx, bz, g_vx_new, g_vz_new, g_sxx, g_szz, g_sxz, t, lz, lx, box, dt, inv_dx)
+                velocity_gathers_tile(bx, bz, g_vx, g_vz, g_sxx, g_szz, g_sxz, t, lz, lx, box, dt, inv_dx)
             elif t >= frame:
                 s = (t - frame) // frame_cells
                 z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
@@ -1350,13 +1329,13 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def stress_gathers(
-            l2m: arrv, lam: arrv, muh: arrv, g_sxx_new: arrv, g_szz_new: arrv, g_sxz_new: arrv, g_vx: arrv, g_vz: arrv,
+            l2m: arrv, lam: arrv, muh: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_vx: arrv, g_vz: arrv,
             t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_vx: arr1, f_vz: arr1, lz: int, lx: int, box: wp.vec4i,
             dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
         ):  # fmt: skip
             t = wp.tid()
             if t < tiles:
-                stress_gathers_tile(l2m, lam, muh, g_sxx_new, g_szz_new, g_sxz_new, g_vx, g_vz, t, lz, lx, box, dt, inv_dx)
+                stress_gathers_tile(l2m, lam, muh, g_sxx, g_szz, g_sxz, g_vx, g_vz, t, lz, lx, box, dt, inv_dx)
             elif t >= frame:
                 s = (t - frame) // frame_cells
                 z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
@@ -1364,20 +1343,17 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def velocity_sums(
-            sxx: arrv, szz: arrv, sxz: arrv, g_vx_new: arrv, g_vz_new: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv,
-            t1: arrv, t2: arrv, shots: int, lz: int, lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+            sxx: arrv, szz: arrv, sxz: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv, t1: arrv, t2: arrv, shots: int, lz: int,
+            lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
-            velocity_sums_tile(sxx, szz, sxz, g_vx_new, g_vz_new, g_vx, g_vz, g_bx, g_bz, t1, t2, wp.tid(), shots, lz, lx, inner, dt,
-                               inv_dx)  # fmt: skip
+            velocity_sums_tile(sxx, szz, sxz, g_vx, g_vz, g_bx, g_bz, t1, t2, wp.tid(), shots, lz, lx, inner, dt, inv_dx)
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def stress_sums(
-            vx: arrv, vz: arrv, g_sxx_new: arrv, g_szz_new: arrv, g_sxz_new: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
-            g_l2m: arrv, g_lam: arrv, g_muh: arrv, t1: arrv, t2: arrv, t3: arrv, shots: int, lz: int, lx: int, inner: wp.vec4i,
-            dt: dtype, inv_dx: dtype,
+            vx: arrv, vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_l2m: arrv, g_lam: arrv, g_muh: arrv, t1: arrv, t2: arrv,
+            t3: arrv, shots: int, lz: int, lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
-            stress_sums_tile(vx, vz, g_sxx_new, g_szz_new, g_sxz_new, g_sxx, g_szz, g_sxz, g_l2m, g_lam, g_muh, t1, t2, t3, wp.tid(),
-                             shots, lz, lx, inner, dt, inv_dx)  # fmt: skip
+            stress_sums_tile(vx, vz, g_sxx, g_szz, g_sxz, g_l2m, g_lam, g_muh, t1, t2, t3, wp.tid(), shots, lz, lx, inner, dt, inv_dx)
 
         return velocity_gathers, stress_gathers, velocity_sums, stress_sums
 
@@ -1455,6 +1431,20 @@ def build(order: int, dtype, free_surface: bool):
     pt_szz = make_point(0.0, 0.0, True)
     pt_sxz = make_point(0.5, 0.5, True)
 
+    @wp.func
+    def add_force(vx: arr3, vz: arr3, bx: arr2, bz: arr2, a: dtype, fz: dtype, fx: dtype, s: int, i: wp.vec2i, w: dtype, j: wp.vec2i,
+                  u: dtype):  # fmt: skip
+        # one operator point of a line force: vx += a bx w fx at node i, vz += a bz u fz at node j (points of weight 0 skipped)
+        if w != dtype(0.0):
+            wp.atomic_add(vx, s, i[0], i[1], a * bx[i[0], i[1]] * w * fx)
+        if u != dtype(0.0):
+            wp.atomic_add(vz, s, j[0], j[1], a * bz[j[0], j[1]] * u * fz)
+
+    @wp.func
+    def add_moment(f: arr3, s: int, i: wp.vec2i, w: dtype, a: dtype, m: dtype):
+        if w != dtype(0.0):
+            wp.atomic_add(f, s, i[0], i[1], a * w * m)
+
     @wp.kernel(module="unique")
     def inject_force(
         vx: arr3, vz: arr3, bx: arr2, bz: arr2, amp: arr3, comp: arr3, loc: arr3, n: int, clock: iarr1,
@@ -1466,11 +1456,19 @@ def build(order: int, dtype, free_surface: bool):
         s, src, q = wp.tid()
         a = scale * amp[s, src, n + clock[0]]
         i, w = pt_vx(loc, s, src, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            wp.atomic_add(vx, s, i[0], i[1], a * bx[i[0], i[1]] * w * comp[s, src, 1])
-        i, w = pt_vz(loc, s, src, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            wp.atomic_add(vz, s, i[0], i[1], a * bz[i[0], i[1]] * w * comp[s, src, 0])
+        j, u = pt_vz(loc, s, src, q, origin, inv_dx, top)
+        add_force(vx, vz, bx, bz, a, comp[s, src, 0], comp[s, src, 1], s, i, w, j, u)
+
+    @wp.kernel(module="unique")
+    def inject_force_op(
+        vx: arr3, vz: arr3, bx: arr2, bz: arr2, amp: arr3, comp: arr3, idx: wp.array4d(dtype=wp.vec2i), wts: arr4, n: int, clock: iarr1,
+        scale: dtype,
+    ):  # fmt: skip
+        # inject_force through the fixed operator (idx, wts) of Elastic.operator (sources whose locations are not differentiated)
+        s, src, q = wp.tid()
+        a = scale * amp[s, src, n + clock[0]]
+        add_force(vx, vz, bx, bz, a, comp[s, src, 0], comp[s, src, 1], s, idx[0, s, src, q], wts[0, s, src, q], idx[1, s, src, q],
+                  wts[1, s, src, q])  # fmt: skip
 
     @wp.kernel(module="unique")
     def inject_moment(
@@ -1481,19 +1479,27 @@ def build(order: int, dtype, free_surface: bool):
         s, src, q = wp.tid()
         a = -scale * (amp[s, src, n + clock[0] + 1] - amp[s, src, n + clock[0]])
         i, w = pt_sxx(loc, s, src, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            wp.atomic_add(sxx, s, i[0], i[1], a * w * comp[s, src, 0])
+        add_moment(sxx, s, i, w, a, comp[s, src, 0])
         i, w = pt_szz(loc, s, src, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            wp.atomic_add(szz, s, i[0], i[1], a * w * comp[s, src, 1])
+        add_moment(szz, s, i, w, a, comp[s, src, 1])
         i, w = pt_sxz(loc, s, src, q, origin, inv_dx, top)
-        if w != dtype(0.0):
-            wp.atomic_add(sxz, s, i[0], i[1], a * w * comp[s, src, 2])
+        add_moment(sxz, s, i, w, a, comp[s, src, 2])
+
+    @wp.kernel(module="unique")
+    def inject_moment_op(
+        sxx: arr3, szz: arr3, sxz: arr3, amp: arr3, comp: arr3, idx: wp.array4d(dtype=wp.vec2i), wts: arr4, n: int, clock: iarr1,
+        scale: dtype,
+    ):  # fmt: skip
+        s, src, q = wp.tid()
+        a = -scale * (amp[s, src, n + clock[0] + 1] - amp[s, src, n + clock[0]])
+        add_moment(sxx, s, idx[2, s, src, q], wts[2, s, src, q], a, comp[s, src, 0])
+        add_moment(szz, s, idx[3, s, src, q], wts[3, s, src, q], a, comp[s, src, 1])
+        add_moment(sxz, s, idx[4, s, src, q], wts[4, s, src, q], a, comp[s, src, 2])
 
     @wp.kernel(module="unique")
     def weights(loc: arr3, origin: wp.vec2i, inv_dx: dtype, top: int, idx: wp.array4d(dtype=wp.vec2i), w: arr4):
-        # receiver operators, computed once per run: node and weight of point q of receiver r for vx, vz,
-        # sxx, szz (first index)
+        # fixed operators, computed once per run: node and weight of point q of location r for vx, vz, sxx, szz, sxz
+        # (first index)
         s, r, q = wp.tid()
         i, wq = pt_vx(loc, s, r, q, origin, inv_dx, top)
         idx[0, s, r, q] = i
@@ -1507,6 +1513,9 @@ def build(order: int, dtype, free_surface: bool):
         i, wq = pt_szz(loc, s, r, q, origin, inv_dx, top)
         idx[3, s, r, q] = i
         w[3, s, r, q] = wq
+        i, wq = pt_sxz(loc, s, r, q, origin, inv_dx, top)
+        idx[4, s, r, q] = i
+        w[4, s, r, q] = wq
 
     @wp.kernel(module="unique")
     def record(
@@ -1543,7 +1552,8 @@ def build(order: int, dtype, free_surface: bool):
         velocity_adjoint=velocity_adjoint, velocity_transpose=velocity_transpose, stress_adjoint=stress_adjoint,
         stress_transpose=stress_transpose, adjoints=functools.lru_cache(maxsize=None)(make_adjoints),
         split_adjoints=functools.lru_cache(maxsize=None)(make_split_adjoints), sum_shots=sum_shots,
-        inject_force=inject_force, inject_moment=inject_moment, weights=weights, record=record, pad_model=pad_model, halo=M,
+        inject_force=inject_force, inject_moment=inject_moment, inject_force_op=inject_force_op, inject_moment_op=inject_moment_op,
+        weights=weights, record=record, pad_model=pad_model, halo=M,
         operator_points=NPTS,
     )  # fmt: skip
 
@@ -1747,8 +1757,13 @@ class Elastic:
 
     def _source_launch(self, out: State, mat, sources, n: int, clock):
         """(kernel, dim, inputs) injecting sample n (+ clock[0]) of sources into out: a force into its velocities,
-        a moment into its stresses."""
+        a moment into its stresses; at their locations, or through their fixed operator (Elastic.operator) in their place."""
         kind, amp, comp, loc = sources
+        if isinstance(loc, tuple):
+            fields = [out.vx, out.vz, mat[0], mat[1]] if kind == "force" else [out.sxx, out.szz, out.sxz]
+            scale = self.dt / self.dx**2 if kind == "force" else 1.0 / self.dx**2
+            kernel = self.k.inject_force_op if kind == "force" else self.k.inject_moment_op
+            return kernel, loc[1].shape[1:], [*fields, amp, comp, *loc, n, clock, self.dtype(scale)]
         dim = (self.n_shots, loc.shape[1], self.k.operator_points)
         if kind == "force":
             return self.k.inject_force, dim, [out.vx, out.vz, mat[0], mat[1], amp, comp, loc, n, clock, self.origin,
@@ -1759,7 +1774,8 @@ class Elastic:
     def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
         """Advance st (level n) to level n + 1 with source sample n (+ clock[0], an int32 device array
         (1,), for graph replays). mat: MATERIALS (Elastic.materials); sources: (kind, amplitudes
-        (S, n_src, nt), components, locations (S, n_src, 2) m) with kind "force" or "moment", or None.
+        (S, n_src, nt), components, locations (S, n_src, 2) m or their Elastic.operator) with kind "force" or "moment",
+        or None.
         With out=None the step is done in place (forward only); with `out` (other arrays: a kept level, or
         fresh ones under a tape) st is left unchanged and out is returned. Under an active wp.Tape the
         per-cell reference kernels are launched and recorded (Warp's generated adjoints)."""
@@ -1815,34 +1831,31 @@ class Elastic:
         tiles = k.split_adjoints(lay.rows, self.adjoint_width) if lay.split else k.adjoints(lay.rows, lay.cols)
         return (k.velocity_adjoint, k.stress_adjoint, *tiles, *((k.sum_shots,) if self.n_shots > 1 else ()))
 
-    def adjoint_update(self, kind: int, st: State, out: State, mat, adj_next: State, adj: State, adj_mat, scratch, part=None):
-        """Adjoint of update(kind, st, out, mat) out of place (st and out as it left them), adj_next and adj the adjoint
-        States of out and st, adj_mat as in adjoint_step. Kind 1 writes adj's stresses and their update's memory
-        variables and adds to adj_next's velocities and the moduli's adjoints; kind 0 writes adj's velocities and their
-        memory variables and adds to adj's stresses and the buoyancies' adjoints. Pass 1 (per cell, outside the inner box
+    def adjoint_update(self, kind: int, st: State, out: State, mat, adj: State, adj_mat, scratch, part=None):
+        """Adjoint of update(kind, st, out, mat) out of place (st and out as it left them), in place in the adjoint State
+        adj (out's on entry, st's on return), adj_mat as in adjoint_step. Kind 1 takes its update's memory variables'
+        adjoints back a level and adds to adj's velocities and the moduli's adjoints; kind 0 takes its memory variables'
+        back and adds to adj's stresses and the buoyancies' adjoints. Pass 1 (per cell, outside the inner box
         with self.adjoint_layout), then pass 2 (the gathers, or with self.adjoint_layout the fused tiles and the frame's
         gathers; split: the sums' tiles, then the gathers' tiles and the frame's); part "pass1", "sums" (split) or
         "pass2" launches that alone, "tiles" pass 2's tiles alone (for timing)."""
         bx, bz, l2m, lam, mu, muh, _ = mat
         g_bx, g_bz, g_l2m, g_lam, g_mu, g_muh = adj_mat
-        Q, G, GN = out.psi, adj.psi, adj_next.psi
+        Q, G = out.psi, adj.psi
         if kind == 0:
-            args = [st.sxx, st.szz, st.sxz, bx, bz, *(Q[k] for k in PSI_V), adj_next.vx, adj_next.vz, adj.vx, adj.vz, adj.sxx, adj.szz,
-                    adj.sxz, g_bx, g_bz, *(G[k] for k in PSI_V), *(GN[k] for k in PSI_V)]  # fmt: skip
-            flat = [st.sxx, st.szz, st.sxz, bx, bz, adj_next.vx, adj_next.vz, adj.vx, adj.vz, adj.sxx, adj.szz, adj.sxz, g_bx, g_bz]
+            args = [st.sxx, st.szz, st.sxz, bx, bz, *(Q[k] for k in PSI_V), adj.vx, adj.vz, adj.sxx, adj.szz, adj.sxz, g_bx, g_bz,
+                    *(G[k] for k in PSI_V)]  # fmt: skip
+            flat = [st.sxx, st.szz, st.sxz, bx, bz, adj.vx, adj.vz, adj.sxx, adj.szz, adj.sxz, g_bx, g_bz]
             gathered = [adj.sxx, adj.szz, adj.sxz]
             summed = [g_bx, g_bz, g_bz]  # sum_shots' g1, g2 (and an unused g3)
-            split = ([bx, bz, adj_next.vx, adj_next.vz, *gathered],  # the split's gathers' and sums' vector arrays
-                     [st.sxx, st.szz, st.sxz, adj_next.vx, adj_next.vz, adj.vx, adj.vz, g_bx, g_bz])  # fmt: skip
+            split = ([bx, bz, adj.vx, adj.vz, *gathered], [st.sxx, st.szz, st.sxz, adj.vx, adj.vz, g_bx, g_bz])  # the split's gathers' and sums'
         else:
-            args = [out.vx, out.vz, l2m, lam, mu, muh, *(Q[k] for k in PSI_S), adj_next.sxx, adj_next.szz, adj_next.sxz, adj.sxx, adj.szz,
-                    adj.sxz, adj_next.vx, adj_next.vz, g_l2m, g_lam, g_mu, g_muh, *(G[k] for k in PSI_S), *(GN[k] for k in PSI_S)]  # fmt: skip
-            flat = [out.vx, out.vz, l2m, lam, muh, adj_next.sxx, adj_next.szz, adj_next.sxz, adj.sxx, adj.szz, adj.sxz, adj_next.vx,
-                    adj_next.vz, g_l2m, g_lam, g_muh]  # fmt: skip
-            gathered = [adj_next.vx, adj_next.vz]
+            args = [out.vx, out.vz, l2m, lam, mu, muh, *(Q[k] for k in PSI_S), adj.sxx, adj.szz, adj.sxz, adj.vx, adj.vz, g_l2m, g_lam, g_mu,
+                    g_muh, *(G[k] for k in PSI_S)]  # fmt: skip
+            flat = [out.vx, out.vz, l2m, lam, muh, adj.sxx, adj.szz, adj.sxz, adj.vx, adj.vz, g_l2m, g_lam, g_muh]
+            gathered = [adj.vx, adj.vz]
             summed = [g_l2m, g_lam, g_muh]
-            split = ([l2m, lam, muh, adj_next.sxx, adj_next.szz, adj_next.sxz, *gathered],
-                     [out.vx, out.vz, adj_next.sxx, adj_next.szz, adj_next.sxz, adj.sxx, adj.szz, adj.sxz, g_l2m, g_lam, g_muh])  # fmt: skip
+            split = ([l2m, lam, muh, adj.sxx, adj.szz, adj.sxz, *gathered], [out.vx, out.vz, adj.sxx, adj.szz, adj.sxz, g_l2m, g_lam, g_muh])
         kernels = self.adjoint_kernels()
         fused = self._fused()
         box, inner = self.adjoint_boxes() if fused else (self.box, self.no_hole)
@@ -1879,30 +1892,31 @@ class Elastic:
                       inputs=[*t[:3], *(a.flatten() for a in summed), 2 + kind, self.n_shots, *self.padded, inner], device=self.device,
                       record_tape=False)  # fmt: skip
 
-    def adjoint_step(self, st: State, out: State, mat, adj_next: State, adj: State, adj_mat, sources, adj_sources, scratch, n: int,
-                     clock=None):  # fmt: skip
+    def adjoint_step(self, st: State, out: State, mat, adj: State, adj_mat, sources, adj_sources, scratch, n: int, clock=None):
         """Adjoint of step(st, mat, sources, n, out) (out-of-place, st and out as it left them): the hand-written
-        adjoints of the half steps (adjoint_update) and Warp's generated ones of the source injection. adj_next: the
-        adjoint State of level n + 1, consumed (its velocities gain the stress update's terms); adj: that of level n,
-        written (every interior and CPML strip cell; its halo cells are never read); adj_mat: the adjoints of MATERIALS
-        but b (6 arrays (Lz, Lx)); adj_sources: of the sources' (amplitudes, components, locations); both added to.
-        scratch: four fields (S, Lz, Lx) whose halo is zero."""
+        adjoints of the half steps (adjoint_update) and Warp's generated ones of the source injection. adj: the adjoint
+        State, level n + 1's on entry and level n's on return (in place; its halo cells are never read); adj_mat: the
+        adjoints of MATERIALS but b (6 arrays (Lz, Lx)); adj_sources: of the sources' (amplitudes, components,
+        locations; given a fixed operator, the locations' is left alone); both added to. scratch: four fields (S, Lz, Lx)
+        whose halo is zero."""
         clock = self.clock if clock is None else clock
 
         def source_adjoint(kind, first):  # adjoints of the injection's inputs, in launch order from `first` (the fields)
             if sources is not None and sources[0] == kind:
                 kernel, dim, inputs = self._source_launch(out, mat, sources, n, clock)
                 extra = [adj_mat[0], adj_mat[1]] if kind == "force" else []
-                _adjoint_launch(kernel, dim, inputs, dict(enumerate([*first, *extra, *adj_sources])), self.device)
+                wrt = adj_sources[:2] if isinstance(sources[3], tuple) else adj_sources
+                _adjoint_launch(kernel, dim, inputs, dict(enumerate([*first, *extra, *wrt])), self.device)
 
-        source_adjoint("moment", [adj_next.sxx, adj_next.szz, adj_next.sxz])
-        self.adjoint_update(1, st, out, mat, adj_next, adj, adj_mat, scratch)
-        source_adjoint("force", [adj_next.vx, adj_next.vz])
-        self.adjoint_update(0, st, out, mat, adj_next, adj, adj_mat, scratch)
+        source_adjoint("moment", [adj.sxx, adj.szz, adj.sxz])
+        self.adjoint_update(1, st, out, mat, adj, adj_mat, scratch)
+        source_adjoint("force", [adj.vx, adj.vz])
+        self.adjoint_update(0, st, out, mat, adj, adj_mat, scratch)
 
-    def receivers(self, locations):
-        """The receiver operator at locations (S, n_rec, 2) m: node indices and weights (4, S, n_rec, points)."""
-        shape = (4, self.n_shots, locations.shape[1], self.k.operator_points)
+    def operator(self, locations):
+        """The fixed operator of points at locations (S, n, 2) m (receivers; sources whose locations are not differentiated):
+        node indices and weights (5, S, n, points) at the vx, vz, sxx, szz and sxz nodes."""
+        shape = (5, self.n_shots, locations.shape[1], self.k.operator_points)
         idx = wp.zeros(shape, dtype=wp.vec2i, device=self.device)
         w = wp.zeros(shape, dtype=self.dtype, device=self.device)
         wp.launch(self.k.weights, dim=shape[1:], inputs=[locations, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
@@ -1910,7 +1924,7 @@ class Elastic:
 
     def record(self, st: State, data, op, n: int, clock=None):
         """data = (vx, vz, pressure) arrays (S, n_rec, nt): add sample n (+ clock[0]) through the receiver
-        operator op (Elastic.receivers)."""
+        operator op (Elastic.operator)."""
         clock = self.clock if clock is None else clock
         wp.launch(self.k.record, dim=op[1].shape[1:], inputs=[st.vx, st.vz, st.sxx, st.szz, *data, *op, n, clock], device=self.device)
 

@@ -542,7 +542,7 @@ def test_core_vector_widths_equal_reference_kernels(nx, order, free_surface, lay
 
 def adjoint_step_arrays(prop, layout, source_type, seed=7):
     """One hand-written adjoint step (Elastic.adjoint_step, with two sources per shot) from random states, adjoint
-    States, model (random_materials), materials' adjoints and sources on prop's grid, with prop.adjoint_layout =
+    State, model (random_materials), materials' adjoints and sources on prop's grid, with prop.adjoint_layout =
     layout (None: the per-cell kernels): every array it writes or adds to."""
     import warp as wp
 
@@ -553,8 +553,8 @@ def adjoint_step_arrays(prop, layout, source_type, seed=7):
     prop.adjoint_layout = layout
     shape, shots = prop.padded, prop.n_shots
     mat = random_materials(prop, rng)
-    st, out, adj_next, adj = (prop.new_state() for _ in range(4))
-    for a in (*st.arrays(), *adj_next.arrays(), *adj.arrays()):
+    st, out, adj = (prop.new_state() for _ in range(3))
+    for a in (*st.arrays(), *adj.arrays()):
         a.assign(rng.standard_normal(a.shape))
     prop.step(st, mat, None, 0, out=out)
     adj_mat = [device(rng.standard_normal(shape)) for _ in mat[:-1]]
@@ -563,8 +563,8 @@ def adjoint_step_arrays(prop, layout, source_type, seed=7):
                device(rng.standard_normal((shots, 2, 2 if source_type == "force" else 3))), device(rng.random((shots, 2, 2)) * extent))  # fmt: skip
     adj_sources = [wp.zeros(a.shape, dtype=prop.dtype, device=prop.device) for a in sources[1:]]
     scratch = [wp.zeros((shots, *shape), dtype=prop.dtype, device=prop.device) for _ in range(4)]
-    prop.adjoint_step(st, out, mat, adj_next, adj, adj_mat, sources, adj_sources, scratch, 3)
-    return [a.numpy() for a in (*adj_next.arrays(), *adj.arrays(), *adj_mat, *adj_sources)]
+    prop.adjoint_step(st, out, mat, adj, adj_mat, sources, adj_sources, scratch, 3)
+    return [a.numpy() for a in (*adj.arrays(), *adj_mat, *adj_sources)]
 
 
 FUSED = K.AdjointLayout(4, 2, 128)  # the best of the fused layouts
@@ -602,7 +602,7 @@ def test_fused_adjoint_step_equals_per_cell_kernels(layout, order, free_surface,
 
 @pytest.mark.parametrize("fast", [FUSED, K.ADJOINT_LAYOUT])
 def test_sweep_with_fused_adjoint_equals_per_cell_kernels(monkeypatch, fast):
-    # gradient_elastic's ElasticSweep (adjoint States written by each step, not zeroed) with the fused (or split) adjoint
+    # gradient_elastic's ElasticSweep (one adjoint State taken back a level by each step, in place) with the fused (or split) adjoint
     # kernels (the GPU's path) against the per-cell kernels, both forced: the same gradients (float64; measured bit for
     # bit on the CPU)
     args, kw = small_problem(True, "moment", shape=(20, 26), nt=60)
@@ -662,10 +662,10 @@ def test_device_array_models():
 
 
 @pytest.mark.parametrize("free_surface, source_type, shots, segment_length, components, expected",
-                         [(False, "force", 2, 8, E.COMPONENTS, (8, 8)), (True, "moment", 2, 13, E.COMPONENTS, (14, 5)),
+                         [(False, "force", 2, 8, E.COMPONENTS, (8, 8)), (True, "moment", 2, 13, E.COMPONENTS, (13, 5)),
                           (True, "force", 1, 40, ("vz",), (40, 2)), (False, "moment", 1, None, ("vx", "pressure"), (60, 1))])  # fmt: skip
 def test_sweep_matches_warp_generated(free_surface, source_type, shots, segment_length, components, expected):
-    # The explicit adjoint sweep (ElasticSweep: even segments, the last one past nt; one segment when memory allows)
+    # The explicit adjoint sweep (ElasticSweep: the last segment past nt; one segment when memory allows)
     # against Warp's generated adjoints under a tape on all steps: the same gradients for every parameter (float64;
     # measured <= 1e-14 relative), for a subset of the components too.
     args, kw = small_problem(free_surface, source_type, shape=(20, 26), nt=60, shots=shots)
@@ -683,6 +683,25 @@ def test_sweep_matches_warp_generated(free_surface, source_type, shots, segment_
         a, b = getattr(ref, k), getattr(ours, k)
         assert np.abs(a).max() > 0
         assert np.abs(a - b).max() <= 1e-12 * np.abs(a).max(), k
+
+
+@pytest.mark.parametrize("free_surface, source_type", [(False, "force"), (True, "moment")])
+def test_fixed_source_operator_gives_the_located_sources_gradients(free_surface, source_type):
+    # Without source_locations in wrt the sweep injects through the sources' fixed operator (Elastic.operator) and takes
+    # Warp's generated adjoint of that: the same loss and gradients as the location kernels' (wrt=WRT). The same weights
+    # and products in the same order: bit for bit on the CPU (float64).
+    args, kw = small_problem(free_surface, source_type, shape=(20, 26), nt=60)
+    rng = np.random.default_rng(5)
+    common = dict(observed={c: rng.standard_normal((2, 7, 60)) * (1e-3 if c == "pressure" else 1e-9) for c in E.COMPONENTS},
+                  precision="float64", segment_length=16, **kw)  # fmt: skip
+    located = E.gradient_elastic(*args, wrt=E.WRT, **common)
+    fixed = E.gradient_elastic(*args, wrt=E.WRT[:5], **common)
+    limit = 0.0 if DEVICE == "cpu" else 1e-12  # atomic sums in another order on a GPU
+    assert abs(fixed.loss - located.loss) <= limit * located.loss
+    for k in E.WRT[:5]:
+        ref = getattr(located, k)
+        assert np.abs(ref).max() > 0
+        assert np.abs(getattr(fixed, k) - ref).max() <= limit * np.abs(ref).max(), k
 
 
 def test_kept_sweep_is_refilled(monkeypatch):
