@@ -53,12 +53,14 @@ WRT = ("vp", "vs", "rho", "source_amplitudes", "source_components", "source_loca
 
 @dataclass
 class ElasticResult:
-    """Output of :func:`forward_elastic`: vx, vz (m/s) and pressure (Pa), each
-    (n_shots, n_receivers, nt); dt (s)."""
+    """Output of :func:`forward_elastic`: vx, vz (m/s) and pressure (Pa), each (n_shots, n_receivers, nt) in the
+    simulation's precision: Warp arrays on the model's device where vp was given as a Warp array (E2000's three
+    2 MB records copied to fresh host memory and widened to float64 took ~11 ms of a ~70 ms call), else NumPy
+    arrays; dt (s)."""
 
-    vx: np.ndarray
-    vz: np.ndarray
-    pressure: np.ndarray
+    vx: np.ndarray | wp.array
+    vz: np.ndarray | wp.array
+    pressure: np.ndarray | wp.array
     dt: float
 
 
@@ -67,8 +69,9 @@ class ElasticGradient:
     """Misfit and its gradients: vp, vs (per m/s) and rho (per kg/m^3) (nz, nx), each a Warp array on the model's
     device where that model was given as a Warp array, else a NumPy array; source_amplitudes (n_shots, n_src, nt);
     source_components (n_shots, n_src, 2 or 3); source_locations (n_shots, n_src, 2) per metre; None where not
-    requested; in the simulation's precision. synthetic: {"vx", "vz", "pressure"} data. segment_length (steps) and
-    n_segments of the checkpointed sweep, peak_bytes_estimate its planned memory (plan_segments)."""
+    requested; in the simulation's precision. synthetic: {"vx", "vz", "pressure"} data (NumPy, the simulation's
+    precision). segment_length (steps) and n_segments of the checkpointed sweep, peak_bytes_estimate its planned memory
+    (plan_segments)."""
 
     loss: float
     synthetic: dict
@@ -278,7 +281,8 @@ def capture(su: ElasticSetup, st, mat, data, every: int) -> graphs.Loop:
     prop = su.prop
     K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
     amp = wp.array(graphs.padded_samples(su.amplitudes.numpy(), K * n_graphs + 1, prop.dtype), dtype=prop.dtype, device=prop.device)
-    src = (su.kind, amp, su.components, su.sources)
+    op = prop.operator(su.sources)  # the sources' fixed operator (E2000: 5.6 -> 2.7 us a step)
+    src = (su.kind, amp, su.components, op)
     states = [st, prop.new_state()]
 
     def step(n, clock, stats):
@@ -291,8 +295,8 @@ def capture(su: ElasticSetup, st, mat, data, every: int) -> graphs.Loop:
 
     k = prop.k
     kernels = (reduction_kernels(prop.dtype)[0], k.velocity, k.stress, *prop.update_kernels(), k.record,
-               k.inject_force if su.kind == "force" else k.inject_moment)  # fmt: skip
-    kept = SimpleNamespace(su=su, st=st, spare=states[1], mat=mat, data=data, amplitudes=amp)
+               k.inject_force_op if su.kind == "force" else k.inject_moment_op)  # fmt: skip
+    kept = SimpleNamespace(su=su, st=st, spare=states[1], mat=mat, data=data, amplitudes=amp, source_op=op)
     return graphs.capture(_graph_key(su, every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept, su.nt)
 
 
@@ -311,19 +315,21 @@ def _kept_loop(su: ElasticSetup, every: int) -> graphs.Loop:
         K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
         return graphs.keep(capture(su, prop.new_state(), su.materials(), _new_data(su, K * n_graphs), every))
     mine = loop.kept
-    _refill(mine.su, mine.mat, su, su.materials())
+    _refill(mine.su, mine.mat, su, su.materials(), mine.source_op)
     mine.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), loop.K * loop.graphs + 1, prop.dtype))
     for a in (*mine.st.arrays(), *mine.spare.arrays(), *mine.data, loop.clock):
         a.zero_()
     return loop
 
 
-def _refill(mine: ElasticSetup, mine_mat, su: ElasticSetup, mat):
-    """Copy su's inputs (CPML coefficients, MATERIALS mat, receiver operator, source components and locations) into
-    those of a kept loop or sweep made for `mine` (same key)."""
+def _refill(mine: ElasticSetup, mine_mat, su: ElasticSetup, mat, source_op=None):
+    """Copy su's inputs (CPML coefficients, MATERIALS mat, receiver operator, source components and locations and,
+    into source_op, their fixed operator) into those of a kept loop or sweep made for `mine` (same key)."""
     pairs = [(getattr(a, f), getattr(b, f)) for a, b in zip(mine.prop.axes, su.prop.axes) for f in ("a", "b", "ah", "bh")]
     pairs += list(zip(mine_mat, mat)) + list(zip(mine.receiver_op, su.receiver_op))
     pairs += [(mine.components, su.components), (mine.sources, su.sources)]
+    if source_op is not None:
+        pairs += list(zip(source_op, su.prop.operator(su.sources)))
     for a, b in pairs:
         if a.ptr != b.ptr:  # (mine is su on a sweep's first call)
             wp.copy(a, b)
@@ -356,7 +362,8 @@ def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
         guard(st, n)
         bar.update()
 
-    if graphs.graph_plan(su.prop.cuda, su.nt, guard.every)[1]:
+    kept = graphs.graph_plan(su.prop.cuda, su.nt, guard.every)[1]
+    if kept:
         loop = _kept_loop(su, guard.every)
         graphs.replay(loop, su.nt, guard, bar)
         data = loop.kept.data
@@ -364,8 +371,17 @@ def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
         data = _new_data(su, su.nt)
         run_elastic(su, su.prop.new_state(), su.materials(), data, range(su.nt), callback=callback)
     bar.close()
-    vx, vz, p = (d.numpy()[:, :, : su.nt].astype(float) for d in data)
-    return ElasticResult(vx=vx, vz=vz, pressure=p, dt=float(dt))
+
+    def traces(d):
+        if not isinstance(vp, wp.array):
+            return d.numpy()[:, :, : su.nt]
+        if not kept:
+            return d
+        out = wp.empty((*d.shape[:2], su.nt), dtype=d.dtype, device=d.device)  # the kept loop's buffer is overwritten by the next call
+        wp.copy(out, d[:, :, : su.nt])
+        return out
+
+    return ElasticResult(*(traces(d) for d in data), dt=float(dt))
 
 
 def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_length: int | None = None, adjoint: str = "hand"):
@@ -492,7 +508,7 @@ def _taped_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar):
         wp.copy(dst, a)
     pending = taped(n_seg - 1, starts[0])
     bar.update(n_seg)
-    synthetic = {c: np.concatenate([a.numpy(), b.numpy()], axis=2).astype(float) for c, a, b in zip(COMPONENTS, data, pending[2])}
+    synthetic = {c: np.concatenate([a.numpy(), b.numpy()], axis=2) for c, a, b in zip(COMPONENTS, data, pending[2])}
     loss, adj = loss_fn(synthetic)
     carry = None
     for i, k in enumerate(reversed(range(n_seg))):
@@ -527,7 +543,8 @@ def _hand_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar):
     sw = _kept_sweep(su, seg, n_seg)
     sw.refill(su, mat)
     sw.forward_sweep(bar)
-    synthetic = {c: d.numpy()[:, :, : su.nt].astype(float) for c, d in zip(COMPONENTS, sw.data)}
+    # (a CPU array's numpy() is a view, and the backward sweep records into sw.data again)
+    synthetic = {c: d.numpy()[:, :, : su.nt] if su.prop.cuda else d.numpy()[:, :, : su.nt].copy() for c, d in zip(COMPONENTS, sw.data)}
     loss, adj = loss_fn(synthetic)
     for c, r in zip(COMPONENTS, sw.residual):
         if c in adj:
@@ -615,10 +632,7 @@ class ElasticSweep:
     def refill(self, su: ElasticSetup, mat):
         """Copy su's inputs (CPML coefficients, MATERIALS mat, operators, source samples) into the kept arrays and
         zero the start State, data, residuals and adjoints."""
-        _refill(self.su, self.mat, su, mat)
-        if isinstance(self.sources[3], tuple):
-            for a, b in zip(self.sources[3], su.prop.operator(su.sources)):
-                wp.copy(a, b)
+        _refill(self.su, self.mat, su, mat, self.sources[3] if isinstance(self.sources[3], tuple) else None)
         self.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], su.prop.dtype))
         for a in (*self.levels[0].arrays(), *self.data, *self.residual, *self.adj.arrays(), *self.adj_mat,
                   *self.adj_sources):  # fmt: skip

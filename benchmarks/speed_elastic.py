@@ -200,7 +200,8 @@ def backward_times(su, device, reps):
     """Microseconds of one step's adjoint: the hand-written one and its launches (adjoint_jobs) with the device's
     AdjointLayout, the per-cell kernels' whole step (step_backward_cells, the CPU's path), and the backward of one
     taped step with Warp's generated adjoints."""
-    prop, src = su.prop, su.source_args()
+    prop, located = su.prop, su.source_args()
+    src = (*located[:3], prop.operator(located[3]))  # as the sweep injects sources whose locations are not differentiated
 
     def zeros(shape):
         return wp.zeros(shape, dtype=prop.dtype, device=device)
@@ -209,7 +210,7 @@ def backward_times(su, device, reps):
     mat = su.materials()
     prop.step(st, mat, src, 3, out=nxt)
     adj_mat = [zeros(prop.padded) for _ in mat[:-1]]
-    adj_src = [zeros(a.shape) for a in src[1:]]
+    adj_src = [zeros(a.shape) for a in located[1:]]
     scratch = [zeros((prop.n_shots, *prop.padded)) for _ in range(4)]
     a, b = prop.new_state(requires_grad=True), prop.new_state(requires_grad=True)
     tape = wp.Tape()

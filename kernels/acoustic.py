@@ -60,6 +60,40 @@ def _i0(x: float) -> float:
 
 
 @functools.lru_cache(maxsize=None)
+def hicks_weight(dtype):
+    """The Warp function of the sources' and receivers' weight per axis in dtype (the acoustic and elastic kernels')."""
+    WINDOW_NORM = 1.0 / (_i0(HICKS_B) - 1.0)
+
+    @wp.func
+    def hicks(d: dtype) -> dtype:
+        # Kaiser-windowed sinc weight at distance d (cells). The window is the Kaiser series written in
+        # q = 1 - d^2/r^2 (no square root) minus its edge value, so the weight and its derivative vanish
+        # at |d| = r: the operator is C^1 in the position, also for positions on grid nodes.
+        q = dtype(1.0) - (d * d) / dtype(wp.static(float(HICKS_RADIUS * HICKS_RADIUS)))
+        if q <= dtype(0.0):
+            return dtype(0.0)
+        pd = dtype(wp.static(math.pi)) * d
+        sinc = dtype(1.0) - pd * pd / dtype(6.0)
+        if wp.abs(pd) > dtype(1.0e-3):
+            # sin(pi d) from the argument reduced by the nearest whole k: exactly 0 at whole d (a point on a node
+            # has one weight per axis; sin(pi d) itself gives ~1e-8 in float32 there), same derivative in d
+            k = wp.round(d)
+            sp = wp.sin(dtype(wp.static(math.pi)) * (d - k))
+            if int(k) % 2 != 0:
+                sp = -sp
+            sinc = sp / pd
+        y2 = dtype(wp.static(HICKS_B * HICKS_B / 4.0)) * q
+        term = dtype(1.0)
+        total = dtype(0.0)
+        for k in range(wp.static(_I0_TERMS)):
+            term = term * y2 / dtype(wp.static(float((k + 1) * (k + 1))))
+            total = total + term
+        return sinc * total * dtype(wp.static(WINDOW_NORM))
+
+    return hicks
+
+
+@functools.lru_cache(maxsize=None)
 def build(ndim: int, order: int, dtype, free_surface: bool):
     """Kernels for one (ndim, order, dtype, free_surface) combination, compiled once per process."""
     R = order // 2
@@ -68,7 +102,6 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     HR = HICKS_RADIUS
     W = 2 * HR
     NPTS = W**ndim
-    WINDOW_NORM = 1.0 / (_i0(HICKS_B) - 1.0)
     fs = bool(free_surface)
     three = ndim == 3
     arr1 = wp.array(dtype=dtype)
@@ -939,31 +972,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
     psi = [make_psi(a) for a in range(3)]
 
-    @wp.func
-    def hicks(d: dtype) -> dtype:
-        # Kaiser-windowed sinc weight at distance d (cells). The window is the Kaiser series written in
-        # q = 1 - d^2/r^2 (no square root) minus its edge value, so the weight and its derivative vanish
-        # at |d| = r: the operator is C^1 in the position, also for positions on grid nodes.
-        q = dtype(1.0) - (d * d) / dtype(wp.static(float(HR * HR)))
-        if q <= dtype(0.0):
-            return dtype(0.0)
-        pd = dtype(wp.static(math.pi)) * d
-        sinc = dtype(1.0) - pd * pd / dtype(6.0)
-        if wp.abs(pd) > dtype(1.0e-3):
-            # sin(pi d) from the argument reduced by the nearest whole k: exactly 0 at whole d (a point on a node
-            # has one weight per axis; sin(pi d) itself gives ~1e-8 in float32 there), same derivative in d
-            k = wp.round(d)
-            sp = wp.sin(dtype(wp.static(math.pi)) * (d - k))
-            if int(k) % 2 != 0:
-                sp = -sp
-            sinc = sp / pd
-        y2 = dtype(wp.static(HICKS_B * HICKS_B / 4.0)) * q
-        term = dtype(1.0)
-        total = dtype(0.0)
-        for k in range(wp.static(_I0_TERMS)):
-            term = term * y2 / dtype(wp.static(float((k + 1) * (k + 1))))
-            total = total + term
-        return sinc * total * dtype(wp.static(WINDOW_NORM))
+    hicks = hicks_weight(dtype)
 
     @wp.func
     def point(loc: arr3, s: int, n: int, q: int, origin: wp.vec3i, inv_dx: dtype, top: int):

@@ -67,7 +67,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.acoustic import _I0_TERMS, HICKS_B, HICKS_RADIUS, _adjoint_launch, _aligned, _i0, as_vectors, field_stats
+from adseismic.kernels.acoustic import HICKS_RADIUS, _adjoint_launch, _aligned, as_vectors, field_stats, hicks_weight
 from adseismic.numerics import STAGGERED_DERIVATIVE
 
 
@@ -165,7 +165,6 @@ def build(order: int, dtype, free_surface: bool):
     HR = HICKS_RADIUS
     W = 2 * HR
     NPTS = W * W
-    WINDOW_NORM = 1.0 / (_i0(HICKS_B) - 1.0)
     C = STAGGERED_DERIVATIVE[order]
     fs = bool(free_surface)
     arr1 = wp.array(dtype=dtype)
@@ -1384,23 +1383,7 @@ def build(order: int, dtype, free_surface: bool):
 
     # --- sources and receivers ------------------------------------------------------------------------
 
-    @wp.func
-    def hicks(d: dtype) -> dtype:
-        # Kaiser-windowed sinc weight at distance d (cells), C^1 in d (see kernels/acoustic.py).
-        q = dtype(1.0) - (d * d) / dtype(wp.static(float(HR * HR)))
-        if q <= dtype(0.0):
-            return dtype(0.0)
-        pd = dtype(wp.static(math.pi)) * d
-        sinc = dtype(1.0) - pd * pd / dtype(6.0)
-        if wp.abs(pd) > dtype(1.0e-3):
-            sinc = wp.sin(pd) / pd
-        y2 = dtype(wp.static(HICKS_B * HICKS_B / 4.0)) * q
-        term = dtype(1.0)
-        total = dtype(0.0)
-        for k in range(wp.static(_I0_TERMS)):
-            term = term * y2 / dtype(wp.static(float((k + 1) * (k + 1))))
-            total = total + term
-        return sinc * total * dtype(wp.static(WINDOW_NORM))
+    hicks = hicks_weight(dtype)
 
     def make_point(oz: float, ox: float, odd: bool):
         # q-th operator node of a field whose index (i, k) sits at (i + oz, k + ox): padded index, weight
