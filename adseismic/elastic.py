@@ -54,8 +54,8 @@ WRT = ("vp", "vs", "rho", "source_amplitudes", "source_components", "source_loca
 @dataclass
 class ElasticResult:
     """Output of :func:`forward_elastic`: vx, vz (m/s) and pressure (Pa), each (n_shots, n_receivers, nt) in the
-    simulation's precision: Warp arrays on the model's device where vp was given as a Warp array (E2000's three
-    2 MB records copied to fresh host memory and widened to float64 took ~11 ms of a ~70 ms call), else NumPy
+    simulation's precision: Warp arrays on the model's device where vp was given as a Warp array (copies of E2000's
+    three 2 MB records to fresh host memory, widened to float64, were a good part of a 69 ms call), else NumPy
     arrays; dt (s)."""
 
     vx: np.ndarray | wp.array
@@ -281,7 +281,7 @@ def capture(su: ElasticSetup, st, mat, data, every: int) -> graphs.Loop:
     prop = su.prop
     K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
     amp = wp.array(graphs.padded_samples(su.amplitudes.numpy(), K * n_graphs + 1, prop.dtype), dtype=prop.dtype, device=prop.device)
-    op = prop.operator(su.sources)  # the sources' fixed operator (E2000: 5.6 -> 2.7 us a step)
+    op = prop.operator(su.sources)  # the sources' fixed operator: no Kaiser-sinc weights evaluated each step
     src = (su.kind, amp, su.components, op)
     states = [st, prop.new_state()]
 

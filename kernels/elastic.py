@@ -118,15 +118,15 @@ class AdjointLayout(NamedTuple):
     split: bool = False
 
 
-# The GPU's default: timed on an H200 (benchmarks/speed_elastic.py --adjoint-variants; whole adjoint step on E2000,
-# us, 2026-11-21): split 4 x 4 328, split 4 x 2 337, 8 x 4 350, 8 x 2 (64, 128 or 256 threads) 378-379, 16 x 2 418, 8 x 1
-# 446, 16 x 1 520; fused (one kernel per half step) 4 x 2 465, 8 x 1 496, 2 x 2 499, 8 x 2 505, 4 x 1 506, 16 x 2 628
-# (the per-cell kernels: 828). Split 4 x 2 rather than 4 x 4: 3% slower at order 4, but its order-8 tiles stay near 128
-# registers. Registers per thread from ptxas (sm_90, float32, velocity / stress): fused, order 4: 8 x 2, 4 x 2, 16 x 2
-# 127-128 / 128, 8 x 1 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8 x 2 194 / 230, 8 x 1 143 / 137. Split
-# (gathers velocity / stress, sums velocity / stress): order 4: 4 x 2 72 / 80, 48 / 48, 8 x 2 and 16 x 2 72 / 80, 48-56 /
-# 56, 8 x 1 56 / 64, 40 / 40, 4 x 4 and 8 x 4 122 / 128, 80 / 94; order 8: 8 x 2 122 / 128, 80 / 96, 8 x 1 72 / 72, 64 /
-# 62. The CPU runs the per-cell kernels unless told otherwise.
+# The GPU's default: timed on an H200 (benchmarks/speed_elastic.py --adjoint-variants; whole adjoint step on E2000, us,
+# 2026-11-21, in place): split 4 x 4 300, split 4 x 2 308, 8 x 4 320, 8 x 2 (64, 128 or 256 threads) 349-351, 16 x 2
+# 390, 8 x 1 417, 16 x 1 476; fused (one kernel per half step) 4 x 2 432, 8 x 1 465, 2 x 2 466, 8 x 2 469, 4 x 1 480, 16
+# x 2 588 (the per-cell kernels: 746). Split 4 x 2 rather than 4 x 4: 3% slower at order 4, but its order-8 tiles stay
+# near 128 registers. Registers per thread from ptxas (sm_90, float32, velocity / stress; the kernels before they ran in
+# place): fused, order 4: 8 x 2, 4 x 2, 16 x 2 127-128 / 128, 8 x 1 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8
+# x 2 194 / 230, 8 x 1 143 / 137. Split (gathers velocity / stress, sums velocity / stress): order 4: 4 x 2 72 / 80, 48
+# / 48, 8 x 2 and 16 x 2 72 / 80, 48-56 / 56, 8 x 1 56 / 64, 40 / 40, 4 x 4 and 8 x 4 122 / 128, 80 / 94; order 8: 8 x 2
+# 122 / 128, 80 / 96, 8 x 1 72 / 72, 64 / 62. The CPU runs the per-cell kernels unless told otherwise.
 ADJOINT_LAYOUT = AdjointLayout(4, 2, 128, split=True)
 ADJOINT_LAYOUTS = (
     AdjointLayout(8, 2, 128),
