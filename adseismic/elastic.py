@@ -562,10 +562,11 @@ class ElasticSweep:
     levels[1..seg], and keeps the start of every segment but the first (zero) and the last (still in `levels` when
     the backward sweep begins) as a checkpoint. The backward sweep runs the segments last first: the forward steps
     again from the checkpoint, then the adjoint steps back through the levels, taking the adjoint State `adj` from
-    level j + 1's to level j's in place (Elastic.adjoint_step) and on to the previous segment. The adjoints of MATERIALS (adj_mat) and of the sources' amplitudes,
-    components and locations (adj_sources) accumulate over all steps. Time indices are j + clock[0] (the segment's
-    first level), so one captured graph per direction serves every segment; nt is padded to n_seg * seg levels with
-    zero source samples and residuals. data and residual: (vx, vz, pressure) arrays (S, n_rec, n_seg * seg).
+    level j + 1's to level j's in place (Elastic.adjoint_step) and on to the previous segment. The adjoints of
+    MATERIALS (adj_mat) and of the sources' amplitudes, components and locations (adj_sources) accumulate over all
+    steps. Time indices are j + clock[0] (the segment's first level), so one captured graph per direction serves every
+    segment; nt is padded to n_seg * seg levels with zero source samples and residuals. data and residual: (vx, vz,
+    pressure) arrays (S, n_rec, n_seg * seg).
     """
 
     def __init__(self, key, su: ElasticSetup, seg: int, n_seg: int):

@@ -887,8 +887,9 @@ def build(order: int, dtype, free_surface: bool):
     @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def velocity_adjoint(
         sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2, n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
-        g_vx: arr3, g_vz: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_bx: arr2, g_bz: arr2,
-        gp_vx_x: arr3, gp_vx_z: arr3, gp_vz_x: arr3, gp_vz_z: arr3, t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, hole: wp.vec4i,
+        g_vx: arr3, g_vz: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_bx: arr2, g_bz: arr2, gp_vx_x: arr3, gp_vx_z: arr3,
+        gp_vz_x: arr3, gp_vz_z: arr3, t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        hole: wp.vec4i,
     ):  # fmt: skip
         z, x = frame_cell(wp.tid(), sxx.shape[1], sxx.shape[2], hole)
         jz = az.store[z]
@@ -948,7 +949,8 @@ def build(order: int, dtype, free_surface: bool):
     def stress_adjoint(
         vx: arr3, vz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
         g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_vx: arr3, g_vz: arr3, g_l2m: arr2, g_lam: arr2, g_mu: arr2, g_muh: arr2,
-        gp_s_x: arr3, gp_s_z: arr3, gp_xz_z: arr3, gp_xz_x: arr3, t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, hole: wp.vec4i,
+        gp_s_x: arr3, gp_s_z: arr3, gp_xz_z: arr3, gp_xz_x: arr3, t1: arr3, t2: arr3, t3: arr3, t4: arr3, az: Axis, ax: Axis, dt: dtype,
+        inv_dx: dtype, top: int, hole: wp.vec4i,
     ):  # fmt: skip
         z, x = frame_cell(wp.tid(), vx.shape[1], vx.shape[2], hole)
         jz = az.store[z]
@@ -1223,7 +1225,8 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.func
         def velocity_sums_tile(
-            sxx: arrv, szz: arrv, sxz: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv, t1: arrv, t2: arrv, t: int, shots: int, lz: int, lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+            sxx: arrv, szz: arrv, sxz: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv, t1: arrv, t2: arrv, t: int, shots: int, lz: int,
+            lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
             i, c, z, n = place(t, lz, lx, inner)
             wa = load_window(sxz, i, n, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
