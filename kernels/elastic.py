@@ -54,8 +54,8 @@ added to) first compute per cell the adjoint of every raw stencil sum (CPML, mat
 included) into scratch arrays (`*_adjoint`), then apply the transposed stencils as gathers (`*_transpose`); rows
 next to a free surface, whose stencils fold or shrink, scatter with atomics instead. On a GPU (AdjointLayout,
 `make_adjoints`) tiles of the cells whose gathers read core cells alone fuse the two passes, forming those
-cells' raw stencil sums' adjoints in sliding windows and lines (or, AdjointLayout.split, `make_split_adjoints`: the
-gathers in one kernel and pass 1's work in another, each with fewer live values, on vectors). The source and receiver
+cells' raw stencil sums' adjoints in sliding windows and lines (or, AdjointLayout.split, `make_split_adjoints`: a
+tile's gathers and then, apart, its pass 1 work, each with fewer live values, on vectors). The source and receiver
 kernels' adjoints are Warp's generated ones, launched directly (adjoint=True).
 """
 
@@ -107,27 +107,31 @@ LAYOUTS = (
 
 class AdjointLayout(NamedTuple):
     """How the hand-written adjoint's fused kernels (make_adjoints) do the adjoint box: each thread a tile of `rows`
-    rows (z) x `cols` columns (x) of one shot, `threads` per block. split: each half step's two passes in separate
-    kernels (make_split_adjoints; gathers over the adjoint box, pass 1's work inside the inner box), fewer live values
+    rows (z) x `cols` columns (x) of one shot, `threads` per block. split: each half step's two passes one after the
+    other (make_split_adjoints; gathers over the adjoint box, pass 1's work inside the inner box), fewer live values
     per thread, a tile's row one vector of `cols` values per array (fewer where the padded row length is no multiple:
-    Elastic.adjoint_width), the boxes' columns from and to multiples of it."""
+    Elastic.adjoint_width), the boxes' columns from and to multiples of it; merged (split only): a tile's sums in the
+    gathers' launch, by the same thread, rather than in a launch of their own."""
 
     rows: int
     cols: int
     threads: int = 128
     split: bool = False
+    merged: bool = True
 
 
-# The GPU's default: timed on an H200 (benchmarks/speed_elastic.py --adjoint-variants; whole adjoint step on E2000, us,
-# 2026-11-21, in place): split 4 x 4 300, split 4 x 2 308, 8 x 4 320, 8 x 2 (64, 128 or 256 threads) 349-351, 16 x 2
-# 390, 8 x 1 417, 16 x 1 476; fused (one kernel per half step) 4 x 2 432, 8 x 1 465, 2 x 2 466, 8 x 2 469, 4 x 1 480, 16
-# x 2 588 (the per-cell kernels: 746). Split 4 x 2 rather than 4 x 4: 3% slower at order 4, but its order-8 tiles stay
-# near 128 registers. Registers per thread from ptxas (sm_90, float32, velocity / stress; the kernels before they ran in
-# place): fused, order 4: 8 x 2, 4 x 2, 16 x 2 127-128 / 128, 8 x 1 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8
-# x 2 194 / 230, 8 x 1 143 / 137. Split (gathers velocity / stress, sums velocity / stress): order 4: 4 x 2 72 / 80, 48
-# / 48, 8 x 2 and 16 x 2 72 / 80, 48-56 / 56, 8 x 1 56 / 64, 40 / 40, 4 x 4 and 8 x 4 122 / 128, 80 / 94; order 8: 8 x 2
-# 122 / 128, 80 / 96, 8 x 1 72 / 72, 64 / 62. The CPU runs the per-cell kernels unless told otherwise.
-ADJOINT_LAYOUT = AdjointLayout(4, 2, 128, split=True)
+# The GPU's default by order: timed on an H200 (benchmarks/speed_elastic.py --adjoint-variants; whole adjoint step on
+# E2000, order 4, us, 2026-11-21, in place, the split tiles' sums by the gathers' threads): split merged 2 x 4 286, 4 x 4
+# 287, 2 x 2 296, 8 x 4 309, 4 x 2 313, 8 x 2 (64, 128 or 256 threads) 359, 8 x 1 432, 16 x 2 439, 16 x 1 477; split
+# with the sums in their own launch 4 x 4 309, 4 x 2 333; fused (one kernel per half step) 4 x 2 432, 2 x 2 466, 8 x 1
+# 467, 8 x 2 468, 4 x 1 480, 16 x 2 589 (the per-cell kernels: 746). Order 8 keeps 4 x 2: its tiles stay near 128
+# registers, where 4 x 4 tiles hold twice the window values. Registers per thread from ptxas (sm_90, float32, velocity /
+# stress; before the adjoint ran in place and the sums merged): fused, order 4: 8 x 2, 4 x 2, 16 x 2 127-128 / 128, 8 x 1
+# 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8 x 2 194 / 230, 8 x 1 143 / 137. Split (gathers velocity / stress,
+# sums velocity / stress): order 4: 4 x 2 72 / 80, 48 / 48, 8 x 2 and 16 x 2 72 / 80, 48-56 / 56, 8 x 1 56 / 64, 40 / 40,
+# 4 x 4 and 8 x 4 122 / 128, 80 / 94; order 8: 8 x 2 122 / 128, 80 / 96, 8 x 1 72 / 72, 64 / 62. The CPU runs the per-cell
+# kernels unless told otherwise.
+ADJOINT_LAYOUT = {2: AdjointLayout(4, 4, 128, split=True), 4: AdjointLayout(4, 4, 128, split=True), 8: AdjointLayout(4, 2, 128, split=True)}
 ADJOINT_LAYOUTS = (
     AdjointLayout(8, 2, 128),
     AdjointLayout(4, 2, 128),
@@ -147,6 +151,10 @@ ADJOINT_LAYOUTS = (
     AdjointLayout(8, 4, 128, split=True),
     AdjointLayout(8, 2, 256, split=True),
     AdjointLayout(8, 2, 64, split=True),
+    AdjointLayout(2, 2, 128, split=True),
+    AdjointLayout(2, 4, 128, split=True),
+    AdjointLayout(4, 2, 128, split=True, merged=False),
+    AdjointLayout(4, 4, 128, split=True, merged=False),
 )
 TRANSPOSE_ROWS, TRANSPOSE_THREADS = 16, 128  # cells per thread along z, threads per block of the hand adjoints' gathers
 
@@ -1185,10 +1193,11 @@ def build(order: int, dtype, free_surface: bool):
         return velocity_fused, stress_fused
 
     def make_split_adjoints(rows: int, width: int):
-        # The adjoint box's two passes as separate kernels with fewer live values (AdjointLayout.split), on the flat arrays
+        # The adjoint box's two passes with fewer live values than make_adjoints' (AdjointLayout.split), on the flat arrays
         # viewed as vectors of `width` values (arrv), each tile row one vector (the boxes' columns from and to multiples of
-        # it): `*_gathers` take make_adjoints' tiles' and frame's gathers (box: their `box`), `*_sums` the tiles' pass 1
-        # work inside `inner` (whole tiles, a thread each). The same sums as make_adjoints', in the same order.
+        # it): `*_gathers_tile` do make_adjoints' tiles' gathers (box: their `box`), `*_sums_tile` the tiles' pass 1 work
+        # at their cells inside `inner`, one after the other (no value passes between them), a thread a tile of `box`. The
+        # same sums as make_adjoints', in the same order.
         vec, arrv, alone, _, dline, _, place, load_window, slide, load_line, scaled_v, normal_v = tiling(rows, width, width)
 
         @wp.func
@@ -1224,31 +1233,39 @@ def build(order: int, dtype, free_surface: bool):
                     i += n
 
         @wp.func
+        def within(c: int, z: int, lx: int, inner: wp.vec4i) -> bool:
+            # whether the columns of the tile at model vector index c, row z lie in inner
+            x = c * wp.static(width) - z * lx
+            return x >= inner[2] and x < inner[3]
+
+        @wp.func
         def velocity_sums_tile(
             sxx: arrv, szz: arrv, sxz: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv, t1: arrv, t2: arrv, t: int, shots: int, lz: int,
-            lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+            lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
-            i, c, z, n = place(t, lz, lx, inner)
-            wa = load_window(sxz, i, n, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
-            wb = load_window(szz, i, n, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (d4)
-            for k in range(wp.static(rows)):
-                if z + k < inner[1]:
-                    ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 .. (d1)
-                    rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M .. (d3)
-                    ga = g_vx[i]
-                    gb = g_vz[i]
-                    ea = vec()
-                    eb = vec()
-                    for j in range(wp.static(width)):
-                        ea[j] = dt * ga[j] * (dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
-                        eb[j] = dt * gb[j] * (dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
-                    add_shot(g_bx, t1, c, i, ea, shots)
-                    add_shot(g_bz, t2, c, i, eb, shots)
-                    if wp.static(k + 1 < rows):
-                        wa = slide(wa, sxz, i, n, wp.static(M))
-                        wb = slide(wb, szz, i, n, wp.static(M + 1))
-                    i += n
-                    c += n
+            i, c, z, n = place(t, lz, lx, box)
+            if within(c, z, lx, inner):
+                wa = load_window(sxz, i, n, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
+                wb = load_window(szz, i, n, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (d4)
+                for k in range(wp.static(rows)):
+                    if z + k < inner[1]:
+                        if z + k >= inner[0]:
+                            ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 .. (d1)
+                            rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M .. (d3)
+                            ga = g_vx[i]
+                            gb = g_vz[i]
+                            ea = vec()
+                            eb = vec()
+                            for j in range(wp.static(width)):
+                                ea[j] = dt * ga[j] * (dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
+                                eb[j] = dt * gb[j] * (dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
+                            add_shot(g_bx, t1, c, i, ea, shots)
+                            add_shot(g_bz, t2, c, i, eb, shots)
+                        if wp.static(k + 1 < rows):
+                            wa = slide(wa, sxz, i, n, wp.static(M))
+                            wb = slide(wb, szz, i, n, wp.static(M + 1))
+                        i += n
+                        c += n
 
         @wp.func
         def stress_gathers_tile(
@@ -1282,48 +1299,56 @@ def build(order: int, dtype, free_surface: bool):
         @wp.func
         def stress_sums_tile(
             vx: arrv, vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_l2m: arrv, g_lam: arrv, g_muh: arrv, t1: arrv, t2: arrv,
-            t3: arrv, t: int, shots: int, lz: int, lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+            t3: arrv, t: int, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
         ):  # fmt: skip
-            i, c, z, n = place(t, lz, lx, inner)
-            wa = load_window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1 (dvz)
-            wb = load_window(vx, i, n, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (e1)
-            for k in range(wp.static(rows)):
-                if z + k < inner[1]:
-                    ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M .. (dvx)
-                    rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 .. (e2)
-                    gxx = g_sxx[i]
-                    gzz = g_szz[i]
-                    gxz = g_sxz[i]
-                    e1 = vec()
-                    e2 = vec()
-                    e3 = vec()
-                    for j in range(wp.static(width)):
-                        dvx = dline(ra, j) * inv_dx
-                        dvz = dwin(wa[j]) * inv_dx
-                        hxx = dt * gxx[j]
-                        hzz = dt * gzz[j]
-                        e1[j] = hxx * dvx + hzz * dvz
-                        e2[j] = hxx * dvz + hzz * dvx
-                        e3[j] = dt * gxz[j] * (dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
-                    add_shot(g_l2m, t1, c, i, e1, shots)
-                    add_shot(g_lam, t2, c, i, e2, shots)
-                    add_shot(g_muh, t3, c, i, e3, shots)
-                    if wp.static(k + 1 < rows):
-                        wa = slide(wa, vz, i, n, wp.static(M))
-                        wb = slide(wb, vx, i, n, wp.static(M + 1))
-                    i += n
-                    c += n
+            i, c, z, n = place(t, lz, lx, box)
+            if within(c, z, lx, inner):
+                wa = load_window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1 (dvz)
+                wb = load_window(vx, i, n, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (e1)
+                for k in range(wp.static(rows)):
+                    if z + k < inner[1]:
+                        if z + k >= inner[0]:
+                            ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M .. (dvx)
+                            rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 .. (e2)
+                            gxx = g_sxx[i]
+                            gzz = g_szz[i]
+                            gxz = g_sxz[i]
+                            e1 = vec()
+                            e2 = vec()
+                            e3 = vec()
+                            for j in range(wp.static(width)):
+                                dvx = dline(ra, j) * inv_dx
+                                dvz = dwin(wa[j]) * inv_dx
+                                hxx = dt * gxx[j]
+                                hzz = dt * gzz[j]
+                                e1[j] = hxx * dvx + hzz * dvz
+                                e2[j] = hxx * dvz + hzz * dvx
+                                e3[j] = dt * gxz[j] * (dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
+                            add_shot(g_l2m, t1, c, i, e1, shots)
+                            add_shot(g_lam, t2, c, i, e2, shots)
+                            add_shot(g_muh, t3, c, i, e3, shots)
+                        if wp.static(k + 1 < rows):
+                            wa = slide(wa, vz, i, n, wp.static(M))
+                            wb = slide(wb, vx, i, n, wp.static(M + 1))
+                        i += n
+                        c += n
 
+        # what: 1 the gathers (tiles t < tiles, and the frame's threads t >= frame), 2 the sums' tiles, 3 both. The two read
+        # the same adjoint fields at a tile's cells and write different arrays; together they read them once from memory.
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def velocity_gathers(
-            bx: arrv, bz: arrv, g_vx: arrv, g_vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
-            t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1, lz: int, lx: int, box: wp.vec4i,
-            dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
+            bx: arrv, bz: arrv, g_vx: arrv, g_vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, sxx: arrv, szz: arrv, sxz: arrv,
+            g_bx: arrv, g_bz: arrv, s1: arrv, s2: arrv, t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1,
+            shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
+            what: int,
         ):  # fmt: skip
-            # f_*: g_sxx, g_szz, g_sxz as flat arrays (the frame's)
+            # s1, s2: the scratch t1, t2 as vectors (the sums' terms with several shots); f_*: g_sxx, g_szz, g_sxz as flat arrays
             t = wp.tid()
             if t < tiles:
-                velocity_gathers_tile(bx, bz, g_vx, g_vz, g_sxx, g_szz, g_sxz, t, lz, lx, box, dt, inv_dx)
+                if what != 2:
+                    velocity_gathers_tile(bx, bz, g_vx, g_vz, g_sxx, g_szz, g_sxz, t, lz, lx, box, dt, inv_dx)
+                if what != 1:
+                    velocity_sums_tile(sxx, szz, sxz, g_vx, g_vz, g_bx, g_bz, s1, s2, t, shots, lz, lx, box, inner, dt, inv_dx)
             elif t >= frame:
                 s = (t - frame) // frame_cells
                 z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
@@ -1331,33 +1356,23 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
         def stress_gathers(
-            l2m: arrv, lam: arrv, muh: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_vx: arrv, g_vz: arrv,
-            t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_vx: arr1, f_vz: arr1, lz: int, lx: int, box: wp.vec4i,
-            dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
+            l2m: arrv, lam: arrv, muh: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_vx: arrv, g_vz: arrv, vx: arrv, vz: arrv,
+            g_l2m: arrv, g_lam: arrv, g_muh: arrv, s1: arrv, s2: arrv, s3: arrv, t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_vx: arr1,
+            f_vz: arr1, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int,
+            frame_cells: int, what: int,
         ):  # fmt: skip
             t = wp.tid()
             if t < tiles:
-                stress_gathers_tile(l2m, lam, muh, g_sxx, g_szz, g_sxz, g_vx, g_vz, t, lz, lx, box, dt, inv_dx)
+                if what != 2:
+                    stress_gathers_tile(l2m, lam, muh, g_sxx, g_szz, g_sxz, g_vx, g_vz, t, lz, lx, box, dt, inv_dx)
+                if what != 1:
+                    stress_sums_tile(vx, vz, g_sxx, g_szz, g_sxz, g_l2m, g_lam, g_muh, s1, s2, s3, t, shots, lz, lx, box, inner, dt, inv_dx)
             elif t >= frame:
                 s = (t - frame) // frame_cells
                 z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
                 stress_gather(t1, t2, t3, t4, f_vx, f_vz, (s * lz + z) * lx + x, lx)
 
-        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def velocity_sums(
-            sxx: arrv, szz: arrv, sxz: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv, t1: arrv, t2: arrv, shots: int, lz: int,
-            lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
-        ):  # fmt: skip
-            velocity_sums_tile(sxx, szz, sxz, g_vx, g_vz, g_bx, g_bz, t1, t2, wp.tid(), shots, lz, lx, inner, dt, inv_dx)
-
-        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def stress_sums(
-            vx: arrv, vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_l2m: arrv, g_lam: arrv, g_muh: arrv, t1: arrv, t2: arrv,
-            t3: arrv, shots: int, lz: int, lx: int, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
-        ):  # fmt: skip
-            stress_sums_tile(vx, vz, g_sxx, g_szz, g_sxz, g_l2m, g_lam, g_muh, t1, t2, t3, wp.tid(), shots, lz, lx, inner, dt, inv_dx)
-
-        return velocity_gathers, stress_gathers, velocity_sums, stress_sums
+        return velocity_gathers, stress_gathers
 
     @wp.kernel(module="unique")
     def materials(vp: arr2, vs: arr2, rho: arr2, bx: arr2, bz: arr2, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, b: arr2):
@@ -1663,7 +1678,7 @@ class Elastic:
         self.adjoint_inner = wp.vec4i(plain[0] + 2 * R, plain[1] - 2 * R, plain[2] + 2 * R, plain[3] - 2 * R)
         self.no_hole = wp.vec4i(R, R, R, R)
         self.has_adjoint_box = fits and min(plain[1] - plain[0], plain[3] - plain[2]) > 4 * R
-        self.adjoint_layout = ADJOINT_LAYOUT if self.cuda and self.has_adjoint_box else None  # None: the per-cell kernels
+        self.adjoint_layout = ADJOINT_LAYOUT[self.order] if self.cuda and self.has_adjoint_box else None  # None: the per-cell kernels
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
 
     def psi_shape(self, name):
@@ -1808,9 +1823,8 @@ class Elastic:
         return self.n_shots * -(-(box[1] - box[0]) // rows) * -(-(box[3] - box[2]) // cols)
 
     def adjoint_kernels(self):
-        """The kernels adjoint_update launches: pass 1 (velocity, stress), pass 2 (velocity, stress; fused with
-        self.adjoint_layout, or split: its gathers and then its sums (velocity, stress)) and, fused with several shots,
-        sum_shots."""
+        """The kernels adjoint_update launches: pass 1 (velocity, stress), pass 2 (velocity, stress; with
+        self.adjoint_layout the fused or split tiles and the frame's gathers) and, so with several shots, sum_shots."""
         k, lay = self.k, self.adjoint_layout
         if not self._fused():
             return k.velocity_adjoint, k.stress_adjoint, k.velocity_transpose, k.stress_transpose
@@ -1823,8 +1837,9 @@ class Elastic:
         adjoints back a level and adds to adj's velocities and the moduli's adjoints; kind 0 takes its memory variables'
         back and adds to adj's stresses and the buoyancies' adjoints. Pass 1 (per cell, outside the inner box
         with self.adjoint_layout), then pass 2 (the gathers, or with self.adjoint_layout the fused tiles and the frame's
-        gathers; split: the sums' tiles, then the gathers' tiles and the frame's); part "pass1", "sums" (split) or
-        "pass2" launches that alone, "tiles" pass 2's tiles alone (for timing)."""
+        gathers; split: the tiles' gathers and sums, in one launch where merged, and the frame's gathers); part "pass1" or
+        "pass2" launches that alone, "tiles" pass 2's tiles alone (split: their gathers), "sums" the split tiles' sums
+        alone (for timing)."""
         bx, bz, l2m, lam, mu, muh, _ = mat
         g_bx, g_bz, g_l2m, g_lam, g_mu, g_muh = adj_mat
         Q, G = out.psi, adj.psi
@@ -1834,14 +1849,14 @@ class Elastic:
             flat = [st.sxx, st.szz, st.sxz, bx, bz, adj.vx, adj.vz, adj.sxx, adj.szz, adj.sxz, g_bx, g_bz]
             gathered = [adj.sxx, adj.szz, adj.sxz]
             summed = [g_bx, g_bz, g_bz]  # sum_shots' g1, g2 (and an unused g3)
-            split = ([bx, bz, adj.vx, adj.vz, *gathered], [st.sxx, st.szz, st.sxz, adj.vx, adj.vz, g_bx, g_bz])  # the split's gathers' and sums'
+            split = [bx, bz, adj.vx, adj.vz, *gathered, st.sxx, st.szz, st.sxz, g_bx, g_bz]  # the split kernels' vector arrays
         else:
             args = [out.vx, out.vz, l2m, lam, mu, muh, *(Q[k] for k in PSI_S), adj.sxx, adj.szz, adj.sxz, adj.vx, adj.vz, g_l2m, g_lam, g_mu,
                     g_muh, *(G[k] for k in PSI_S)]  # fmt: skip
             flat = [out.vx, out.vz, l2m, lam, muh, adj.sxx, adj.szz, adj.sxz, adj.vx, adj.vz, g_l2m, g_lam, g_muh]
             gathered = [adj.vx, adj.vz]
             summed = [g_l2m, g_lam, g_muh]
-            split = ([l2m, lam, muh, adj.sxx, adj.szz, adj.sxz, *gathered], [out.vx, out.vz, adj.sxx, adj.szz, adj.sxz, g_l2m, g_lam, g_muh])
+            split = [l2m, lam, muh, adj.sxx, adj.szz, adj.sxz, *gathered, out.vx, out.vz, g_l2m, g_lam, g_muh]
         kernels = self.adjoint_kernels()
         fused = self._fused()
         box, inner = self.adjoint_boxes() if fused else (self.box, self.no_hole)
@@ -1855,25 +1870,25 @@ class Elastic:
             return
         lay = self.adjoint_layout
         t = [a.flatten() for a in scratch]
+        cells = self._outside(box)
         if lay.split:
             V = self.adjoint_width
-            if part in (None, "sums"):
-                wp.launch(kernels[4 + kind], dim=self._tiles(inner, lay.rows, V),
-                          inputs=[*(as_vectors(a, V) for a in split[1] + scratch[: 2 + kind]), self.n_shots, *self.padded, inner, self.dt_device,
-                                  self.inv_dx], block_dim=lay.threads, device=self.device, record_tape=False)  # fmt: skip
-            if part == "sums":
-                return
             tiles = self._tiles(box, lay.rows, V)
-            inputs = [*(as_vectors(a, V) for a in split[0]), *t, *(a.flatten() for a in gathered), *self.padded, box]
+            frame = -(-tiles // lay.threads) * lay.threads  # the frame's first thread, on a block boundary
+            inputs = [*(as_vectors(a, V) for a in split + scratch[: 2 + kind]), *t, *(a.flatten() for a in gathered), self.n_shots,
+                      *self.padded, box, inner, self.dt_device, self.inv_dx, tiles, frame, cells]  # fmt: skip
+            whole = frame + self.n_shots * cells
+            launches = {"sums": [(tiles, 2)], "tiles": [(tiles, 1)], None: [(whole, 3)] if lay.merged else [(tiles, 2), (whole, 1)]}
+            for dim, what in launches[part if part in launches else None]:
+                wp.launch(kernels[2 + kind], dim=dim, inputs=[*inputs, what], block_dim=lay.threads, device=self.device, record_tape=False)
         else:
             tiles = self._tiles(box, lay.rows, lay.cols)
+            frame = -(-tiles // lay.threads) * lay.threads
             inputs = [*(a.flatten() for a in flat), *t, *self.padded, self.n_shots, box, inner]
-        frame = -(-tiles // lay.threads) * lay.threads  # the frame's first thread, on a block boundary
-        cells = self._outside(box)
-        wp.launch(kernels[2 + kind], dim=tiles if part == "tiles" else frame + self.n_shots * cells,
-                  inputs=[*inputs, self.dt_device, self.inv_dx, tiles, frame, cells], block_dim=lay.threads, device=self.device,
-                  record_tape=False)  # fmt: skip
-        if self.n_shots > 1 and part != "tiles":  # the materials' adjoints the tiles left in the scratch
+            wp.launch(kernels[2 + kind], dim=tiles if part == "tiles" else frame + self.n_shots * cells,
+                      inputs=[*inputs, self.dt_device, self.inv_dx, tiles, frame, cells], block_dim=lay.threads, device=self.device,
+                      record_tape=False)  # fmt: skip
+        if self.n_shots > 1 and part in (None, "pass2"):  # the materials' adjoints the tiles left in the scratch
             wp.launch(kernels[-1], dim=(inner[1] - inner[0]) * (inner[3] - inner[2]),
                       inputs=[*t[:3], *(a.flatten() for a in summed), 2 + kind, self.n_shots, *self.padded, inner], device=self.device,
                       record_tape=False)  # fmt: skip

@@ -568,14 +568,14 @@ def adjoint_step_arrays(prop, layout, source_type, seed=7):
 
 
 FUSED = K.AdjointLayout(4, 2, 128)  # the best of the fused layouts
-assert K.ADJOINT_LAYOUT.split
+assert all(lay.split for lay in K.ADJOINT_LAYOUT.values())
 
 
 @pytest.mark.parametrize("layout, order, free_surface, shots, nx",
                          [(FUSED, o, fs, s, 28) for o in (4, 8) for fs in (False, True) for s in (1, 3)] +
                          [(lay, 4, True, 2, 28) for lay in K.ADJOINT_LAYOUTS if lay != FUSED and not lay.split] +
-                         [(K.ADJOINT_LAYOUT, o, fs, s, 30) for o, fs, s in ((4, False, 1), (4, True, 3), (8, True, 1), (8, False, 3))] +
-                         [(lay, 4, True, 2, 30) for lay in K.ADJOINT_LAYOUTS if lay.split and lay != K.ADJOINT_LAYOUT] +
+                         [(K.ADJOINT_LAYOUT[o], o, fs, s, 30) for o, fs, s in ((4, False, 1), (4, True, 3), (8, True, 1), (8, False, 3))] +
+                         [(lay, 4, True, 2, 30) for lay in K.ADJOINT_LAYOUTS if lay.split and lay != K.ADJOINT_LAYOUT[4]] +
                          [(K.AdjointLayout(4, 4, 128, split=True), 4, False, 1, 28)])  # fmt: skip
 def test_fused_adjoint_step_equals_per_cell_kernels(layout, order, free_surface, shots, nx):
     # The GPU's hand-written adjoint step (pass 1 outside the inner box; tiles of the adjoint box fusing both passes,
@@ -600,7 +600,7 @@ def test_fused_adjoint_step_equals_per_cell_kernels(layout, order, free_surface,
         assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max()
 
 
-@pytest.mark.parametrize("fast", [FUSED, K.ADJOINT_LAYOUT])
+@pytest.mark.parametrize("fast", [FUSED, K.ADJOINT_LAYOUT[4]])
 def test_sweep_with_fused_adjoint_equals_per_cell_kernels(monkeypatch, fast):
     # gradient_elastic's ElasticSweep (one adjoint State taken back a level by each step, in place) with the fused (or split) adjoint
     # kernels (the GPU's path) against the per-cell kernels, both forced: the same gradients (float64; measured bit for
