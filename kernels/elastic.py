@@ -124,9 +124,9 @@ class AdjointLayout(NamedTuple):
 # E2000, order 4, us, 2026-11-21, in place, the split tiles' sums by the gathers' threads): split merged 2 x 4 286, 4 x 4
 # 287, 2 x 2 296, 8 x 4 309, 4 x 2 313, 8 x 2 (64, 128 or 256 threads) 359, 8 x 1 432, 16 x 2 439, 16 x 1 477; split
 # with the sums in their own launch 4 x 4 309, 4 x 2 333; fused (one kernel per half step) 4 x 2 432, 2 x 2 466, 8 x 1
-# 467, 8 x 2 468, 4 x 1 480, 16 x 2 589 (the per-cell kernels: 746). Order 8 keeps 4 x 2: its tiles stay near 128
-# registers, where 4 x 4 tiles hold twice the window values. Registers per thread from ptxas (sm_90, float32, velocity /
-# stress; before the adjoint ran in place and the sums merged): fused, order 4: 8 x 2, 4 x 2, 16 x 2 127-128 / 128, 8 x 1
+# 467, 8 x 2 468, 4 x 1 480, 16 x 2 589 (the per-cell kernels: 746). Order 8 (E2000, split merged): 4 x 2 378, 2 x 2
+# 384, 4 x 4 387, 2 x 4 390, 8 x 2 402; its 4 x 4 tiles hold twice the window values. Registers per thread from ptxas
+# (sm_90, float32, velocity / stress; before the adjoint ran in place and the sums merged): fused, order 4: 8 x 2, 4 x 2, 16 x 2 127-128 / 128, 8 x 1
 # 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8 x 2 194 / 230, 8 x 1 143 / 137. Split (gathers velocity / stress,
 # sums velocity / stress): order 4: 4 x 2 72 / 80, 48 / 48, 8 x 2 and 16 x 2 72 / 80, 48-56 / 56, 8 x 1 56 / 64, 40 / 40,
 # 4 x 4 and 8 x 4 122 / 128, 80 / 94; order 8: 8 x 2 122 / 128, 80 / 96, 8 x 1 72 / 72, 64 / 62. The CPU runs the per-cell
