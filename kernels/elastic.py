@@ -121,16 +121,16 @@ class AdjointLayout(NamedTuple):
 
 
 # The GPU's default by order: timed on an H200 (benchmarks/speed_elastic.py --adjoint-variants; whole adjoint step on
-# E2000, order 4, us, 2026-11-21, in place, the split tiles' sums by the gathers' threads): split merged 2 x 4 286, 4 x 4
-# 287, 2 x 2 296, 8 x 4 309, 4 x 2 313, 8 x 2 (64, 128 or 256 threads) 359, 8 x 1 432, 16 x 2 439, 16 x 1 477; split
-# with the sums in their own launch 4 x 4 309, 4 x 2 333; fused (one kernel per half step) 4 x 2 432, 2 x 2 466, 8 x 1
-# 467, 8 x 2 468, 4 x 1 480, 16 x 2 589 (the per-cell kernels: 746). Order 8 (E2000, split merged): 4 x 2 378, 2 x 2
-# 384, 4 x 4 387, 2 x 4 390, 8 x 2 402; its 4 x 4 tiles hold twice the window values. Registers per thread from ptxas
-# (sm_90, float32, velocity / stress; before the adjoint ran in place and the sums merged): fused, order 4: 8 x 2, 4 x 2, 16 x 2 127-128 / 128, 8 x 1
-# 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8 x 2 194 / 230, 8 x 1 143 / 137. Split (gathers velocity / stress,
-# sums velocity / stress): order 4: 4 x 2 72 / 80, 48 / 48, 8 x 2 and 16 x 2 72 / 80, 48-56 / 56, 8 x 1 56 / 64, 40 / 40,
-# 4 x 4 and 8 x 4 122 / 128, 80 / 94; order 8: 8 x 2 122 / 128, 80 / 96, 8 x 1 72 / 72, 64 / 62. The CPU runs the per-cell
-# kernels unless told otherwise.
+# E2000, order 4, us, 2026-11-21, in place, the split tiles' sums by the gathers' threads): split merged 2 x 4 286,
+# 4 x 4 287, 2 x 2 296, 8 x 4 309, 4 x 2 313, 8 x 2 (64, 128 or 256 threads) 359, 8 x 1 432, 16 x 2 439, 16 x 1 477;
+# split with the sums in their own launch 4 x 4 309, 4 x 2 333; fused (one kernel per half step) 4 x 2 432, 2 x 2 466,
+# 8 x 1 467, 8 x 2 468, 4 x 1 480, 16 x 2 589 (the per-cell kernels: 746). Order 8 (E2000, split merged): 4 x 2 378,
+# 2 x 2 384, 4 x 4 387, 2 x 4 390, 8 x 2 402; its 4 x 4 tiles hold twice the window values. Registers per thread from
+# ptxas (sm_90, float32, velocity / stress; before the adjoint ran in place and the sums merged): fused, order 4: 8 x 2,
+# 4 x 2, 16 x 2 127-128 / 128, 8 x 1 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8 x 2 194 / 230, 8 x 1
+# 143 / 137. Split (gathers velocity / stress, sums velocity / stress): order 4: 4 x 2 72 / 80, 48 / 48, 8 x 2 and
+# 16 x 2 72 / 80, 48-56 / 56, 8 x 1 56 / 64, 40 / 40, 4 x 4 and 8 x 4 122 / 128, 80 / 94; order 8: 8 x 2 122 / 128,
+# 80 / 96, 8 x 1 72 / 72, 64 / 62. The CPU runs the per-cell kernels unless told otherwise.
 ADJOINT_LAYOUT = {2: AdjointLayout(4, 4, 128, split=True), 4: AdjointLayout(4, 4, 128, split=True), 8: AdjointLayout(4, 2, 128, split=True)}
 ADJOINT_LAYOUTS = (
     AdjointLayout(8, 2, 128),
@@ -1336,7 +1336,7 @@ def build(order: int, dtype, free_surface: bool):
         # what: 1 the gathers (tiles t < tiles, and the frame's threads t >= frame), 2 the sums' tiles, 3 both. The two read
         # the same adjoint fields at a tile's cells and write different arrays; together they read them once from memory.
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def velocity_gathers(
+        def velocity_split(
             bx: arrv, bz: arrv, g_vx: arrv, g_vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, sxx: arrv, szz: arrv, sxz: arrv,
             g_bx: arrv, g_bz: arrv, s1: arrv, s2: arrv, t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1,
             shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
@@ -1355,7 +1355,7 @@ def build(order: int, dtype, free_surface: bool):
                 velocity_gather(t1, t2, t3, t4, f_sxx, f_szz, f_sxz, (s * lz + z) * lx + x, lx)
 
         @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def stress_gathers(
+        def stress_split(
             l2m: arrv, lam: arrv, muh: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_vx: arrv, g_vz: arrv, vx: arrv, vz: arrv,
             g_l2m: arrv, g_lam: arrv, g_muh: arrv, s1: arrv, s2: arrv, s3: arrv, t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_vx: arr1,
             f_vz: arr1, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int,
@@ -1372,7 +1372,7 @@ def build(order: int, dtype, free_surface: bool):
                 z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
                 stress_gather(t1, t2, t3, t4, f_vx, f_vz, (s * lz + z) * lx + x, lx)
 
-        return velocity_gathers, stress_gathers
+        return velocity_split, stress_split
 
     @wp.kernel(module="unique")
     def materials(vp: arr2, vs: arr2, rho: arr2, bx: arr2, bz: arr2, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, b: arr2):
