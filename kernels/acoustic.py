@@ -512,20 +512,22 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     def make_lanes(V: int):
         # Types and row reads of tiles of V adjacent columns held as V-vectors: the flat arrays are viewed as
         # arrays of vector(V) (the box's columns and the row length are multiples of V), so that a thread loads
-        # and stores V cells at once. Returns (vector, its array, window (V, 2R + 1), line (V + 2R), sides, row).
+        # and stores V cells at once. Returns (vector, its array, window (V, 2R + 1), line (V + 2R), sides, row, and
+        # vector_access's load, put).
         NB = -(-R // V)  # vectors each side that hold a row's R neighbours
         vec = wp.types.vector(length=V, dtype=dtype)
         arrv = wp.array(dtype=vec)
         win = wp.types.matrix(shape=(V, 2 * R + 1), dtype=dtype)
         line = wp.types.vector(length=V + 2 * R, dtype=dtype)
+        load, put = vector_access(V, dtype)
 
         @wp.func
         def sides(a: arrv, i: int) -> line:
             # the R values left and right of vector i along its row, at r[0:R] and r[R + V:] (r[R:R + V] = 0)
             r = line()
             for b in range(wp.static(NB)):
-                lo = a[i - wp.static(NB) + b]
-                hi = a[i + 1 + b]
+                lo = load(a, i - wp.static(NB) + b)
+                hi = load(a, i + 1 + b)
                 for j in range(wp.static(V)):
                     if wp.static((b - NB) * V + j + R >= 0):
                         r[wp.static((b - NB) * V + j + R)] = lo[j]
@@ -544,7 +546,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                     out[p] = r[p]
             return out
 
-        return vec, arrv, win, line, sides, row
+        return vec, arrv, win, line, sides, row, load, put
 
     @functools.lru_cache(maxsize=None)
     def make_core_tile(rows: int, V: int):
@@ -553,7 +555,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         # (make_lanes; u: S * Lz * Lx / V, v: Lz * Lx / V). Thread t updates `rows` consecutive rows of V adjacent
         # columns, with the stencil's values along z in sliding windows and one load per vector of a row along
         # x; the loop over rows is unrolled.
-        vec, arrv, win, line, sides, row = make_lanes(V)
+        vec, arrv, win, line, sides, row, load, put = make_lanes(V)
         tile = make_tile(rows, V)
 
         @wp.func
@@ -565,24 +567,24 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             n = lx // wp.static(V)
             w = win()
             for m in range(wp.static(2 * R + 1)):
-                a = u[i + (m - wp.static(R)) * n]
+                a = load(u, i + (m - wp.static(R)) * n)
                 for j in range(wp.static(V)):
                     w[j, m] = a[j]
             inv_dx2 = inv_dx * inv_dx
             for k in range(wp.static(rows)):
                 if z + k < core[1]:
                     r = row(sides(u, i), w)
-                    up = u_prev[i]
-                    vv = v[c]
+                    up = load(u_prev, i)
+                    vv = load(v, c)
                     out = vec()
                     for j in range(wp.static(V)):
                         dxx = dtype(wp.static(A[0])) * w[j, wp.static(R)]
                         for m in range(wp.static(R)):
                             dxx += dtype(wp.static(A[m + 1])) * (r[j + wp.static(R + 1) + m] + r[j + wp.static(R - 1) - m])
                         out[j] = advance(w[j, wp.static(R)], up[j], vv[j], dt2, (d2w(w[j]) + dxx) * inv_dx2)
-                    u_next[i] = out
+                    put(u_next, i, out)
                     if wp.static(k + 1 < rows):
-                        a = u[i + wp.static(R + 1) * n]
+                        a = load(u, i + wp.static(R + 1) * n)
                         for j in range(wp.static(V)):
                             for m in range(wp.static(2 * R)):
                                 w[j, m] = w[j, m + 1]
@@ -887,7 +889,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         # CPML, no surface image), with windows of q = w lam (gathered) and of u (the model gradient's
         # Laplacian); from `frame` (a block boundary) one interior cell outside `box` (frame_cell), `cells` per
         # shot, by the per-cell gather.
-        vec, arrv, win, line, sides, row = make_lanes(V)
+        vec, arrv, win, line, sides, row, load, put = make_lanes(V)
         tile = make_tile(rows, V)
 
         @wp.func
@@ -901,8 +903,8 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             wu = win()
             for m in range(wp.static(2 * R + 1)):
                 o = (m - wp.static(R)) * n
-                a = wp.cw_mul(w[c + o], lam[i + o])
-                b = u[i + o]
+                a = wp.cw_mul(load(w, c + o), load(lam, i + o))
+                b = load(u, i + o)
                 for j in range(wp.static(V)):
                     wq[j, m] = a[j]
                     wu[j, m] = b[j]
@@ -911,9 +913,9 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                 if z + k < box[1]:
                     rq = row(wp.cw_mul(sides(w, c), sides(lam, i)), wq)
                     ru = row(sides(u, i), wu)
-                    lc = lam[i]
-                    ad = adj[i]
-                    gi = g[i]
+                    lc = load(lam, i)
+                    ad = load(adj, i)
+                    gi = load(g, i)
                     ao = vec()
                     go = vec()
                     for j in range(wp.static(V)):
@@ -932,12 +934,12 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                         for m in range(wp.static(R)):
                             dxx += dtype(wp.static(A[m + 1])) * (ru[j + wp.static(R + 1) + m] + ru[j + wp.static(R - 1) - m])
                         go[j] = gi[j] + lc[j] * (d2w(wu[j]) * inv_dx2 + dxx * inv_dx2)
-                    adj_out[i] = ao
-                    g_out[i] = go
+                    put(adj_out, i, ao)
+                    put(g_out, i, go)
                     if wp.static(k + 1 < rows):
                         o = wp.static(R + 1) * n
-                        a = wp.cw_mul(w[c + o], lam[i + o])
-                        b = u[i + o]
+                        a = wp.cw_mul(load(w, c + o), load(lam, i + o))
+                        b = load(u, i + o)
                         for j in range(wp.static(V)):
                             for m in range(wp.static(2 * R)):
                                 wq[j, m] = wq[j, m + 1]
@@ -1252,6 +1254,32 @@ def as_vectors(a: wp.array, V: int) -> wp.array:
     """a's memory as a flat array of vector(V) (the core tiles' loads and stores; a.size a multiple of V)."""
     flat = a.flatten()
     return (flat if V == 1 else flat.reshape((a.size // V, V))).view(wp.types.vector(length=V, dtype=a.dtype))
+
+
+@functools.lru_cache(maxsize=None)
+def vector_access(V: int, dtype):
+    """(load(f, i), store(f, i, v)) of element i of a contiguous array f of vector(V, dtype), as one access of
+    V * itemsize bytes (two of 16 for 32) on a GPU: Warp indexes a vector array component by component, and the GPU
+    then moves 4 bytes per instruction with a stride of the vector's size between threads. The CPU indexes as Warp does."""
+    vec = wp.types.vector(length=V, dtype=dtype)
+    arrv = wp.array(dtype=vec)
+    size = V * wp.types.type_size_in_bytes(dtype)
+    word, n = {8: ("uint2", 1), 16: ("uint4", 1), 32: ("uint4", 2)}.get(size, (None, 0))
+    load, store = "return f.data[i];\n", "f.data[i] = v;\n"
+    if word is not None:  # the #if lines need their own lines, and the last a newline
+        cuda = f"#if defined(__CUDA_ARCH__)\n{word} u[{n}];\n"
+        load = (f"{cuda}const {word}* p = reinterpret_cast<const {word}*>(f.data + i);\nfor (int k = 0; k < {n}; ++k) u[k] = p[k];\n"
+                f"wp::vec_t<{V},wp::{dtype.__name__}> r;\nmemcpy(&r, u, {size});\nreturn r;\n#else\n{load}#endif\n")
+        store = (f"{cuda}memcpy(u, &v, {size});\n{word}* p = reinterpret_cast<{word}*>(f.data + i);\n"
+                 f"for (int k = 0; k < {n}; ++k) p[k] = u[k];\n#else\n{store}#endif\n")
+
+    @wp.func_native(load)
+    def load_vector(f: arrv, i: int) -> vec: ...
+
+    @wp.func_native(store)
+    def store_vector(f: arrv, i: int, v: vec): ...
+
+    return load_vector, store_vector
 
 
 def _aligned(z0: int, z1: int, x0: int, x1: int, V: int) -> wp.vec4i:

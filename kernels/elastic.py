@@ -67,7 +67,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.acoustic import HICKS_RADIUS, _adjoint_launch, _aligned, as_vectors, field_stats, hicks_weight
+from adseismic.kernels.acoustic import HICKS_RADIUS, _adjoint_launch, _aligned, as_vectors, field_stats, hicks_weight, vector_access
 from adseismic.numerics import STAGGERED_DERIVATIVE
 
 
@@ -86,12 +86,18 @@ class Layout(NamedTuple):
     merged: bool = True
 
 
-# From `benchmarks/speed_elastic.py --variants` on the H200 (step us, E2000 / E600x16), vector tiles (rows x columns,
-# the columns one vector): 4 x 2 merged 122.8 / 211.7 (chosen), 4 x 4 120.1 / 230.0, 8 x 2 132.7 / 222.3, 8 x 4 126.0 /
-# 238.7, 16 x 2 132.2 / 222.4, 8 x 1 160.4 / 252.1, 8 x 2 split 148.9 / 241.0, lean 8 x 2 130.2 / 232.4; the scalar
-# tiles before them: 8 x 2 merged 173 / 283.
-CORE_LAYOUT = Layout(4, 2, 128, lean=False, merged=True)
+# Timed on the H200 (benchmarks/speed_elastic.py's variant timings, in place; step us, E2000 / E600x16, 2026-11-21), vector
+# tiles (rows x columns, the columns one vector) loaded and stored a vector per access (vector_access), merged: 1 x 2
+# 104.1 / 173.0 (chosen), 2 x 2 108.1 / 187.4, 2 x 4 108.2 / 204.5, 1 x 4 109.8 / 184.3, 3 x 2 116.7 / 202.3, 4 x 2 120.6 /
+# 206.1, 4 x 4 114.5 / 211.0; 2 x 2 with 256 or 64 threads 108.6-110.7 / 190.5-192.9. Before the vector accesses (Warp
+# reads a vector array component by component): 4 x 2 122.8 / 211.7 (chosen then), 4 x 4 120.1 / 230.0, 8 x 2 132.7 /
+# 222.3, 8 x 1 160.4 / 252.1, 8 x 2 split 148.9 / 241.0, lean 8 x 2 130.2 / 232.4; scalar tiles 8 x 2 173 / 283.
+# Capping the registers (Warp's cuda_max_registers) at 40 or 32 slowed 4 x 2 to 135.5 and 197.7 (spills).
+CORE_LAYOUT = Layout(1, 2, 128, lean=False, merged=True)
 LAYOUTS = (
+    Layout(1, 2, 128, False, True),
+    Layout(1, 4, 128, False, True),
+    Layout(2, 2, 128, False, True),
     Layout(8, 2, 128, False, True),
     Layout(8, 4, 128, False, True),
     Layout(4, 4, 128, False, True),
@@ -120,8 +126,14 @@ class AdjointLayout(NamedTuple):
     merged: bool = True
 
 
-# The GPU's default by order: timed on an H200 (benchmarks/speed_elastic.py --adjoint-variants; whole adjoint step on
-# E2000, order 4, us, 2026-11-21, in place, the split tiles' sums by the gathers' threads): split merged 2 x 4 286,
+# The GPU's default by order: timed on an H200 (benchmarks/speed_elastic.py's adjoint_variant_times, which its
+# --adjoint-variants runs over ADJOINT_LAYOUTS; whole adjoint step on E2000, us, 2026-11-21, in place, the split tiles'
+# sums by the gathers' threads). With vector accesses (vector_access),
+# split merged, order 4: 1 x 4 246.8 (128 threads; 250.7 with 256, 247.6 with 64), 2 x 4 258.0-268.8, 3 x 4 271.3,
+# 4 x 4 275.4-275.9, 1 x 2 294.1, 4 x 2 303.7-336.7, 2 x 2 330.5; order 8: 1 x 4 340.6, 2 x 4 346.7-372.9, 1 x 2 353.4,
+# 4 x 2 355.2-429.9, 4 x 4 416.5; order 2 untimed (1 x 4, as 4 and 8). Capping the registers at 64-88 (4 x 4: 275.9 ->
+# 280.0-368.3) or running pass 1's frame threads in the tiles' launch (the frame's gathers then in a launch of their own:
+# 4 x 4 275.4) gained nothing. Before the vector accesses: split merged 2 x 4 286,
 # 4 x 4 287, 2 x 2 296, 8 x 4 309, 4 x 2 313, 8 x 2 (64, 128 or 256 threads) 359, 8 x 1 432, 16 x 2 439, 16 x 1 477;
 # split with the sums in their own launch 4 x 4 309, 4 x 2 333; fused (one kernel per half step) 4 x 2 432, 2 x 2 466,
 # 8 x 1 467, 8 x 2 468, 4 x 1 480, 16 x 2 589 (the per-cell kernels: 746). Order 8 (E2000, split merged): 4 x 2 378,
@@ -131,8 +143,11 @@ class AdjointLayout(NamedTuple):
 # 143 / 137. Split (gathers velocity / stress, sums velocity / stress): order 4: 4 x 2 72 / 80, 48 / 48, 8 x 2 and
 # 16 x 2 72 / 80, 48-56 / 56, 8 x 1 56 / 64, 40 / 40, 4 x 4 and 8 x 4 122 / 128, 80 / 94; order 8: 8 x 2 122 / 128,
 # 80 / 96, 8 x 1 72 / 72, 64 / 62. The CPU runs the per-cell kernels unless told otherwise.
-ADJOINT_LAYOUT = {2: AdjointLayout(4, 4, 128, split=True), 4: AdjointLayout(4, 4, 128, split=True), 8: AdjointLayout(4, 2, 128, split=True)}
+ADJOINT_LAYOUT = {o: AdjointLayout(1, 4, 128, split=True) for o in (2, 4, 8)}
 ADJOINT_LAYOUTS = (
+    AdjointLayout(1, 4, 128, split=True),
+    AdjointLayout(1, 2, 128, split=True),
+    AdjointLayout(3, 4, 128, split=True),
     AdjointLayout(8, 2, 128),
     AdjointLayout(4, 2, 128),
     AdjointLayout(16, 2, 128),
@@ -582,10 +597,11 @@ def build(order: int, dtype, free_surface: bool):
         arrv = wp.array(dtype=vec)
         alone = -1  # load_line's window row when no window holds the line's values
         lo, hi = -M // width, (cols + M - 1) // width  # the blocks a line reaches, relative to the tile's first
+        load, put = vector_access(width, dtype)
 
         @wp.func
         def get(f: arrv, i: int) -> vec:
-            return f[i]
+            return load(f, i)
 
         @wp.func
         def get(f: Any, i: int) -> vec:  # noqa: F811 (a Warp overload)
@@ -599,8 +615,8 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.func
         def get(a: ScaledV, i: int) -> vec:  # noqa: F811
-            g = a.g[i]
-            m = a.m[i - a.base]
+            g = load(a.g, i)
+            m = load(a.m, i - a.base)
             r = vec()
             for j in range(wp.static(width)):
                 r[j] = a.dt * m[j] * g[j] * a.inv_dx
@@ -608,10 +624,10 @@ def build(order: int, dtype, free_surface: bool):
 
         @wp.func
         def get(a: NormalV, i: int) -> vec:  # noqa: F811
-            gx = a.gx[i]
-            gz = a.gz[i]
-            p = a.p[i - a.base]
-            q = a.q[i - a.base]
+            gx = load(a.gx, i)
+            gz = load(a.gz, i)
+            p = load(a.p, i - a.base)
+            q = load(a.q, i - a.base)
             r = vec()
             for j in range(wp.static(width)):
                 u, _ = normal_rates(p[j], q[j], a.dt * gx[j], a.dt * gz[j])
@@ -690,7 +706,7 @@ def build(order: int, dtype, free_surface: bool):
                             r[o + j - first] = w[o + j, m]
             return r
 
-        return vec, arrv, alone, get, dline, tile, place, load_window, slide, load_line, scaled_v, normal_v
+        return vec, arrv, alone, get, put, dline, tile, place, load_window, slide, load_line, scaled_v, normal_v
 
     tiling = functools.lru_cache(maxsize=None)(make_tiling)
 
@@ -704,7 +720,7 @@ def build(order: int, dtype, free_surface: bool):
         # (column j, row m) and loads each value of a row along x once into a line r[p], sharing it between the
         # tile's columns; the loop over rows is unrolled. Every sum is formed in the reference's order, so a tile
         # reproduces the per-cell kernels bit for bit where the compiler contracts no multiply-adds (the CPU).
-        vec, arrv, alone, get, dline, _, place, load_window, slide, load_line, _, _ = tiling(rows, cols, cols)
+        vec, arrv, alone, get, put, dline, _, place, load_window, slide, load_line, _, _ = tiling(rows, cols, cols)
         nodes = wp.types.vector(length=cols + 1, dtype=dtype)  # lean: a model row at the tile's columns and the next
 
         @wp.func
@@ -741,14 +757,14 @@ def build(order: int, dtype, free_surface: bool):
                 if z + k < core[1]:
                     ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 ..
                     rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M ..
-                    ux = vx[i]
-                    uz = vz[i]
+                    ux = get(vx, i)
+                    uz = get(vz, i)
                     if wp.static(lean):
                         b0 = b1
                         b1 = load_nodes(m1, c + n)
                     else:
-                        bx = m1[c]
-                        bz = m2[c]
+                        bx = get(m1, c)
+                        bz = get(m2, c)
                     ox = vec()
                     oz = vec()
                     for j in range(wp.static(cols)):
@@ -760,8 +776,8 @@ def build(order: int, dtype, free_surface: bool):
                             mz = bz[j]
                         ox[j] = advance(ux[j], dt, mx, dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
                         oz[j] = advance(uz[j], dt, mz, dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
-                    vx_new[i] = ox
-                    vz_new[i] = oz
+                    put(vx_new, i, ox)
+                    put(vz_new, i, oz)
                     if wp.static(k + 1 < rows):
                         wa = slide(wa, sxz, i, n, wp.static(M))
                         wb = slide(wb, szz, i, n, wp.static(M + 1))
@@ -789,18 +805,18 @@ def build(order: int, dtype, free_surface: bool):
                 if z + k < core[1]:
                     ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M ..
                     rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 ..
-                    axx = sxx[i]
-                    azz = szz[i]
-                    axz = sxz[i]
-                    l2m = m1[c]
+                    axx = get(sxx, i)
+                    azz = get(szz, i)
+                    axz = get(sxz, i)
+                    l2m = get(m1, c)
                     if wp.static(lean):
                         u0 = u1
                         q0 = q1
                         u1 = load_nodes(m2, c + n)
                         q1 = reciprocals(u1)
                     else:
-                        lam = m2[c]
-                        muh = m3[c]
+                        lam = get(m2, c)
+                        muh = get(m3, c)
                     oxx = vec()
                     ozz = vec()
                     oxz = vec()
@@ -818,9 +834,9 @@ def build(order: int, dtype, free_surface: bool):
                         oxx[j] = axx[j] + dt * sxx_rate
                         ozz[j] = azz[j] + dt * szz_rate
                         oxz[j] = advance(axz[j], dt, h, dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
-                    sxx_new[i] = oxx
-                    szz_new[i] = ozz
-                    sxz_new[i] = oxz
+                    put(sxx_new, i, oxx)
+                    put(szz_new, i, ozz)
+                    put(sxz_new, i, oxz)
                     if wp.static(k + 1 < rows):
                         wa = slide(wa, vz, i, n, wp.static(M))
                         wb = slide(wb, vx, i, n, wp.static(M + 1))
@@ -1076,7 +1092,7 @@ def build(order: int, dtype, free_surface: bool):
         # windows and lines of their raw products (Scaled, Normal) and, inside `inner` (the hole of pass 1, which wrote
         # t_k of the ring box - inner that the frame's gathers read), does pass 1's work too (add_shot). Every sum in the
         # per-cell kernels' order (a transposed stencil is its derivative negated, exactly): bit for bit on the CPU.
-        _, _, alone, _, dline, tile, _, load_window, slide, load_line, _, _ = tiling(rows, cols, 1)
+        _, _, alone, _, _, dline, tile, _, load_window, slide, load_line, _, _ = tiling(rows, cols, 1)
 
         @wp.func
         def velocity_tile(
@@ -1198,7 +1214,7 @@ def build(order: int, dtype, free_surface: bool):
         # it): `*_gathers_tile` do make_adjoints' tiles' gathers (box: their `box`), `*_sums_tile` the tiles' pass 1 work
         # at their cells inside `inner`, one after the other (no value passes between them), a thread a tile of `box`. The
         # same sums as make_adjoints', in the same order.
-        vec, arrv, alone, _, dline, _, place, load_window, slide, load_line, scaled_v, normal_v = tiling(rows, width, width)
+        vec, arrv, alone, get, put, dline, _, place, load_window, slide, load_line, scaled_v, normal_v = tiling(rows, width, width)
 
         @wp.func
         def velocity_gathers_tile(
@@ -1214,9 +1230,9 @@ def build(order: int, dtype, free_surface: bool):
                 if z + k < box[1]:
                     r1 = load_line(ta, i, wp.static(-M), w2, wp.static(M - 1))  # t1 at x - M ..
                     r3 = load_line(tb, i, wp.static(1 - M), w4, wp.static(M))  # t3 at x - M + 1 ..
-                    a = g_sxx[i]
-                    b = g_sxz[i]
-                    d = g_szz[i]
+                    a = get(g_sxx, i)
+                    b = get(g_sxz, i)
+                    d = get(g_szz, i)
                     oa = vec()
                     ob = vec()
                     od = vec()
@@ -1224,13 +1240,21 @@ def build(order: int, dtype, free_surface: bool):
                         oa[j] = a[j] - dline(r1, j)
                         ob[j] = b[j] - dwin(w2[j]) - dline(r3, j)
                         od[j] = d[j] - dwin(w4[j])
-                    g_sxx[i] = oa
-                    g_sxz[i] = ob
-                    g_szz[i] = od
+                    put(g_sxx, i, oa)
+                    put(g_sxz, i, ob)
+                    put(g_szz, i, od)
                     if wp.static(k + 1 < rows):
                         w2 = slide(w2, ta, i, n, wp.static(M + 1))
                         w4 = slide(w4, tb, i, n, wp.static(M))
                     i += n
+
+        @wp.func
+        def add_shot_v(g: arrv, t: arrv, c: int, i: int, term: vec, shots: int):
+            # add_shot on vectors (one access each)
+            if shots == 1:
+                put(g, c, get(g, c) + term)
+            else:
+                put(t, i, term)
 
         @wp.func
         def within(c: int, z: int, lx: int, inner: wp.vec4i) -> bool:
@@ -1252,15 +1276,15 @@ def build(order: int, dtype, free_surface: bool):
                         if z + k >= inner[0]:
                             ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 .. (d1)
                             rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M .. (d3)
-                            ga = g_vx[i]
-                            gb = g_vz[i]
+                            ga = get(g_vx, i)
+                            gb = get(g_vz, i)
                             ea = vec()
                             eb = vec()
                             for j in range(wp.static(width)):
                                 ea[j] = dt * ga[j] * (dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
                                 eb[j] = dt * gb[j] * (dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
-                            add_shot(g_bx, t1, c, i, ea, shots)
-                            add_shot(g_bz, t2, c, i, eb, shots)
+                            add_shot_v(g_bx, t1, c, i, ea, shots)
+                            add_shot_v(g_bz, t2, c, i, eb, shots)
                         if wp.static(k + 1 < rows):
                             wa = slide(wa, sxz, i, n, wp.static(M))
                             wb = slide(wb, szz, i, n, wp.static(M + 1))
@@ -1282,15 +1306,15 @@ def build(order: int, dtype, free_surface: bool):
                 if z + k < box[1]:
                     r1 = load_line(tx, i, wp.static(1 - M), w2, wp.static(alone))  # t1 at x - M + 1 ..
                     r4 = load_line(ts, i, wp.static(-M), w3, wp.static(M))  # t4 at x - M ..
-                    a = g_vx[i]
-                    b = g_vz[i]
+                    a = get(g_vx, i)
+                    b = get(g_vz, i)
                     oa = vec()
                     ob = vec()
                     for j in range(wp.static(width)):
                         oa[j] = a[j] - dline(r1, j) - dwin(w3[j])
                         ob[j] = b[j] - dwin(w2[j]) - dline(r4, j)
-                    g_vx[i] = oa
-                    g_vz[i] = ob
+                    put(g_vx, i, oa)
+                    put(g_vz, i, ob)
                     if wp.static(k + 1 < rows):
                         w2 = slide(w2, tz, i, n, wp.static(M + 1))
                         w3 = slide(w3, ts, i, n, wp.static(M))
@@ -1310,9 +1334,9 @@ def build(order: int, dtype, free_surface: bool):
                         if z + k >= inner[0]:
                             ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M .. (dvx)
                             rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 .. (e2)
-                            gxx = g_sxx[i]
-                            gzz = g_szz[i]
-                            gxz = g_sxz[i]
+                            gxx = get(g_sxx, i)
+                            gzz = get(g_szz, i)
+                            gxz = get(g_sxz, i)
                             e1 = vec()
                             e2 = vec()
                             e3 = vec()
@@ -1324,9 +1348,9 @@ def build(order: int, dtype, free_surface: bool):
                                 e1[j] = hxx * dvx + hzz * dvz
                                 e2[j] = hxx * dvz + hzz * dvx
                                 e3[j] = dt * gxz[j] * (dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
-                            add_shot(g_l2m, t1, c, i, e1, shots)
-                            add_shot(g_lam, t2, c, i, e2, shots)
-                            add_shot(g_muh, t3, c, i, e3, shots)
+                            add_shot_v(g_l2m, t1, c, i, e1, shots)
+                            add_shot_v(g_lam, t2, c, i, e2, shots)
+                            add_shot_v(g_muh, t3, c, i, e3, shots)
                         if wp.static(k + 1 < rows):
                             wa = slide(wa, vz, i, n, wp.static(M))
                             wb = slide(wb, vx, i, n, wp.static(M + 1))
