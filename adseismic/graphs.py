@@ -13,6 +13,7 @@ inversion's forward and gradient calls do not evict each other.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import weakref
 from dataclasses import dataclass
@@ -116,6 +117,23 @@ def keep(loop):
 def release():
     """Free the device memory of the kept time loops."""
     _KEPT.clear()
+
+
+class SideStream:
+    """A second stream on a GPU for launches that may overlap the current stream's later ones (a record of a level
+    that the following steps do not write): launches inside `with side():` wait for the current stream's earlier
+    work, then run beside it; join() makes the current stream wait for them (before a graph's capture ends). On a
+    CPU the launches run in order."""
+
+    def __init__(self, device):
+        self.stream = wp.Stream(device) if wp.get_device(device).is_cuda else None
+
+    def __call__(self):
+        return wp.ScopedStream(self.stream) if self.stream is not None else contextlib.nullcontext()
+
+    def join(self):
+        if self.stream is not None:
+            wp.wait_stream(self.stream)
 
 
 class Segments:

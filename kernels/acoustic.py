@@ -1216,13 +1216,40 @@ def field_stats(fields, stats: wp.array):
         _reduce(reduction_kernels(u.dtype)[0], u, stats)
 
 
+def value_ranges(arrays) -> list:
+    """[(min, max, number of non-finite values)] of float32/float64 Warp arrays of one dtype on a GPU, read back
+    together (one copy to the host for all)."""
+    v0 = arrays[0]
+    big = float(np.finfo(wp.dtype_to_numpy(v0.dtype)).max)
+    stats = wp.array([[big, -big, 0.0]] * len(arrays), dtype=v0.dtype, device=v0.device)
+    for k, v in enumerate(arrays):
+        _reduce(reduction_kernels(v.dtype)[1], v, stats[k])
+    return [(float(lo), float(hi), int(bad)) for lo, hi, bad in stats.numpy()]
+
+
 def value_range(v: wp.array):
     """(min, max, number of non-finite values) of a float32/float64 Warp array on a GPU."""
-    big = float(np.finfo(wp.dtype_to_numpy(v.dtype)).max)
-    stats = wp.array([big, -big, 0.0], dtype=v.dtype, device=v.device)
-    _reduce(reduction_kernels(v.dtype)[1], v, stats)
-    lo, hi, bad = stats.numpy()
-    return float(lo), float(hi), int(bad)
+    return value_ranges([v])[0]
+
+
+@functools.lru_cache(maxsize=None)
+def l2_residual_kernel(dtype):
+    """Kernel of the "l2" misfit on the device, a thread per trace (s, r) of synthetic data (S, n_rec, >= nt samples):
+    residual[s, r, t] = (synthetic - observed) dt for t < nt, formed in float64 and rounded to dtype, as the host's
+    misfits._l2 forms it; total[0] += sum over t of (synthetic - observed)^2 (float64)."""
+    arr3 = wp.array3d(dtype=dtype)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def l2_residual(syn: arr3, obs: wp.array3d(dtype=wp.float64), nt: int, dt: wp.float64, res: arr3, total: wp.array(dtype=wp.float64)):
+        s, r = wp.tid()
+        acc = wp.float64(0.0)
+        for t in range(nt):
+            d = wp.float64(syn[s, r, t]) - obs[s, r, t]
+            acc += d * d
+            res[s, r, t] = dtype(d * dt)
+        wp.atomic_add(total, 0, acc)
+
+    return l2_residual
 
 
 def _adjoint_launch(kernel, dim, inputs, adjoints: dict, device):
