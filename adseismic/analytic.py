@@ -253,7 +253,7 @@ def lamb_2d(source, dt: float, x, vp: float, vs: float, rho: float, depth: float
     """
     from scipy.special import sici
 
-    from adseismic.numerics import rayleigh_speed
+    from adseismic.kernels.numerics import rayleigh_speed
 
     s = np.asarray(source, dtype=np.float64).ravel()
     xs = np.atleast_1d(np.asarray(x, dtype=np.float64))

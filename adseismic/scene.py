@@ -23,9 +23,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from adseismic.models import Model
-from adseismic.numerics import cfl_limit, dispersion_error, ppw_for_error, rayleigh_speed, staggered_cfl_limit, staggered_dispersion_error
-from adseismic.propagate import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH, ForwardResult, forward
+from adseismic.data.models import Model
+from adseismic.kernels.numerics import cfl_limit, dispersion_error, ppw_for_error, rayleigh_speed, staggered_cfl_limit, staggered_dispersion_error
+from adseismic.solve.common import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH
+from adseismic.solve.acoustic import ForwardResult, forward
 from adseismic.wavelets import duration, make_wavelet, spectral_fmax
 
 # Padded-grid cell updates per second used for the time estimate (forward): the rates measured in

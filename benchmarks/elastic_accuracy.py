@@ -9,9 +9,9 @@ import time
 import numpy as np
 
 from adseismic.analytic import elastic_2d_force, lamb_2d
-from adseismic.elastic import forward_elastic
-from adseismic.numerics import rayleigh_speed, staggered_cfl_limit
-from adseismic.propagate import forward as acoustic_forward
+from adseismic.solve.elastic import forward_elastic
+from adseismic.kernels.numerics import rayleigh_speed, staggered_cfl_limit
+from adseismic.solve.acoustic import forward as acoustic_forward
 from adseismic.wavelets import ricker
 
 

@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from adseismic.config import parse_fwi_config
-from adseismic.fwi import prepare_fwi, run_fwi
+from adseismic.inversion.fwi import prepare_fwi, run_fwi
 
 BASE = {
     "model": {"kind": "constant", "shape": [61, 121], "spacing": 10.0, "velocity": 1600.0},

@@ -27,8 +27,8 @@ def scene(nt):
 
 
 def run(mode, nt, device):
-    from adseismic.gradient import gradient
-    from adseismic.propagate import forward
+    from adseismic.solve.gradient import gradient
+    from adseismic.solve.acoustic import forward
 
     v, dx, dt, s, src, rec = scene(nt)
     kw = dict(device=device, pml_width=20)

@@ -11,8 +11,8 @@ import time
 import numpy as np
 import warp as wp
 
-from adseismic.gradient import gradient
-from adseismic.propagate import forward
+from adseismic.solve.gradient import gradient
+from adseismic.solve.acoustic import forward
 from adseismic.wavelets import ricker
 
 SCENES = {  # name: (n, shots, nt)

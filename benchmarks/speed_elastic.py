@@ -23,8 +23,9 @@ import traceback
 import numpy as np
 import warp as wp
 
-import adseismic.elastic as E
+import adseismic.solve.elastic as E
 from adseismic import bench
+from adseismic.accel.reductions import field_stats
 from adseismic.kernels.elastic import ADJOINT_LAYOUTS, CORE_LAYOUT, LAYOUTS
 
 ORDER = 4
@@ -105,7 +106,7 @@ def kernel_times(su, device, reps):
         "inject_force": lambda: wp.launch(k.inject_force, dim=(prop.n_shots, su.sources.shape[1], k.operator_points),
                                           inputs=[st.vx, st.vz, bx, bz, su.amplitudes, su.components, su.sources, 3, prop.clock, prop.origin,
                                                   prop.dtype(prop.dt / prop.dx**2), prop.inv_dx, prop.top], device=device),  # fmt: skip
-        "monitor": lambda: prop.monitor((st.vx, st.vz), wp.zeros(2, dtype=prop.dtype, device=device)),
+        "monitor": lambda: field_stats((st.vx, st.vz), wp.zeros(2, dtype=prop.dtype, device=device)),
     }
     out = {"layout": CORE_LAYOUT._asdict(), "width": prop.width, "core_cells": int((prop.core[1] - prop.core[0]) * (prop.core[3] - prop.core[2])),
            "frame_cells": prop.frame_cells, **timings(jobs, device, reps)}  # fmt: skip

@@ -22,8 +22,11 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from speed import SCENES, scene  # noqa: E402
 
-import adseismic.propagate as P  # noqa: E402
-from adseismic.graphs import graph_plan  # noqa: E402
+import adseismic.solve.acoustic as P  # noqa: E402
+from adseismic.accel.graphs import graph_plan  # noqa: E402
+from adseismic.accel.reductions import field_stats  # noqa: E402
+from adseismic.kernels.acoustic import DESCRIPTION  # noqa: E402
+from adseismic.solve.common import BlowupGuard, source_end  # noqa: E402
 
 CORE_VARIANTS = [(4, 4, 128), (4, 2, 128), (8, 4, 128), (2, 4, 128), (4, 1, 128), (4, 4, 256)]  # (rows, columns per thread (one vector), threads per block) of the core kernels
 
@@ -37,7 +40,7 @@ def make(name, device, order, nt=None):
 def loop(su, s):
     """forward's time loop (graphs on a GPU, else run_steps); returns (seconds, data)."""
     prop = su.prop
-    guard = P.BlowupGuard(prop, s, 25)
+    guard = BlowupGuard(prop, DESCRIPTION, lambda st: [st.u], source_end(s), 25)
     K, graphs = graph_plan(prop.cuda, su.nt, guard.every, P.ROLES)
     data = wp.zeros((prop.n_shots, su.receivers.shape[1], max(su.nt, K * graphs)), dtype=prop.dtype, device=prop.device)
     st, vpad = prop.new_state(), prop.pad_model(su.velocity)
@@ -46,7 +49,7 @@ def loop(su, s):
     if graphs:
         P.run_graphs(su, st, vpad, data, guard)
     else:
-        P.run_steps(su, st, vpad, data, range(su.nt), callback=lambda st, n: guard(st.u, n))
+        P.run_steps(su, st, vpad, data, range(su.nt), callback=guard)
     wp.synchronize_device(prop.device)
     return time.perf_counter() - t, data.numpy()[:, :, : su.nt]
 
@@ -130,7 +133,7 @@ def kernel_times(su, reps):
     for a in (0, 2):
         out[f"psi_{a}"] = per_launch(lambda: wp.launch(prop.k.psi[a][0], dim=prop.strip_shape(a), inputs=[st.u, st.psi[a], st.psi[a], prop.axes[a], prop.inv_dx], device=dev), dev, reps)  # fmt: skip
     stats = wp.zeros(2, dtype=prop.dtype, device=dev)
-    out["monitor"] = per_launch(lambda: prop.monitor(st.u, stats), dev, reps)
+    out["monitor"] = per_launch(lambda: field_stats([st.u], stats), dev, reps)
     out["record"] = per_launch(lambda: prop.record(st.u, data, su.receiver_op, 3), dev, reps)
     out["inject"] = per_launch(lambda: prop.inject(st.u, vpad, su.amplitudes, su.source_op, 3), dev, reps)
     cells = S * np.prod(prop.padded)

@@ -13,7 +13,7 @@ import pathlib
 
 import numpy as np
 
-from adseismic.models import Model, ModelError, _per_axis
+from adseismic.data.models import Model, ModelError, _per_axis
 
 
 def _grid(shape, spacing, origin) -> tuple[tuple[int, ...], tuple[float, ...], tuple[float, ...]]:

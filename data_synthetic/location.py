@@ -27,9 +27,9 @@ def write_location_demo(directory, seed: int = 1):
     """Simulate the example event and write event.mseed + event.xml into ``directory``."""
     from obspy import UTCDateTime
 
-    from adseismic.locate import source_wavelet
-    from adseismic.propagate import forward
-    from adseismic.traces import Reference, StationTraces, preprocess, write_station_traces
+    from adseismic.location.locate import source_wavelet
+    from adseismic.solve.acoustic import forward
+    from adseismic.data.traces import Reference, StationTraces, preprocess, write_station_traces
 
     fine = layered([121, 221], 10.0, MODEL["velocities"], MODEL["interfaces"])
     rec = np.array([[10.0, x] for x in np.linspace(100.0, 2100.0, 12)])

@@ -5,7 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from adseismic import bench, cli, speed_accuracy
+from adseismic import bench
+from adseismic import cli
+from adseismic.bench import speed_accuracy
 from adseismic.bench import SCENES, BenchRow
 
 

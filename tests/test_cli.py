@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from adseismic import cli
-from adseismic.io import read_forward, write_forward
-from adseismic.numerics import cfl_limit
+from adseismic.data.store import read_forward, write_forward
+from adseismic.kernels.numerics import cfl_limit
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -142,7 +142,7 @@ def test_forward_unstable_dt_is_refused_before_outputs(tmp_path, capsys):
 
 def test_forward_blowup_exits_3_without_data(tmp_path, capsys, monkeypatch):
     from adseismic import scene
-    from adseismic.propagate import PropagationError
+    from adseismic.solve.common import PropagationError
 
     def explode(*args, **kwargs):
         raise PropagationError("wavefield blew up at step 7")

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-from adseismic.gradient import gradient
-from adseismic.propagate import forward, init_warp
+from adseismic.solve.gradient import gradient
+from adseismic.solve.common import init_warp
+from adseismic.solve.acoustic import forward
 from adseismic.wavelets import ricker
 
 init_warp()
@@ -39,7 +40,7 @@ def test_cpu_and_cuda_agree(precision, tol, free_surface):
 def test_gpu_reductions_equal_numpy(n):
     # the blow-up monitor and value_range read 4-vectors and the remainder separately: every length must
     # give NumPy's extrema and count of non-finite values, wherever the largest value and the NaNs fall
-    from adseismic.kernels.acoustic import field_stats, value_range
+    from adseismic.accel.reductions import field_stats, value_range
 
     rng = np.random.default_rng(n)
     a = rng.standard_normal(n).astype(np.float32)

@@ -15,8 +15,8 @@ import pytest
 import yaml
 
 from adseismic.cli import main
-from adseismic.fwi import band_pass, estimate_wavelet
-from adseismic.optimize import Journal
+from adseismic.inversion.fwi import band_pass, estimate_wavelet
+from adseismic.inversion.optimize import Journal
 from adseismic.wavelets import ricker
 
 TINY = {
@@ -152,10 +152,10 @@ def test_bad_inversion_settings_write_nothing(tmp_path, capsys, inversion, messa
 def test_observed_miniseed_with_stationxml_matches_our_hdf5(tmp_path):
     # the same synthetic shots through both readers: our data.h5, and one MiniSEED + StationXML file
     # per shot with the receivers' latitude/longitude (projected back about the reference point)
-    from adseismic import traces
+    from adseismic.data import traces
     from adseismic.config import parse_fwi_config
-    from adseismic.fwi import prepare_fwi
-    from adseismic.io import read_forward
+    from adseismic.inversion.fwi import prepare_fwi
+    from adseismic.data.store import read_forward
 
     fwd = {k: TINY[k] for k in ("model", "wavelet", "simulation", "geometry")}
     assert main(["forward", str(write(tmp_path, fwd, "fwd.yaml")), "-o", str(tmp_path / "obs"), "-q"]) == 0
@@ -178,7 +178,7 @@ def test_observed_miniseed_with_stationxml_matches_our_hdf5(tmp_path):
 
 def test_offset_mute_and_time_window_weights():
     from adseismic.config import parse_fwi_config
-    from adseismic.fwi import data_weights, prepare_fwi
+    from adseismic.inversion.fwi import data_weights, prepare_fwi
 
     cfg = parse_fwi_config(dict(TINY, inversion=dict(TINY["inversion"], offsets=[0, 300], time_window=[0.1, 0.5])))
     scene = prepare_fwi(cfg).scene

@@ -10,10 +10,10 @@ import pytest
 import warp as wp
 from scipy.ndimage import gaussian_filter
 
-from adseismic import gradient as G
-from adseismic.misfits import MISFITS
-from adseismic.parameterization import MLP, LogVelocity, SmoothBasis, Slowness
-from adseismic.propagate import forward, run_steps, setup
+from adseismic.solve import gradient as G
+from adseismic.inversion.misfits import MISFITS
+from adseismic.inversion.parameterization import MLP, LogVelocity, SmoothBasis, Slowness
+from adseismic.solve.acoustic import forward, run_steps, setup
 from adseismic.wavelets import ricker
 
 from .conftest import DEVICE

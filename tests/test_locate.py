@@ -8,8 +8,8 @@ import pytest
 from scipy.stats import chi2
 
 from adseismic.data_synthetic.generators import constant, layered
-from adseismic.locate import _peak_time, locate, source_wavelet
-from adseismic.propagate import forward
+from adseismic.location.locate import _peak_time, locate, source_wavelet
+from adseismic.solve.acoustic import forward
 
 from .conftest import DEVICE
 
@@ -91,8 +91,8 @@ def test_3d_event_within_one_cell():
 def test_quakeml_of_a_location_reads_back(tmp_path):
     from obspy import UTCDateTime, read_events
 
-    from adseismic.quakeml import read_quakeml_origin, write_quakeml
-    from adseismic.traces import Reference, project
+    from adseismic.location.quakeml import read_quakeml_origin, write_quakeml
+    from adseismic.data.traces import Reference, project
 
     r = noise_free()
     ref = Reference(46.0, 7.0, azimuth=90.0)

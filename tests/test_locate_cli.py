@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from adseismic.cli import main
-from adseismic.locate import locate
+from adseismic.location.locate import locate
 
 from .conftest import DEVICE
 from .test_locate import DT, NT, TRUTH, T0, scene
@@ -30,7 +30,7 @@ def observed():
 def write_event(directory, data=None, dt=DT, with_inventory=True, rec=None):
     from obspy import UTCDateTime
 
-    from adseismic.traces import Reference, StationTraces, write_station_traces
+    from adseismic.data.traces import Reference, StationTraces, write_station_traces
 
     _, rec0, _ = scene()
     rec = rec0 if rec is None else rec
@@ -57,8 +57,8 @@ def config(directory, mseed, xml=None, **sections):
 def test_miniseed_stationxml_round_trip_gives_the_in_memory_location(tmp_path, capsys):
     from obspy import UTCDateTime, read_events
 
-    from adseismic.quakeml import read_quakeml_origin
-    from adseismic.traces import Reference, project
+    from adseismic.location.quakeml import read_quakeml_origin
+    from adseismic.data.traces import Reference, project
 
     mseed, xml = write_event(tmp_path)
     out = tmp_path / "run"

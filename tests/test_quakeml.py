@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from adseismic import quakeml as Q
-from adseismic import traces as T
+from adseismic.location import quakeml as Q
+from adseismic.data import traces as T
 
 obspy = pytest.importorskip("obspy")
 scipy_stats = pytest.importorskip("scipy.stats")

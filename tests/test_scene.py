@@ -6,7 +6,7 @@ import pytest
 
 from adseismic.analytic import acoustic_2d
 from adseismic.config import parse_config
-from adseismic.numerics import cfl_limit, dispersion_error
+from adseismic.kernels.numerics import cfl_limit, dispersion_error
 from adseismic.scene import build_scene, plan_scene, run_forward
 from adseismic.wavelets import duration, ricker
 

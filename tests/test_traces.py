@@ -7,9 +7,9 @@ import sys
 import numpy as np
 import pytest
 
-from adseismic import traces as T
-from adseismic.models import Model
-from adseismic.traces import TraceError
+from adseismic.data import traces as T
+from adseismic.data.models import Model
+from adseismic.data.traces import TraceError
 
 obspy = pytest.importorskip("obspy")
 from obspy import UTCDateTime  # noqa: E402
@@ -253,7 +253,7 @@ def test_check_samples(caplog):
     data = np.zeros((3, 100))
     data[0] = np.sin(np.arange(100) * 0.3)
     data[1] = np.clip(5 * np.sin(np.arange(100) * 0.1), -1, 1)
-    with caplog.at_level(logging.WARNING, logger="adseismic.traces"):
+    with caplog.at_level(logging.WARNING, logger="adseismic.data.traces"):
         T.check_samples(data, ["a", "b", "c"])
     msgs = " ".join(r.getMessage() for r in caplog.records)
     assert "b: looks clipped" in msgs and "c: all samples are zero" in msgs and "a:" not in msgs
@@ -321,7 +321,7 @@ def test_preprocess_refuses_coarse_sampling_and_bad_band():
 
 
 def test_module_imports_without_obspy():
-    code = ("import sys; sys.modules['obspy'] = None; import adseismic.traces as t; "
+    code = ("import sys; sys.modules['obspy'] = None; import adseismic.data.traces as t; "
             "import numpy as np; t.preprocess(np.ones(10), 0.01, dt=0.01, nt=5); print('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and "ok" in out.stdout, out.stderr

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adseismic.models import Model, ModelError, load_model
+from adseismic.data.models import Model, ModelError, load_model
 
 __all__ = [
     "ConfigError",
@@ -535,7 +535,7 @@ def _parse_band(b, key: str) -> tuple:
 
 
 def _parse_inversion(raw, key="inversion") -> InversionConfig:
-    from adseismic.misfits import MISFITS
+    from adseismic.inversion.misfits import MISFITS
 
     sec = _mapping(raw or {}, key, "inversion settings")
     _check_keys(sec, key, INVERSION_KEYS)
@@ -725,7 +725,7 @@ def _parse_location_bounds(raw, key: str, model: Model):
 def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None) -> LocateConfig:
     """Validate a location config (sections model, traces, preprocess, source, search, simulation,
     truth); only model and traces are required. Raises ConfigError naming the key."""
-    from adseismic.locate import METHODS, STFS
+    from adseismic.location.locate import METHODS, STFS
 
     base_dir = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
     if not isinstance(raw, dict):

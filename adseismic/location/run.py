@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from adseismic.config import ForwardConfig, GeometryConfig, LocateConfig, OutputConfig, WaveletConfig
-from adseismic.fwi import band_pass
-from adseismic.io import write_h5_atomic, write_text_atomic
-from adseismic.locate import LocationResult, back_projection, locate, misfit_map, noise_from_window
-from adseismic.propagate import dominant_frequency
+from adseismic.inversion.fwi import band_pass
+from adseismic.data.store import write_h5_atomic, write_text_atomic
+from adseismic.location.locate import LocationResult, back_projection, locate, misfit_map, noise_from_window
+from adseismic.solve.common import dominant_frequency
 from adseismic.scene import plan_scene, straight_ray_times
 
 log = logging.getLogger(__name__)
@@ -78,7 +78,7 @@ def _seconds(value, starttime, key: str) -> float:
 def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
     """Read, check and preprocess the event's traces and plan the simulation (see the module
     docstring). Raises ValueError (ConfigError, TraceError) naming the key, file or station."""
-    from adseismic import traces as tr
+    from adseismic.data import traces as tr
 
     model, pre, src, sim = cfg.model, cfg.preprocess, cfg.source, cfg.simulation
     t = cfg.traces
@@ -186,8 +186,8 @@ def locate_event(prep: PreparedEvent, callback=None) -> LocationResult:
 def summary(prep: PreparedEvent, res: LocationResult) -> dict:
     """The location in numbers: local and geographic position, UTC origin time, 1-sigma errors,
     68% ellipse, fit, cost; the error against the truth when the config gives one."""
-    from adseismic.quakeml import confidence_scale, ellipse_2d, ellipsoid
-    from adseismic.traces import unproject
+    from adseismic.location.quakeml import confidence_scale, ellipse_2d, ellipsoid
+    from adseismic.data.traces import unproject
 
     ndim = prep.model.ndim
     axes = "zyx" if ndim == 3 else "zx"
@@ -227,7 +227,7 @@ def summary(prep: PreparedEvent, res: LocationResult) -> dict:
 def write_outputs(outdir: Path, prep: PreparedEvent, res: LocationResult, mmap: dict, study: dict | None = None) -> list:
     """Write the run's files (module docstring); summary.json last. Returns the paths."""
     from adseismic.plotting import plot_location, plot_station_traces
-    from adseismic.quakeml import confidence_scale, write_quakeml
+    from adseismic.location.quakeml import confidence_scale, write_quakeml
 
     outdir = Path(outdir)
     ndim = prep.model.ndim
@@ -261,7 +261,7 @@ def write_outputs(outdir: Path, prep: PreparedEvent, res: LocationResult, mmap: 
                                  confidence_scale(2, CONFIDENCE), mmap, candidates=res.candidates, truth_zx=truth, stack=prep.stack,
                                  title=f"located at {np.round(res.position, 1).tolist()} m, origin {summ['origin_time_utc']}"))  # fmt: skip
     if study is not None:
-        from adseismic.locate import optimizer_table
+        from adseismic.location.locate import optimizer_table
 
         write_text_atomic(outdir / "optimizers.md", optimizer_table(study) + "\n")
         write_text_atomic(outdir / "optimizers.json", json.dumps(study, indent=1, default=float))

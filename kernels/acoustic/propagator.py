@@ -37,60 +37,15 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import warp as wp
 
-from adseismic.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, aligned, adjoint_launch, as_vectors, block_rows, hicks_weight, vector_access
+from adseismic.kernels.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 
-HICKS_RADIUS = 4
 # 2D GPU core steps: rows (along z) x adjacent columns per thread (read and written as one vector; fewer where
 # the row length is no multiple), threads per block (H200, S4000, us, writing into fresh arrays: step 4 x 2: 72.8,
 # 4 x 4: 74.2, 2 x 4: 73.8, 8 x 4: 79.8, 4 x 1: 93.0; adjoint core 4 x 2: 134.5, 4 x 4: 146, 8 x 4: 156, 4 x 1:
 # 189; 256 threads 2-5% slower)
 GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS = 4, 2, 128
 CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over row blocks of a CPU step
-MONITOR_BLOCK = 256
-HICKS_B = 6.31
-_I0_TERMS = 20
-
-
-def _i0(x: float) -> float:
-    total, term = 1.0, 1.0
-    for k in range(1, _I0_TERMS + 1):
-        term *= (x / 2.0) ** 2 / k**2
-        total += term
-    return total
-
-
-@functools.lru_cache(maxsize=None)
-def hicks_weight(dtype):
-    """The Warp function of the sources' and receivers' weight per axis in dtype (the acoustic and elastic kernels')."""
-    WINDOW_NORM = 1.0 / (_i0(HICKS_B) - 1.0)
-
-    @wp.func
-    def hicks(d: dtype) -> dtype:
-        # Kaiser-windowed sinc weight at distance d (cells). The window is the Kaiser series written in
-        # q = 1 - d^2/r^2 (no square root) minus its edge value, so the weight and its derivative vanish
-        # at |d| = r: the operator is C^1 in the position, also for positions on grid nodes.
-        q = dtype(1.0) - (d * d) / dtype(wp.static(float(HICKS_RADIUS * HICKS_RADIUS)))
-        if q <= dtype(0.0):
-            return dtype(0.0)
-        pd = dtype(wp.static(math.pi)) * d
-        sinc = dtype(1.0) - pd * pd / dtype(6.0)
-        if wp.abs(pd) > dtype(1.0e-3):
-            # sin(pi d) from the argument reduced by the nearest whole k: exactly 0 at whole d (a point on a node
-            # has one weight per axis; sin(pi d) itself gives ~1e-8 in float32 there), same derivative in d
-            k = wp.round(d)
-            sp = wp.sin(dtype(wp.static(math.pi)) * (d - k))
-            if int(k) % 2 != 0:
-                sp = -sp
-            sinc = sp / pd
-        y2 = dtype(wp.static(HICKS_B * HICKS_B / 4.0)) * q
-        term = dtype(1.0)
-        total = dtype(0.0)
-        for k in range(wp.static(_I0_TERMS)):
-            term = term * y2 / dtype(wp.static(float((k + 1) * (k + 1))))
-            total = total + term
-        return sinc * total * dtype(wp.static(WINDOW_NORM))
-
-    return hicks
 
 
 @functools.lru_cache(maxsize=None)
@@ -1118,200 +1073,12 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             acc += g[s, z, y, x]
         grad[z, y, x] = grad[z, y, x] + dtype(2.0) * v[z, y, x] * dt2 * acc
 
-    return _Kernels(
+    return Kernels(
         Axis=Axis, step=step, step_core=functools.lru_cache(maxsize=None)(make_step_core), step_rows=step_rows, step_core_rows=step_core_rows, psi=psi, inject=inject,
         adjoint_step=adjoint_step, adjoint_core=functools.lru_cache(maxsize=None)(make_adjoint_core),
         squared=squared, model_gradient=model_gradient, psi_adjoint=tuple(k for _, k in psi_adjoints), post_adjoint=post_adjoint, pre_step=pre_step,
         record=record, weights=weights, compact=compact, inject_fixed=inject_fixed, record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS), pad_model=pad_model, scatter=scatter, energy=energy, halo=R, operator_points=NPTS,
     )  # fmt: skip
-
-
-@wp.kernel
-def tick(clock: wp.array(dtype=wp.int32), steps: int):
-    """clock[0] += steps (the time index of a replayed graph)."""
-    clock[0] = clock[0] + steps
-
-
-@functools.lru_cache(maxsize=None)
-def reduction_kernels(dtype):
-    """(monitor, extrema): block-reduced GPU kernels over a flat array v read as 4-vectors v4 (its first 4 len(v4)
-    values; thread 0 also reads the rest), thread t reading v4[t + k stride] for k < iters (coalesced; a vector
-    load keeps 4 values in flight per thread), MONITOR_BLOCK threads per block reducing to one atomic each.
-    monitor: stats[0] = max(stats[0], max |v| of the finite values), stats[1] += count of non-finite ones.
-    extrema: stats = [min, max] of the finite values (stats starts at [+max, -max, 0]), stats[2] += count
-    of non-finite ones."""
-    big = float(np.finfo(wp.dtype_to_numpy(dtype)).max)
-    vec4 = wp.types.vector(length=4, dtype=dtype)
-
-    @wp.func
-    def take(val: dtype, lo: dtype, hi: dtype, top: dtype, bad: dtype):
-        if wp.isfinite(val):
-            return wp.min(lo, val), wp.max(hi, val), wp.max(top, wp.abs(val)), bad
-        return lo, hi, top, bad + dtype(1.0)
-
-    @wp.func
-    def scan(v4: wp.array(dtype=vec4), v: wp.array(dtype=dtype), t: int, stride: int, iters: int):
-        lo = dtype(wp.static(big))
-        hi = -lo
-        top = dtype(0.0)
-        bad = dtype(0.0)
-        for k in range(iters):
-            c = t + k * stride
-            if c < v4.shape[0]:
-                q = v4[c]
-                for j in range(4):
-                    lo, hi, top, bad = take(q[j], lo, hi, top, bad)
-        if t == 0:
-            for c in range(4 * v4.shape[0], v.shape[0]):
-                lo, hi, top, bad = take(v[c], lo, hi, top, bad)
-        return lo, hi, top, bad
-
-    @wp.kernel(module="unique")
-    def monitor(v4: wp.array(dtype=vec4), v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int):
-        lo, hi, top, bad = scan(v4, v, wp.tid(), stride, iters)
-        block_top = wp.tile_max(wp.tile(top))
-        block_bad = wp.tile_sum(wp.tile(bad))
-        if wp.tid() % wp.static(MONITOR_BLOCK) == 0:
-            wp.atomic_max(stats, 0, block_top[0])
-            wp.atomic_add(stats, 1, block_bad[0])
-
-    @wp.kernel(module="unique")
-    def extrema(v4: wp.array(dtype=vec4), v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int):
-        lo, hi, top, bad = scan(v4, v, wp.tid(), stride, iters)
-        block_lo = wp.tile_min(wp.tile(lo))
-        block_hi = wp.tile_max(wp.tile(hi))
-        block_bad = wp.tile_sum(wp.tile(bad))
-        if wp.tid() % wp.static(MONITOR_BLOCK) == 0:
-            wp.atomic_min(stats, 0, block_lo[0])
-            wp.atomic_max(stats, 1, block_hi[0])
-            wp.atomic_add(stats, 2, block_bad[0])
-
-    return monitor, extrema
-
-
-def _reduce(kernel, v: wp.array, stats: wp.array):
-    flat = v.flatten()
-    n4 = flat.shape[0] // 4
-    v4 = flat[: 4 * n4].reshape((n4, 4)).view(wp.types.vector(length=4, dtype=v.dtype))
-    threads = MONITOR_BLOCK * max(1, min(-(-n4 // MONITOR_BLOCK), 8 * wp.get_device(v.device).sm_count))
-    wp.launch(kernel, dim=threads, inputs=[v4, flat, stats, threads, -(-n4 // threads)], block_dim=MONITOR_BLOCK, device=v.device)
-
-
-def field_stats(fields, stats: wp.array):
-    """stats (2,) <- [max |u| over the fields' finite values, count of non-finite values] (blow-up checks):
-    on a GPU by launches only (graph-capturable), on the CPU by NumPy on zero-copy views (vectorised)."""
-    if not stats.device.is_cuda:
-        top, bad = 0.0, 0
-        for u in fields:
-            a = u.numpy()
-            t = max(a.max(), -a.min())  # NaN if any value is
-            if not np.isfinite(t):
-                ok = np.isfinite(a)
-                t, bad = np.abs(a[ok]).max(initial=0.0), bad + a.size - np.count_nonzero(ok)
-            top = max(top, float(t))
-        stats.assign(np.array([top, bad], dtype=wp.dtype_to_numpy(stats.dtype)))
-        return
-    stats.zero_()
-    for u in fields:
-        _reduce(reduction_kernels(u.dtype)[0], u, stats)
-
-
-def value_ranges(arrays) -> list:
-    """[(min, max, number of non-finite values)] of float32/float64 Warp arrays of one dtype on a GPU, read back
-    together (one copy to the host for all)."""
-    v0 = arrays[0]
-    big = float(np.finfo(wp.dtype_to_numpy(v0.dtype)).max)
-    stats = wp.array([[big, -big, 0.0]] * len(arrays), dtype=v0.dtype, device=v0.device)
-    for k, v in enumerate(arrays):
-        _reduce(reduction_kernels(v.dtype)[1], v, stats[k])
-    return [(float(lo), float(hi), int(bad)) for lo, hi, bad in stats.numpy()]
-
-
-def value_range(v: wp.array):
-    """(min, max, number of non-finite values) of a float32/float64 Warp array on a GPU."""
-    return value_ranges([v])[0]
-
-
-@functools.lru_cache(maxsize=None)
-def l2_residual_kernel(dtype):
-    """Kernel of the "l2" misfit on the device, a thread per trace (s, r) of synthetic data (S, n_rec, >= nt samples):
-    residual[s, r, t] = (synthetic - observed) dt for t < nt, formed in float64 and rounded to dtype, as the host's
-    misfits._l2 forms it; total[0] += sum over t of (synthetic - observed)^2 (float64)."""
-    arr3 = wp.array3d(dtype=dtype)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def l2_residual(syn: arr3, obs: wp.array3d(dtype=wp.float64), nt: int, dt: wp.float64, res: arr3, total: wp.array(dtype=wp.float64)):
-        s, r = wp.tid()
-        acc = wp.float64(0.0)
-        for t in range(nt):
-            d = wp.float64(syn[s, r, t]) - obs[s, r, t]
-            acc += d * d
-            res[s, r, t] = dtype(d * dt)
-        wp.atomic_add(total, 0, acc)
-
-    return l2_residual
-
-
-def _adjoint_launch(kernel, dim, inputs, adjoints: dict, device):
-    """Launch Warp's generated adjoint of `kernel`: adjoints maps input positions to their adjoint arrays;
-    the other arrays accumulate into their own .grad, if they have one."""
-    adj = [adjoints.get(i, type(a)() if wp.types.is_value(a) and not isinstance(a, (int, float)) else None) for i, a in enumerate(inputs)]
-    wp.launch(kernel, dim=dim, inputs=inputs, adj_inputs=adj, adjoint=True, device=device, record_tape=False)
-
-
-def _rows(n: int, i: int, parts: int):
-    """Rows [r0, r1) of block i of n rows split into `parts` blocks."""
-    return n * i // parts, n * (i + 1) // parts
-
-
-class _Kernels:
-    """Namespace of the compiled kernels of one configuration (see build)."""
-
-    def __init__(self, **kw):
-        self.__dict__.update(kw)
-
-
-def operator_shape(op) -> tuple:
-    """What a captured loop bakes in of a source/receiver operator (Acoustic.operator): its points' shape (S, n,
-    points) or, for locations, theirs."""
-    return tuple((op[1] if isinstance(op, tuple) else op).shape) + (isinstance(op, tuple),)
-
-
-def as_vectors(a: wp.array, V: int) -> wp.array:
-    """a's memory as a flat array of vector(V) (the core tiles' loads and stores; a.size a multiple of V)."""
-    flat = a.flatten()
-    return (flat if V == 1 else flat.reshape((a.size // V, V))).view(wp.types.vector(length=V, dtype=a.dtype))
-
-
-@functools.lru_cache(maxsize=None)
-def vector_access(V: int, dtype):
-    """(load(f, i), store(f, i, v)) of element i of a contiguous array f of vector(V, dtype), as one access of
-    V * itemsize bytes (two of 16 for 32) on a GPU: Warp indexes a vector array component by component, and the GPU
-    then moves 4 bytes per instruction with a stride of the vector's size between threads. The CPU indexes as Warp does."""
-    vec = wp.types.vector(length=V, dtype=dtype)
-    arrv = wp.array(dtype=vec)
-    size = V * wp.types.type_size_in_bytes(dtype)
-    word, n = {8: ("uint2", 1), 16: ("uint4", 1), 32: ("uint4", 2)}.get(size, (None, 0))
-    load, store = "return f.data[i];\n", "f.data[i] = v;\n"
-    if word is not None:  # the #if lines need their own lines, and the last a newline
-        cuda = f"#if defined(__CUDA_ARCH__)\n{word} u[{n}];\n"
-        load = (f"{cuda}const {word}* p = reinterpret_cast<const {word}*>(f.data + i);\nfor (int k = 0; k < {n}; ++k) u[k] = p[k];\n"
-                f"wp::vec_t<{V},wp::{dtype.__name__}> r;\nmemcpy(&r, u, {size});\nreturn r;\n#else\n{load}#endif\n")
-        store = (f"{cuda}memcpy(u, &v, {size});\n{word}* p = reinterpret_cast<{word}*>(f.data + i);\n"
-                 f"for (int k = 0; k < {n}; ++k) p[k] = u[k];\n#else\n{store}#endif\n")
-
-    @wp.func_native(load)
-    def load_vector(f: arrv, i: int) -> vec: ...
-
-    @wp.func_native(store)
-    def store_vector(f: arrv, i: int, v: vec): ...
-
-    return load_vector, store_vector
-
-
-def _aligned(z0: int, z1: int, x0: int, x1: int, V: int) -> wp.vec4i:
-    """The box of rows [z0, z1) and of the columns of [x0, x1) from and to a multiple of V."""
-    return wp.vec4i(z0, z1, -(-x0 // V) * V, x1 // V * V)
 
 
 def _strip_layout(n_lo: int, n_hi: int, length: int, halo: int):
@@ -1414,13 +1181,13 @@ class Acoustic:
             band[0][0] = R  # the surface row and the rows whose stencil reaches above it
         # the core's columns start and end at multiples of `lanes`, which the vector width of its tiles divides
         self.lanes = next(V for V in (4, 2, 1) if self.padded[2] % V == 0)
-        self.core = _aligned(R + band[0][0], self.padded[0] - R - band[0][1], R + band[1][0], self.padded[2] - R - band[1][1], self.lanes)
+        self.core = aligned(R + band[0][0], self.padded[0] - R - band[0][1], R + band[1][0], self.padded[2] - R - band[1][1], self.lanes)
         core_rows, core_cols = self.core[1] - self.core[0], self.core[3] - self.core[2]
         self.frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - max(core_rows, 0) * max(core_cols, 0)
         self.has_core = self.ndim == 2 and core_rows > 0 and core_cols > 0 and self.n_shots * self.padded[0] * self.padded[2] < 2**31  # int32 indices
         # the adjoint's core: the cells whose stencil neighbours are all core cells (else an empty box)
         c = self.core
-        inner = _aligned(c[0] + R, c[1] - R, c[2] + R, c[3] - R, self.lanes)
+        inner = aligned(c[0] + R, c[1] - R, c[2] + R, c[3] - R, self.lanes)
         self.adjoint_box = inner if self.has_core and inner[1] > inner[0] and inner[3] > inner[2] else wp.vec4i(R, R, R, R)
         box = self.adjoint_box
         self.adjoint_frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - (box[1] - box[0]) * (box[3] - box[2])
@@ -1603,11 +1370,11 @@ class Acoustic:
         """Thread i's launches of a CPU step: (psi strips and core, frame) of its block of rows."""
         S, nz, ny, _ = self.interior
         R = self.k.halo
-        r0, r1 = _rows(nz, i, self.threads)
+        r0, r1 = block_rows(nz, i, self.threads)
         first = []
         for a in range(3):
             shape = self.strip_shape(a)
-            q0, q1 = _rows(shape[1], i, self.threads)
+            q0, q1 = block_rows(shape[1], i, self.threads)
             if self.strip_width[a] and q1 > q0:
                 first.append(wp.launch(self.k.psi[a][1], dim=(S, q1 - q0, shape[2]), inputs=[st.u.flatten(), st.psi[a].flatten(), out.psi[a].flatten(),
                                        self.axes[a], self.inv_dx, wp.vec3i(*shape[1:]), wp.vec3i(*self.padded), q0], device=self.device, record_tape=False, record_cmd=True))  # fmt: skip
@@ -1681,12 +1448,12 @@ class Acoustic:
         """Adjoint of inject (Warp's generated one): from adj_u, the adjoint of the u it added into, add
         into the gradients (.grad) of vpad, amplitudes and, for a differentiable operator, the locations."""
         kernel, dim, inputs = self._inject_launch(adj_u, vpad, amplitudes, op, n, clock)
-        _adjoint_launch(kernel, dim, inputs, {0: adj_u}, self.device)
+        adjoint_launch(kernel, dim, inputs, {0: adj_u}, self.device)
 
     def record_adjoint(self, adj_u, residual, op, n: int, clock=None):
         """Adjoint of record: adj_u += the receiver operator's transpose applied to residual[:, :, n]."""
         kernel, dim, inputs = self._record_launch(adj_u, residual, op, n, clock)
-        _adjoint_launch(kernel, dim, inputs, {0: adj_u, 1: residual}, self.device)
+        adjoint_launch(kernel, dim, inputs, {0: adj_u, 1: residual}, self.device)
 
     def scatter(self, du_next, u_next, u, u_prev, vpad, dvpad):
         """du_next += 2 dv/v (u_next - 2 u + u_prev): the Born (tangent-linear) source term."""
@@ -1701,7 +1468,3 @@ class Acoustic:
         o = self.origin
         ny = self.shape[1] if self.ndim == 3 else 1
         return a[o[0] : o[0] + self.shape[0], o[1] : o[1] + ny, o[2] : o[2] + self.shape[-1]]
-
-    def monitor(self, u, stats):
-        """stats (2,) <- [max |u|, count of non-finite values] (field_stats)."""
-        field_stats([u], stats)

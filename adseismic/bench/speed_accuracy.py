@@ -75,7 +75,7 @@ def f_max() -> float:
 
 def grid_for(order: int, ppw: float, cfl_fraction: float) -> tuple[float, float]:
     """(dx, dt) for ppw points per minimum wavelength at cfl_fraction x the CFL limit."""
-    from adseismic.numerics import cfl_limit
+    from adseismic.kernels.numerics import cfl_limit
 
     dx = C / (f_max() * ppw)
     return dx, cfl_fraction * cfl_limit(order, 2) * dx / C
@@ -102,8 +102,9 @@ def measure(device: str, order: int, precision: str, dx: float, dt: float, repea
     """Run one discretisation ``repeat`` times; error against the analytic traces, best time."""
     import warp as wp
 
-    from adseismic.numerics import cfl_limit
-    from adseismic.propagate import forward, resolve_device
+    from adseismic.kernels.numerics import cfl_limit
+    from adseismic.solve.common import resolve_device
+    from adseismic.solve.acoustic import forward
 
     device = resolve_device(device)
     v, w, src, rec = inputs(dx, dt)
@@ -147,7 +148,7 @@ def sweep(devices, orders, ppws, precisions, cfl_fractions=(0.9, 0.4), repeat: i
     """Every (device, order, ppw, Courant fraction, precision) point plus the planner's default per device."""
     from tqdm.auto import tqdm
 
-    from adseismic.propagate import resolve_device
+    from adseismic.solve.common import resolve_device
 
     points = []
     for device in devices:
@@ -256,7 +257,7 @@ def markdown(points) -> str:
 
 def write_outputs(outdir, points, machine: dict) -> list[pathlib.Path]:
     """speed_accuracy.json, speed_accuracy.md and one chart per device, written atomically."""
-    from adseismic.io import write_text_atomic
+    from adseismic.data.store import write_text_atomic
 
     outdir = pathlib.Path(outdir)
     devices = list(dict.fromkeys(p.device for p in points))

@@ -26,8 +26,8 @@ import time
 import numpy as np
 
 from adseismic.config import ConfigError, ForwardConfig, load_config
-from adseismic.io import write_text_atomic
-from adseismic.models import ModelError
+from adseismic.data.store import write_text_atomic
+from adseismic.data.models import ModelError
 
 log = logging.getLogger("adseismic")
 
@@ -157,8 +157,9 @@ def _register_forward(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_forward(args) -> int:
-    from adseismic import io, plotting
-    from adseismic.propagate import PropagationError, resolve_device
+    from adseismic.data import store as io
+    from adseismic import plotting
+    from adseismic.solve.common import PropagationError, resolve_device
     from adseismic.scene import build_scene, run_forward
 
     # --- everything that can be refused is checked before OUTDIR is touched
@@ -267,8 +268,8 @@ def _register_fwi(p: argparse.ArgumentParser) -> None:
 
 def cmd_fwi(args) -> int:
     from adseismic.config import load_fwi_config
-    from adseismic.fwi import prepare_fwi, run_fwi
-    from adseismic.propagate import PropagationError, resolve_device
+    from adseismic.inversion.fwi import prepare_fwi, run_fwi
+    from adseismic.solve.common import PropagationError, resolve_device
 
     config = load_fwi_config(args.config)
     resolve_device(config.forward.simulation.device)
@@ -336,9 +337,9 @@ def _register_locate(p: argparse.ArgumentParser) -> None:
 
 def cmd_locate(args) -> int:
     from adseismic.config import load_locate_config
-    from adseismic.locate import compare_optimizers, optimizer_table
-    from adseismic.locate_run import event_misfit_map, locate_event, prepare_locate, simulation_options, write_outputs
-    from adseismic.propagate import PropagationError, resolve_device
+    from adseismic.location.locate import compare_optimizers, optimizer_table
+    from adseismic.location.run import event_misfit_map, locate_event, prepare_locate, simulation_options, write_outputs
+    from adseismic.solve.common import PropagationError, resolve_device
 
     if args.study_evaluations < 1:
         raise CommandError(f"--study-evaluations: {args.study_evaluations} < 1; give at least 1")

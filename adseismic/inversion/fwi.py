@@ -27,12 +27,12 @@ import h5py
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from adseismic import conditioning
-from adseismic.gradient import gradient
-from adseismic.io import write_h5_atomic, write_text_atomic
-from adseismic.misfits import misfit as named_misfit
-from adseismic.optimize import minimize
-from adseismic.propagate import forward
+from adseismic.inversion import conditioning
+from adseismic.solve.gradient import gradient
+from adseismic.data.store import write_h5_atomic, write_text_atomic
+from adseismic.inversion.misfits import misfit as named_misfit
+from adseismic.inversion.optimize import minimize
+from adseismic.solve.acoustic import forward
 from adseismic.scene import build_scene, plan_scene
 
 log = logging.getLogger(__name__)
@@ -169,13 +169,13 @@ def read_observed(spec, scene, geometry):
     if spec["kind"] in ("mseed", "sac"):
         return _read_station_shots(spec, scene, geometry)
     if spec["kind"] == "hdf5":
-        from adseismic.io import read_forward
+        from adseismic.data.store import read_forward
 
         d = read_forward(spec["path"])
         data, dt_in, t0 = d.receiver_data, d.dt, 0.0
         src, rec = d.source_coordinates, np.broadcast_to(d.receiver_coordinates, (len(d.source_coordinates), *d.receiver_coordinates.shape))
     else:
-        from adseismic import traces
+        from adseismic.data import traces
 
         g = traces.read_shot_gathers([spec["path"]], fmt=spec["kind"].upper(), coordinate_scale=spec.get("coordinate_scale"), ndim=scene.model.ndim)
         data, dt_in, t0, src, rec = g.data, g.dt, g.t0, g.sources, g.receivers
@@ -189,7 +189,7 @@ def read_observed(spec, scene, geometry):
             raise ValueError(f"observed.path: the file's {name} coordinates differ from geometry.{name} by up to {off:.3g} m "
                              f"(more than half a cell, {0.5 * p.dx:g} m); make the config's geometry match the file")  # fmt: skip
     if abs(dt_in - p.dt) > 1e-9 * p.dt or data.shape[2] != p.nt or t0 != 0.0:
-        from adseismic.traces import preprocess
+        from adseismic.data.traces import preprocess
 
         data = preprocess(data, dt_in, dt=p.dt, nt=p.nt, t_shift=-t0, detrend=False, taper=0.0, fmax_required=p.f_max)
     return data
@@ -200,7 +200,7 @@ def _read_station_shots(spec, scene, geometry):
     SAC headers, projected about spec["reference"]); time zero = spec["shot_times"][i] or the first sample."""
     from obspy import UTCDateTime
 
-    from adseismic import traces
+    from adseismic.data import traces
 
     p = scene.plan
     out = []

@@ -21,20 +21,14 @@ import numpy as np
 import warp as wp
 from tqdm.auto import tqdm
 
-from adseismic import graphs
-from adseismic.kernels.acoustic import HICKS_RADIUS, Acoustic, State, operator_shape, reduction_kernels, value_range
-from adseismic.numerics import cfl_limit, check_order
+from adseismic.accel import graphs
+from adseismic.accel.reductions import field_stats, reduction_kernels, value_range
+from adseismic.kernels.acoustic import DESCRIPTION, Acoustic, State
+from adseismic.kernels.common import operator_shape
+from adseismic.kernels.numerics import check_order
+from adseismic.solve.common import BlowupGuard, check_courant, check_geometry, pml_settings, precision_dtype, resolve_device, source_end
 
 log = logging.getLogger(__name__)
-
-DTYPES = {"float32": wp.float32, "float64": wp.float64}
-DEFAULT_PML_WIDTH = 20
-DEFAULT_PML_REFLECTION = {2: 1e-3, 4: 1e-3, 8: 1e-5}  # reference.md section 3
-BLOWUP_FACTOR = 1e3  # max|u| after the source ends vs. its peak during injection
-
-
-class PropagationError(RuntimeError):
-    """The simulation became unstable (non-finite or runaway wavefield)."""
 
 
 @dataclass
@@ -51,29 +45,6 @@ class ForwardResult:
     dt: float
     snapshots: np.ndarray | None = None
     snapshot_times: np.ndarray | None = None
-
-
-def init_warp():
-    """Initialise Warp without its banner and per-module load lines (they drown progress bars)."""
-    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-    wp.init()
-
-
-def resolve_device(device: str) -> str:
-    """Validate a device string ("cpu", "cuda", "cuda:N") against what Warp sees."""
-    init_warp()
-    try:
-        return str(wp.get_device(device))
-    except Exception as exc:  # Warp raises RuntimeError/ValueError depending on the failure
-        have = ", ".join(d.alias for d in wp.get_devices())
-        raise ValueError(f"device {device!r} is not available ({exc}); available: {have}") from None
-
-
-def dominant_frequency(source_amplitudes: np.ndarray, dt: float) -> float:
-    """Peak of the summed amplitude spectrum of all source traces (Hz)."""
-    spec = np.abs(np.fft.rfft(source_amplitudes.reshape(-1, source_amplitudes.shape[-1]), n=4 * source_amplitudes.shape[-1])).sum(0)
-    freqs = np.fft.rfftfreq(4 * source_amplitudes.shape[-1], dt)
-    return float(freqs[1:][np.argmax(spec[1:])])
 
 
 def to_zyx(locations: np.ndarray, ndim: int) -> np.ndarray:
@@ -97,34 +68,9 @@ def check_inputs(shape, value_range, dx, dt, source_amplitudes, source_locations
     vmin, vmax, bad = value_range
     if bad is not None:
         raise ValueError(f"velocity has non-finite or non-positive values (first at index {bad}, min {vmin:.6g} m/s); fix the model")
-    amp = np.asarray(source_amplitudes)
-    sl, rl = np.asarray(source_locations), np.asarray(receiver_locations)
-    if amp.ndim != 3:
-        raise ValueError(f"source_amplitudes must be (n_shots, n_sources, nt); got shape {amp.shape}")
-    for name, loc in (("source_locations", sl), ("receiver_locations", rl)):
-        if loc.ndim != 3 or loc.shape[0] != amp.shape[0] or loc.shape[2] != ndim:
-            raise ValueError(f"{name} must be (n_shots={amp.shape[0]}, n, ndim={ndim}) metres; got shape {loc.shape}")
-        extent = (np.array(shape) - 1) * dx
-        outside = np.any((loc < 0) | (loc > extent), axis=-1)
-        if outside.any():
-            i = np.argwhere(outside)[0]
-            raise ValueError(f"{name}[{i[0]}, {i[1]}] = {loc[i[0], i[1]].tolist()} m lies outside the grid [0, {extent.tolist()}] m")
-    if sl.shape[1] != amp.shape[1]:
-        raise ValueError(f"source_locations has {sl.shape[1]} sources per shot but source_amplitudes has {amp.shape[1]}")
-    limit = cfl_limit(order, ndim)
-    courant = vmax * dt / dx
-    if courant > limit:
-        raise ValueError(
-            f"dt = {dt:.6g} s is unstable: Courant number v_max dt/dx = {courant:.4f} exceeds the limit "
-            f"{limit:.4f} of order {order} in {ndim}D; use dt <= {limit * dx / vmax:.6g} s"
-        )
+    check_geometry(shape, dx, source_amplitudes, source_locations, receiver_locations, "z, x" if ndim == 2 else "z, y, x")
+    check_courant(DESCRIPTION, order, ndim, vmax, dx, dt)
     return ndim, vmax
-
-
-def precision_dtype(precision: str):
-    if precision not in DTYPES:
-        raise ValueError(f"precision {precision!r} is not one of {sorted(DTYPES)}")
-    return DTYPES[precision]
 
 
 def upload_velocity(velocity, dtype, device: str, requires_grad=False):
@@ -154,55 +100,15 @@ def upload_velocity(velocity, dtype, device: str, requires_grad=False):
     return vel, tuple(shape), (vmin, vmax, bad)
 
 
-def make_propagator(shape, vmax, dx, dt, n_shots, order, pml_width, pml_reflection, pml_frequency,
-                    free_surface, device, dtype, pml_velocity=None) -> Acoustic:  # fmt: skip
-    """The Acoustic launch helper for a grid of `shape` cells on a resolved device, with defaults filled in
-    (pml_velocity: the CPML damping's reference speed, default vmax, the model's maximum; fix it when the
-    model changes between runs)."""
-    width = DEFAULT_PML_WIDTH if pml_width is None else int(pml_width)
-    if width < HICKS_RADIUS:
-        raise ValueError(f"pml_width = {width} cells is below the source/receiver operator's half-width {HICKS_RADIUS}; use >= {HICKS_RADIUS}")
-    refl = DEFAULT_PML_REFLECTION[order] if pml_reflection is None else float(pml_reflection)
-    vref = float(vmax) if pml_velocity is None else float(pml_velocity)
-    return Acoustic(shape, dx, dt, order, n_shots, width, refl, pml_frequency, vref,
-                    free_surface=free_surface, dtype=dtype, device=device)  # fmt: skip
+def make_propagator(shape, dx, dt, n_shots, order, pml, free_surface, device, dtype) -> Acoustic:
+    """The Acoustic launch helper for a grid of `shape` cells on a resolved device; pml: (width, reflection,
+    frequency, reference speed) from pml_settings."""
+    return Acoustic(shape, dx, dt, order, n_shots, *pml, free_surface=free_surface, dtype=dtype, device=device)
 
 
 def velocity_3d(velocity) -> np.ndarray:
     v = np.asarray(velocity, dtype=float)
     return v[:, None, :] if v.ndim == 2 else v
-
-
-class BlowupGuard:
-    """Stops a run whose wavefield turns non-finite or keeps growing after the source has ended."""
-
-    def __init__(self, prop: Acoustic, source_amplitudes: np.ndarray, every: int):
-        self.prop, self.every = prop, max(int(every), 1)
-        a = np.abs(source_amplitudes).max(axis=(0, 1))
-        active = np.nonzero(a > 1e-3 * a.max())[0] if a.max() > 0 else np.array([0])
-        self.source_end = int(active[-1]) + 1
-        self.peak = 0.0
-        self.stats = wp.zeros(2, dtype=prop.dtype, device=prop.device)
-
-    def __call__(self, u, n: int):
-        if n % self.every:
-            return
-        self.prop.monitor(u, self.stats)
-        self.check(n, *self.stats.numpy())
-
-    def check(self, n: int, amax: float, nonfinite: float):
-        """Judge the statistics (max |u|, count of non-finite values) of level n; raises PropagationError."""
-        if n <= self.source_end:
-            self.peak = max(self.peak, float(amax))
-        runaway = n > self.source_end and self.peak > 0 and amax > BLOWUP_FACTOR * self.peak
-        if nonfinite or runaway:
-            p = self.prop
-            what = f"{int(nonfinite)} non-finite values" if nonfinite else f"max|u| = {amax:.3g}, {amax / self.peak:.3g} x its peak while the source was active"
-            raise PropagationError(
-                f"wavefield blew up at step {n} (t = {n * p.dt:.6g} s): {what}. Likely cause: dt = {p.dt:.6g} s is too "
-                f"close to the stability limit for this model (order {p.order}, {p.ndim}D, CFL limit {cfl_limit(p.order, p.ndim):.4f}), "
-                "a velocity model with extreme contrasts, or a PML whose damping is too strong for its width"
-            )
 
 
 @dataclass
@@ -233,8 +139,8 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
     dtype, device = precision_dtype(precision), resolve_device(device)
     vel, shape, vrange = upload_velocity(velocity, dtype, device, requires_grad="velocity" in requires_grad)
     ndim, vmax = check_inputs(shape, vrange, dx, dt, amp, source_locations, receiver_locations, order)
-    f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
-    prop = make_propagator(shape, vmax, dx, dt, amp.shape[0], order, pml_width, pml_reflection, f_pml, free_surface, device, dtype, pml_velocity)
+    pml = pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
+    prop = make_propagator(shape, dx, dt, amp.shape[0], order, pml, free_surface, device, dtype)
 
     def put(x, name):
         return wp.array(x, dtype=prop.dtype, device=prop.device, requires_grad=name in requires_grad)
@@ -282,7 +188,7 @@ def capture(su: Setup, st, vpad, data, every: int) -> graphs.Loop:
     def step(k, clock, stats):
         st, spare = state
         if stats is not None:
-            prop.monitor(st.u, stats)
+            field_stats([st.u], stats)
         nxt = prop.step(st, vpad, out=State(None, spare, st.psi, st.zeta), record=(data, su.receiver_op, k, clock))
         prop.inject(nxt.u, vpad, amplitudes, su.source_op, k, clock)
         state[:] = [nxt, st.u_prev]
@@ -354,7 +260,7 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
                pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
                free_surface=free_surface, device=device, precision=precision)  # fmt: skip
     prop = su.prop
-    guard = BlowupGuard(prop, np.asarray(source_amplitudes), check_every)
+    guard = BlowupGuard(prop, DESCRIPTION, lambda st: [st.u], source_end(source_amplitudes), check_every)
     use_graphs = graphs.graph_plan(prop.cuda, su.nt, guard.every, ROLES)[1] > 0 and not snapshot_every
     snaps, snap_t = [], []
     o, ny = prop.origin, (prop.shape[1] if su.ndim == 3 else 1)
@@ -362,7 +268,7 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
     bar = tqdm(total=su.nt, desc="time steps", unit="step", disable=not progress, leave=False)
 
     def callback(st, n):
-        guard(st.u, n)
+        guard(st, n)
         if snapshot_every and n % snapshot_every == 0:
             field = st.u.numpy()[phys].copy()  # on the CPU .numpy() is a view of a reused buffer
             snaps.append(field[:, :, 0, :] if su.ndim == 2 else field)

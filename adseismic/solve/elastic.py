@@ -30,21 +30,13 @@ import numpy as np
 import warp as wp
 from tqdm.auto import tqdm
 
-from adseismic import graphs
-from adseismic.gradient import choose_segment
-from adseismic.kernels.acoustic import HICKS_RADIUS, l2_residual_kernel, reduction_kernels, value_ranges
-from adseismic.kernels.elastic import MATERIALS, PSI, Elastic, shear_ratio
-from adseismic.misfits import misfit as named_misfit
-from adseismic.numerics import check_order, staggered_cfl_limit
-from adseismic.propagate import (
-    BLOWUP_FACTOR,
-    DEFAULT_PML_REFLECTION,
-    DEFAULT_PML_WIDTH,
-    DTYPES,
-    PropagationError,
-    dominant_frequency,
-    resolve_device,
-)
+from adseismic.accel import graphs
+from adseismic.accel.reductions import field_stats, l2_residual_kernel, reduction_kernels, value_ranges
+from adseismic.inversion.misfits import misfit as named_misfit
+from adseismic.kernels.elastic import DESCRIPTION, MATERIALS, PSI, Elastic, shear_ratio
+from adseismic.kernels.numerics import check_order
+from adseismic.solve.common import BlowupGuard, check_courant, check_geometry, pml_settings, precision_dtype, resolve_device, source_end
+from adseismic.solve.gradient import choose_segment
 
 SOURCE_TYPES = {"force": 2, "moment": 3, "explosive": 3}
 COMPONENTS = ("vx", "vz", "pressure")
@@ -141,18 +133,7 @@ def check_elastic_inputs(shape, vmax, dx, dt, source_amplitudes, source_location
     if source_type not in SOURCE_TYPES:
         raise ValueError(f"source_type {source_type!r} is not one of {sorted(SOURCE_TYPES)}")
     amp = np.asarray(source_amplitudes)
-    if amp.ndim != 3:
-        raise ValueError(f"source_amplitudes must be (n_shots, n_sources, nt); got shape {amp.shape}")
-    extent = (np.array(shape) - 1) * dx
-    for name, loc in (("source_locations", np.asarray(source_locations)), ("receiver_locations", np.asarray(receiver_locations))):
-        if loc.ndim != 3 or loc.shape[0] != amp.shape[0] or loc.shape[2] != 2:
-            raise ValueError(f"{name} must be (n_shots={amp.shape[0]}, n, 2) metres (z, x); got shape {loc.shape}")
-        outside = np.any((loc < 0) | (loc > extent), axis=-1)
-        if outside.any():
-            i = np.argwhere(outside)[0]
-            raise ValueError(f"{name}[{i[0]}, {i[1]}] = {loc[i[0], i[1]].tolist()} m lies outside the grid [0, {extent.tolist()}] m")
-    if np.shape(source_locations)[1] != amp.shape[1]:
-        raise ValueError(f"source_locations has {np.shape(source_locations)[1]} sources per shot but source_amplitudes has {amp.shape[1]}")
+    check_geometry(shape, dx, amp, source_locations, receiver_locations, "z, x")
     nc = SOURCE_TYPES[source_type]
     if source_type == "explosive":
         comp = np.broadcast_to(np.array([1.0, 1.0, 0.0]), (*amp.shape[:2], 3))
@@ -164,13 +145,7 @@ def check_elastic_inputs(shape, vmax, dx, dt, source_amplitudes, source_location
         comp = np.asarray(source_components, dtype=float)
         if comp.shape != (*amp.shape[:2], nc):
             raise ValueError(f"source_components must be (n_shots, n_src, {nc}) for source_type {source_type!r}; got {comp.shape}")
-    limit = staggered_cfl_limit(order, 2)
-    courant = vmax * dt / dx
-    if courant > limit:
-        raise ValueError(
-            f"dt = {dt:.6g} s is unstable: Courant number vp_max dt/dx = {courant:.4f} exceeds the staggered-grid limit "
-            f"{limit:.4f} of order {order} in 2D; use dt <= {limit * dx / vmax:.6g} s"
-        )
+    check_courant(DESCRIPTION, order, 2, vmax, dx, dt)
     return np.ascontiguousarray(comp)
 
 
@@ -202,19 +177,12 @@ def setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, rece
     """Validate the inputs and move them to the device (vp, vs, rho: NumPy or Warp arrays, see upload_models);
     requires_grad names the arrays (WRT) to differentiate."""
     amp = np.asarray(source_amplitudes, dtype=float)
-    if precision not in DTYPES:
-        raise ValueError(f"precision {precision!r} is not one of {sorted(DTYPES)}")
-    dtype = DTYPES[precision]
+    dtype = precision_dtype(precision)
     device = resolve_device(device)
     model, vmax = upload_models(vp, vs, rho, dtype, device, requires_grad)
     comp = check_elastic_inputs(model[0].shape, vmax, dx, dt, amp, source_locations, receiver_locations, order, source_type, source_components)
-    width = DEFAULT_PML_WIDTH if pml_width is None else int(pml_width)
-    if width < HICKS_RADIUS:
-        raise ValueError(f"pml_width = {width} cells is below the source/receiver operator's half-width {HICKS_RADIUS}; use >= {HICKS_RADIUS}")
-    refl = DEFAULT_PML_REFLECTION[order] if pml_reflection is None else float(pml_reflection)
-    f_pml = dominant_frequency(amp, dt) if pml_frequency is None else float(pml_frequency)
-    vref = vmax if pml_velocity is None else float(pml_velocity)
-    prop = Elastic(model[0].shape, dx, dt, order, amp.shape[0], width, refl, f_pml, vref, free_surface=free_surface, dtype=dtype,
+    pml = pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
+    prop = Elastic(model[0].shape, dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype,
                    device=device)  # fmt: skip
 
     def put(x, name):
@@ -224,38 +192,6 @@ def setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, rece
     receivers = put(receiver_locations, "receiver_locations")
     return ElasticSetup(prop, amp.shape[2], kind, model, put(amp, "source_amplitudes"), put(comp, "source_components"),
                         put(source_locations, "source_locations"), receivers, prop.operator(receivers))  # fmt: skip
-
-
-class ElasticBlowupGuard:
-    """Stops a run whose velocities turn non-finite or keep growing after the source has ended."""
-
-    def __init__(self, prop: Elastic, source_amplitudes: np.ndarray, every: int):
-        self.prop, self.every = prop, max(int(every), 1)
-        a = np.abs(np.diff(source_amplitudes, axis=-1)).max(axis=(0, 1))  # moment sources act through ds
-        active = np.nonzero(a > 1e-3 * a.max())[0] if a.max() > 0 else np.array([0])
-        self.source_end = int(active[-1]) + 2
-        self.peak = 0.0
-        self.stats = wp.zeros(2, dtype=prop.dtype, device=prop.device)
-
-    def __call__(self, st, n: int):
-        if n % self.every:
-            return
-        self.prop.monitor((st.vx, st.vz), self.stats)
-        self.check(n, *self.stats.numpy())
-
-    def check(self, n: int, amax: float, nonfinite: float):
-        """Judge the statistics (max |v|, count of non-finite values) of level n; raises PropagationError."""
-        if n <= self.source_end:
-            self.peak = max(self.peak, float(amax))
-        runaway = n > self.source_end and self.peak > 0 and amax > BLOWUP_FACTOR * self.peak
-        if nonfinite or runaway:
-            p = self.prop
-            what = f"{int(nonfinite)} non-finite values" if nonfinite else f"max|v| = {amax:.3g}, {amax / self.peak:.3g} x its peak while the source was active"
-            raise PropagationError(
-                f"elastic wavefield blew up at step {n} (t = {n * p.dt:.6g} s): {what}. Likely cause: dt = {p.dt:.6g} s too close to "
-                f"the staggered-grid stability limit (order {p.order}, Courant limit {staggered_cfl_limit(p.order, 2):.4f}), extreme model "
-                "contrasts, or a PML whose damping is too strong for its width"
-            )
 
 
 def run_elastic(su: ElasticSetup, st, mat, data, steps: range, next_state=None, callback=None):
@@ -289,7 +225,7 @@ def capture(su: ElasticSetup, st, mat, data, every: int) -> graphs.Loop:
         cur, other = states
         prop.record(cur, data, su.receiver_op, n, clock)
         if stats is not None:
-            prop.monitor((cur.vx, cur.vz), stats)
+            field_stats((cur.vx, cur.vz), stats)
         prop.step(cur, mat, src, n, out=other, clock=clock)
         states.reverse()
 
@@ -355,7 +291,7 @@ def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
                        source_components=source_components, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
                        pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
                        precision=precision)  # fmt: skip
-    guard = ElasticBlowupGuard(su.prop, np.asarray(source_amplitudes, dtype=float), check_every)
+    guard = BlowupGuard(su.prop, DESCRIPTION, lambda st: (st.vx, st.vz), source_end(source_amplitudes, lag=2, rate=True), check_every, "v")
     bar = tqdm(total=su.nt, desc="time steps", unit="step", disable=not progress, leave=False)
 
     def callback(st, n):

@@ -59,7 +59,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from adseismic.io import atomic_path
+from adseismic.data.store import atomic_path
 
 __all__ = [
     "ShotGathers",

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from adseismic.kernels import parameterization as K
+from adseismic.inversion import parameterization_kernels as K
 
 
 def _shape3(shape):

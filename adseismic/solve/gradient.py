@@ -23,10 +23,10 @@ import numpy as np
 import warp as wp
 from tqdm.auto import tqdm
 
-from adseismic import graphs
-from adseismic.kernels.acoustic import operator_shape
-from adseismic.misfits import misfit as named_misfit
-from adseismic.propagate import run_steps, setup, velocity_3d
+from adseismic.accel import graphs
+from adseismic.kernels.common import operator_shape
+from adseismic.inversion.misfits import misfit as named_misfit
+from adseismic.solve.acoustic import run_steps, setup, velocity_3d
 
 WRT = ("velocity", "source_amplitudes", "source_locations")
 

@@ -60,7 +60,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from adseismic.cli import EXIT_ERROR, EXIT_OK, CommandError, _Logging, version
-from adseismic.io import write_text_atomic
+from adseismic.data.store import write_text_atomic
 
 log = logging.getLogger("adseismic.bench")
 
@@ -206,7 +206,7 @@ def run_elastic(mode: str, a: SceneArrays, device: str, order: int, memory_budge
     and the gradient's misfit use vz only). vp, vs, rho in a.model: NumPy or Warp arrays (run_job passes
     float32 device arrays on a GPU, as for the acoustic velocity). Returns an object with
     receiver_amplitudes (forward) or the ElasticGradient (gradient, wrt vp, vs, rho)."""
-    from adseismic import elastic as api
+    from adseismic.solve import elastic as api
 
     m = a.model
     force = np.broadcast_to([1.0, 0.0], (*a.sources.shape[:2], 2))
@@ -219,8 +219,8 @@ def run_elastic(mode: str, a: SceneArrays, device: str, order: int, memory_budge
 
 def run_acoustic(mode: str, a: SceneArrays, device: str, order: int, memory_budget, observed=None, segment_length=None):
     """propagate.forward or gradient.gradient (wrt velocity, L2 misfit against ``observed``)."""
-    from adseismic.gradient import gradient
-    from adseismic.propagate import forward
+    from adseismic.solve.gradient import gradient
+    from adseismic.solve.acoustic import forward
 
     args = (a.model["velocity"], DX, DT, a.amplitudes, a.sources, a.receivers)
     kw = dict(order=order, pml_width=PML, device=device)
@@ -378,7 +378,7 @@ def run_job(job: BenchJob) -> list[BenchRow]:
     """Warm up, then time every mode of one scene on one device (and through Deepwave when asked)."""
     import warp as wp
 
-    from adseismic.propagate import resolve_device
+    from adseismic.solve.common import resolve_device
 
     device = resolve_device(job.device)
     spec = SCENES[job.scene]
@@ -682,7 +682,7 @@ def register(p: argparse.ArgumentParser) -> None:
 
 def _check_args(args) -> tuple[list[str], dict]:
     """Validate before anything runs or is written: (resolved devices, {device: [BenchJob]})."""
-    from adseismic.propagate import resolve_device
+    from adseismic.solve.common import resolve_device
 
     devices = []
     for d in args.device:
@@ -771,7 +771,7 @@ def cmd_bench(args) -> int:
             if not args.quiet:
                 print(text)
         if args.suite != "scenes":
-            from adseismic import speed_accuracy
+            from adseismic.bench import speed_accuracy
 
             points = speed_accuracy.sweep(devices, args.sweep_orders, args.sweep_ppw, args.sweep_precisions, args.sweep_cfl,
                                           args.repeat or 2, progress=not args.quiet)  # fmt: skip
@@ -790,7 +790,7 @@ def _worker_main(argv) -> int:
     """``python -m adseismic.bench --worker JOB_JSON``: run one job, print its rows as JSON."""
     job = BenchJob(**json.loads(argv[argv.index("--worker") + 1]))
     job.modes = tuple(job.modes)
-    from adseismic.propagate import init_warp
+    from adseismic.solve.common import init_warp
 
     init_warp()
     rows = run_job(job)

@@ -67,8 +67,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.acoustic import HICKS_RADIUS, _adjoint_launch, _aligned, as_vectors, field_stats, hicks_weight, vector_access
-from adseismic.numerics import STAGGERED_DERIVATIVE
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, hicks_weight, vector_access
+from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 
 
 class Layout(NamedTuple):
@@ -1678,7 +1678,7 @@ def build(order: int, dtype, free_surface: bool):
         z, x = wp.tid()
         vpad[z, x] = v[wp.clamp(z - origin[0], 0, v.shape[0] - 1), wp.clamp(x - origin[1], 0, v.shape[1] - 1)]
 
-    return _Kernels(
+    return Kernels(
         Axis=Axis, materials=materials, velocity=velocity, stress=stress, updates=functools.lru_cache(maxsize=None)(make_updates),
         velocity_adjoint=velocity_adjoint, velocity_transpose=velocity_transpose, stress_adjoint=stress_adjoint,
         stress_transpose=stress_transpose, adjoints=functools.lru_cache(maxsize=None)(make_adjoints),
@@ -1699,13 +1699,6 @@ def shear_ratio(dtype):
         r[i] = vs[i] / vp[i]
 
     return ratio
-
-
-class _Kernels:
-    """Namespace of the compiled kernels of one configuration (see build)."""
-
-    def __init__(self, **kw):
-        self.__dict__.update(kw)
 
 
 def cpml_axis(n_lo: int, n_hi: int, length: int, halo: int, dx: float, dt: float, vmax: float,
@@ -1787,7 +1780,7 @@ class Elastic:
         z0 = 2 * R if free_surface else R + nb
         plain = (z0, Lz - R - nb - 1, R + nb, Lx - R - nb - 1)
         self.lanes = next(V for V in (4, 2, 1) if Lx % V == 0)
-        self.core = _aligned(*plain, self.lanes)
+        self.core = aligned(*plain, self.lanes)
         core_cells = max(self.core[1] - self.core[0], 0) * max(self.core[3] - self.core[2], 0)
         self.frame_cells = (Lz - 2 * R) * (Lx - 2 * R) - core_cells
         fits = self.n_shots * Lz * Lx < 2**31  # int32 flat indices
@@ -1944,8 +1937,8 @@ class Elastic:
         if not self.adjoint_layout.split:
             return self.adjoint_box, self.adjoint_inner
         R, V = self.k.halo, self.adjoint_width
-        b = _aligned(*self.adjoint_box, V)
-        inner = _aligned(b[0] + R, b[1] - R, b[2] + R, b[3] - R, V)
+        b = aligned(*self.adjoint_box, V)
+        inner = aligned(b[0] + R, b[1] - R, b[2] + R, b[3] - R, V)
         return (*(wp.vec4i(c[0], c[1], c[2], max(c[3], c[2])) for c in (b, inner)),)
 
     def _tiles(self, box, rows, cols):
@@ -2038,7 +2031,7 @@ class Elastic:
             if sources is not None and sources[0] == kind:
                 kernel, dim, inputs = self._source_launch(out, mat, sources, n, clock)
                 wrt = adj_sources[:2] if isinstance(sources[3], tuple) else adj_sources
-                _adjoint_launch(kernel, dim, inputs, dict(enumerate([*first, *extra, *wrt])), self.device)
+                adjoint_launch(kernel, dim, inputs, dict(enumerate([*first, *extra, *wrt])), self.device)
 
         source_adjoint("moment", [adj.sxx, adj.szz, adj.sxz])
         self.adjoint_update(1, st, out, mat, adj, adj_mat, scratch)
@@ -2078,7 +2071,3 @@ class Elastic:
         """View of the physical grid (nz, nx) of a padded model-shaped array."""
         o = self.origin
         return a[o[0] : o[0] + self.shape[0], o[1] : o[1] + self.shape[1]]
-
-    def monitor(self, fields, stats):
-        """stats (2,) <- [max |u| over the given fields, count of non-finite values] (field_stats)."""
-        field_stats(fields, stats)

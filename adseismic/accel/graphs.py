@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.acoustic import tick
+from adseismic.accel.reductions import tick
 
 GRAPH_STEPS = 50  # time steps per captured graph (rounded to a multiple of the guard's interval)
 

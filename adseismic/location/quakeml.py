@@ -59,8 +59,8 @@ import re
 
 import numpy as np
 
-from adseismic.io import atomic_write
-from adseismic.traces import Reference, _as_reference, unproject
+from adseismic.data.store import atomic_write
+from adseismic.data.traces import Reference, _as_reference, unproject
 
 __all__ = [
     "confidence_scale",

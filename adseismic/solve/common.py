@@ -1,0 +1,136 @@
+"""What every physics' driver shares: devices and precisions, the input checks (geometry, the CFL
+limit), the PML defaults and the blow-up guard. A physics is handed in as its launch helper and its
+DESCRIPTION (adseismic.kernels.<name>)."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from adseismic.accel.reductions import field_stats
+from adseismic.kernels.common import HICKS_RADIUS, Description
+
+DTYPES = {"float32": wp.float32, "float64": wp.float64}
+DEFAULT_PML_WIDTH = 20
+DEFAULT_PML_REFLECTION = {2: 1e-3, 4: 1e-3, 8: 1e-5}  # reference.md section 3
+BLOWUP_FACTOR = 1e3  # max|u| after the source ends vs. its peak during injection
+
+
+class PropagationError(RuntimeError):
+    """The simulation became unstable (non-finite or runaway wavefield)."""
+
+
+def init_warp():
+    """Initialise Warp without its banner and per-module load lines (they drown progress bars)."""
+    wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    wp.init()
+
+
+def resolve_device(device: str) -> str:
+    """Validate a device string ("cpu", "cuda", "cuda:N") against what Warp sees."""
+    init_warp()
+    try:
+        return str(wp.get_device(device))
+    except Exception as exc:  # Warp raises RuntimeError/ValueError depending on the failure
+        have = ", ".join(d.alias for d in wp.get_devices())
+        raise ValueError(f"device {device!r} is not available ({exc}); available: {have}") from None
+
+
+def precision_dtype(precision: str):
+    if precision not in DTYPES:
+        raise ValueError(f"precision {precision!r} is not one of {sorted(DTYPES)}")
+    return DTYPES[precision]
+
+
+def dominant_frequency(source_amplitudes: np.ndarray, dt: float) -> float:
+    """Peak of the summed amplitude spectrum of all source traces (Hz)."""
+    spec = np.abs(np.fft.rfft(source_amplitudes.reshape(-1, source_amplitudes.shape[-1]), n=4 * source_amplitudes.shape[-1])).sum(0)
+    freqs = np.fft.rfftfreq(4 * source_amplitudes.shape[-1], dt)
+    return float(freqs[1:][np.argmax(spec[1:])])
+
+
+def check_geometry(shape, dx, source_amplitudes, source_locations, receiver_locations, axes: str):
+    """Shapes of the sources' samples (n_shots, n_src, nt) and of the locations (n_shots, n, ndim) metres
+    in axis order `axes` ("z, x" or "z, y, x"), every location inside the grid of `shape` nodes of
+    spacing dx (m). Raises ValueError naming the array, the index and the fix."""
+    ndim = len(shape)
+    amp = np.asarray(source_amplitudes)
+    if amp.ndim != 3:
+        raise ValueError(f"source_amplitudes must be (n_shots, n_sources, nt); got shape {amp.shape}")
+    extent = (np.array(shape) - 1) * dx
+    for name, loc in (("source_locations", np.asarray(source_locations)), ("receiver_locations", np.asarray(receiver_locations))):
+        if loc.ndim != 3 or loc.shape[0] != amp.shape[0] or loc.shape[2] != ndim:
+            raise ValueError(f"{name} must be (n_shots={amp.shape[0]}, n, {ndim}) metres ({axes}); got shape {loc.shape}")
+        outside = np.any((loc < 0) | (loc > extent), axis=-1)
+        if outside.any():
+            i = np.argwhere(outside)[0]
+            raise ValueError(f"{name}[{i[0]}, {i[1]}] = {loc[i[0], i[1]].tolist()} m lies outside the grid [0, {extent.tolist()}] m")
+    if np.shape(source_locations)[1] != amp.shape[1]:
+        raise ValueError(f"source_locations has {np.shape(source_locations)[1]} sources per shot but source_amplitudes has {amp.shape[1]}")
+
+
+def check_courant(physics: Description, order: int, ndim: int, vmax: float, dx: float, dt: float):
+    """Refuse a time step above the physics' stability limit (ValueError with the largest stable dt)."""
+    limit = physics.cfl_limit(order, ndim)
+    courant = vmax * dt / dx
+    if courant > limit:
+        raise ValueError(
+            f"dt = {dt:.6g} s is unstable: Courant number {physics.courant_speed}_max dt/dx = {courant:.4f} exceeds the "
+            f"{physics.name} limit {limit:.4f} of order {order} in {ndim}D; use dt <= {limit * dx / vmax:.6g} s"
+        )
+
+
+def pml_settings(order: int, pml_width, pml_reflection, pml_frequency, pml_velocity, source_amplitudes, dt: float, vmax: float):
+    """(width in cells, target reflection, alpha frequency in Hz, reference speed in m/s) of the CPML with the
+    defaults filled in: 20 cells, DEFAULT_PML_REFLECTION, the sources' dominant frequency, the model's maximum
+    speed (fix pml_velocity when the model changes between runs)."""
+    width = DEFAULT_PML_WIDTH if pml_width is None else int(pml_width)
+    if width < HICKS_RADIUS:
+        raise ValueError(f"pml_width = {width} cells is below the source/receiver operator's half-width {HICKS_RADIUS}; use >= {HICKS_RADIUS}")
+    refl = DEFAULT_PML_REFLECTION[order] if pml_reflection is None else float(pml_reflection)
+    f_pml = dominant_frequency(np.asarray(source_amplitudes, dtype=float), dt) if pml_frequency is None else float(pml_frequency)
+    vref = float(vmax) if pml_velocity is None else float(pml_velocity)
+    return width, refl, f_pml, vref
+
+
+def source_end(source_amplitudes: np.ndarray, lag: int = 1, rate: bool = False) -> int:
+    """The first level after the sources' last sample above 1e-3 of their peak, plus lag - 1; rate: judge
+    the samples' differences (sources that act through their rate, as moment tensors)."""
+    s = np.asarray(source_amplitudes, dtype=float)
+    a = np.abs(np.diff(s, axis=-1) if rate else s).max(axis=(0, 1))
+    active = np.nonzero(a > 1e-3 * a.max())[0] if a.max() > 0 else np.array([0])
+    return int(active[-1]) + lag
+
+
+class BlowupGuard:
+    """Stops a run whose monitored fields turn non-finite or keep growing after the source has ended.
+
+    prop: the physics' launch helper (dtype, device, dt, order, ndim); physics: its DESCRIPTION; fields(state):
+    the arrays to watch; end: the level after which the sources are silent (source_end); every: levels between
+    checks; what: the watched quantity's name in messages."""
+
+    def __init__(self, prop, physics: Description, fields, end: int, every: int, what: str = "u"):
+        self.prop, self.physics, self.fields, self.what = prop, physics, fields, what
+        self.every, self.source_end = max(int(every), 1), end
+        self.peak = 0.0
+        self.stats = wp.zeros(2, dtype=prop.dtype, device=prop.device)
+
+    def __call__(self, state, n: int):
+        if n % self.every:
+            return
+        field_stats(self.fields(state), self.stats)
+        self.check(n, *self.stats.numpy())
+
+    def check(self, n: int, amax: float, nonfinite: float):
+        """Judge the statistics (max |field|, count of non-finite values) of level n; raises PropagationError."""
+        if n <= self.source_end:
+            self.peak = max(self.peak, float(amax))
+        runaway = n > self.source_end and self.peak > 0 and amax > BLOWUP_FACTOR * self.peak
+        if nonfinite or runaway:
+            p, w = self.prop, self.what
+            what = f"{int(nonfinite)} non-finite values" if nonfinite else f"max|{w}| = {amax:.3g}, {amax / self.peak:.3g} x its peak while the source was active"
+            raise PropagationError(
+                f"{self.physics.name} wavefield blew up at step {n} (t = {n * p.dt:.6g} s): {what}. Likely cause: dt = {p.dt:.6g} s is too "
+                f"close to the stability limit for this model (order {p.order}, {p.ndim}D, CFL limit {self.physics.cfl_limit(p.order, p.ndim):.4f}), "
+                "a velocity model with extreme contrasts, or a PML whose damping is too strong for its width"
+            )

@@ -1,0 +1,149 @@
+"""What the physics share: the off-grid source/receiver weight (Kaiser-windowed sinc, Hicks 2002),
+vector loads and stores of contiguous fields, tile boxes, and the launch of Warp's generated adjoints.
+
+Physics folders (kernels/<name>/) import from here and from kernels.numerics; nothing here schedules work.
+"""
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import warp as wp
+
+HICKS_RADIUS = 4
+
+
+HICKS_B = 6.31
+
+
+_I0_TERMS = 20
+
+
+def _i0(x: float) -> float:
+    total, term = 1.0, 1.0
+    for k in range(1, _I0_TERMS + 1):
+        term *= (x / 2.0) ** 2 / k**2
+        total += term
+    return total
+
+
+@functools.lru_cache(maxsize=None)
+def hicks_weight(dtype):
+    """The Warp function of the sources' and receivers' weight per axis in dtype (the acoustic and elastic kernels')."""
+    WINDOW_NORM = 1.0 / (_i0(HICKS_B) - 1.0)
+
+    @wp.func
+    def hicks(d: dtype) -> dtype:
+        # Kaiser-windowed sinc weight at distance d (cells). The window is the Kaiser series written in
+        # q = 1 - d^2/r^2 (no square root) minus its edge value, so the weight and its derivative vanish
+        # at |d| = r: the operator is C^1 in the position, also for positions on grid nodes.
+        q = dtype(1.0) - (d * d) / dtype(wp.static(float(HICKS_RADIUS * HICKS_RADIUS)))
+        if q <= dtype(0.0):
+            return dtype(0.0)
+        pd = dtype(wp.static(math.pi)) * d
+        sinc = dtype(1.0) - pd * pd / dtype(6.0)
+        if wp.abs(pd) > dtype(1.0e-3):
+            # sin(pi d) from the argument reduced by the nearest whole k: exactly 0 at whole d (a point on a node
+            # has one weight per axis; sin(pi d) itself gives ~1e-8 in float32 there), same derivative in d
+            k = wp.round(d)
+            sp = wp.sin(dtype(wp.static(math.pi)) * (d - k))
+            if int(k) % 2 != 0:
+                sp = -sp
+            sinc = sp / pd
+        y2 = dtype(wp.static(HICKS_B * HICKS_B / 4.0)) * q
+        term = dtype(1.0)
+        total = dtype(0.0)
+        for k in range(wp.static(_I0_TERMS)):
+            term = term * y2 / dtype(wp.static(float((k + 1) * (k + 1))))
+            total = total + term
+        return sinc * total * dtype(wp.static(WINDOW_NORM))
+
+    return hicks
+
+
+def adjoint_launch(kernel, dim, inputs, adjoints: dict, device):
+    """Launch Warp's generated adjoint of `kernel`: adjoints maps input positions to their adjoint arrays;
+    the other arrays accumulate into their own .grad, if they have one."""
+    adj = [adjoints.get(i, type(a)() if wp.types.is_value(a) and not isinstance(a, (int, float)) else None) for i, a in enumerate(inputs)]
+    wp.launch(kernel, dim=dim, inputs=inputs, adj_inputs=adj, adjoint=True, device=device, record_tape=False)
+
+
+def block_rows(n: int, i: int, parts: int):
+    """Rows [r0, r1) of block i of n rows split into `parts` blocks."""
+    return n * i // parts, n * (i + 1) // parts
+
+
+class Kernels:
+    """Namespace of the compiled kernels of one configuration (see build)."""
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+
+def operator_shape(op) -> tuple:
+    """What a captured loop bakes in of a source/receiver operator (Acoustic.operator): its points' shape (S, n,
+    points) or, for locations, theirs."""
+    return tuple((op[1] if isinstance(op, tuple) else op).shape) + (isinstance(op, tuple),)
+
+
+def as_vectors(a: wp.array, V: int) -> wp.array:
+    """a's memory as a flat array of vector(V) (the core tiles' loads and stores; a.size a multiple of V)."""
+    flat = a.flatten()
+    return (flat if V == 1 else flat.reshape((a.size // V, V))).view(wp.types.vector(length=V, dtype=a.dtype))
+
+
+@functools.lru_cache(maxsize=None)
+def vector_access(V: int, dtype):
+    """(load(f, i), store(f, i, v)) of element i of a contiguous array f of vector(V, dtype), as one access of
+    V * itemsize bytes (two of 16 for 32) on a GPU: Warp indexes a vector array component by component, and the GPU
+    then moves 4 bytes per instruction with a stride of the vector's size between threads. The CPU indexes as Warp does."""
+    vec = wp.types.vector(length=V, dtype=dtype)
+    arrv = wp.array(dtype=vec)
+    size = V * wp.types.type_size_in_bytes(dtype)
+    word, n = {8: ("uint2", 1), 16: ("uint4", 1), 32: ("uint4", 2)}.get(size, (None, 0))
+    load, store = "return f.data[i];\n", "f.data[i] = v;\n"
+    if word is not None:  # the #if lines need their own lines, and the last a newline
+        cuda = f"#if defined(__CUDA_ARCH__)\n{word} u[{n}];\n"
+        load = (f"{cuda}const {word}* p = reinterpret_cast<const {word}*>(f.data + i);\nfor (int k = 0; k < {n}; ++k) u[k] = p[k];\n"
+                f"wp::vec_t<{V},wp::{dtype.__name__}> r;\nmemcpy(&r, u, {size});\nreturn r;\n#else\n{load}#endif\n")
+        store = (f"{cuda}memcpy(u, &v, {size});\n{word}* p = reinterpret_cast<{word}*>(f.data + i);\n"
+                 f"for (int k = 0; k < {n}; ++k) p[k] = u[k];\n#else\n{store}#endif\n")
+
+    @wp.func_native(load)
+    def load_vector(f: arrv, i: int) -> vec: ...
+
+    @wp.func_native(store)
+    def store_vector(f: arrv, i: int, v: vec): ...
+
+    return load_vector, store_vector
+
+
+def aligned(z0: int, z1: int, x0: int, x1: int, V: int) -> wp.vec4i:
+    """The box of rows [z0, z1) and of the columns of [x0, x1) from and to a multiple of V."""
+    return wp.vec4i(z0, z1, -(-x0 // V) * V, x1 // V * V)
+
+
+@dataclass(frozen=True)
+class Description:
+    """What the solver and the planner need to know of a physics, without its kernels.
+
+    fields: the wavefield's components and their units; parameters: the model's arrays (axis order
+    (z, [y,] x)) and their units; ndims: the supported dimensions; orders: spatial orders; stencil: the
+    derivative weights by order; injection: how sources and receivers meet the grid; courant_speed:
+    the parameter whose maximum sets the time step; cfl_limit(order, ndim): largest stable
+    courant_speed dt / dx; dispersion_error(order, ndim, ppw, courant): the scheme's exact relative
+    phase and group velocity errors ({"phase", "group"}: worst over directions) at ppw points per
+    wavelength.
+    """
+
+    name: str
+    fields: dict
+    parameters: dict
+    ndims: tuple
+    orders: tuple
+    stencil: dict
+    injection: str
+    courant_speed: str
+    cfl_limit: Callable[[int, int], float]
+    dispersion_error: Callable[..., dict]
