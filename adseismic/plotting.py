@@ -11,7 +11,7 @@ import pathlib
 
 import numpy as np
 
-from adseismic.data.store import atomic_write
+from adseismic.data.atomic import atomic_write
 
 __all__ = ["plot_model", "plot_gather", "plot_snapshots", "plot_misfit", "plot_station_traces", "plot_location", "save_figure", "xz_slice"]
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from adseismic.data.models import Model
+from adseismic.data.model import Model
 from adseismic.kernels.numerics import cfl_limit, dispersion_error, ppw_for_error, rayleigh_speed, staggered_cfl_limit, staggered_dispersion_error
 from adseismic.solve.common import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH
 from adseismic.solve.acoustic import ForwardResult, forward

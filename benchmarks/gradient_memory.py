@@ -27,7 +27,7 @@ def scene(nt):
 
 
 def run(mode, nt, device):
-    from adseismic.solve.gradient import gradient
+    from adseismic.solve.acoustic import gradient
     from adseismic.solve.acoustic import forward
 
     v, dx, dt, s, src, rec = scene(nt)

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import warp as wp
 
-from adseismic.solve.gradient import gradient
+from adseismic.solve.acoustic import gradient
 from adseismic.solve.acoustic import forward
 from adseismic.wavelets import ricker
 

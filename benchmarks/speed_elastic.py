@@ -26,6 +26,7 @@ import warp as wp
 import adseismic.solve.elastic as E
 from adseismic import bench
 from adseismic.accel.reductions import field_stats
+from adseismic.solve.loop import run_levels
 from adseismic.kernels.elastic import ADJOINT_LAYOUTS, CORE_LAYOUT, LAYOUTS
 
 ORDER = 4
@@ -88,9 +89,9 @@ def setup(a, device):
 def kernel_times(su, device, reps):
     """The default layout's step and its parts, the reference kernels, and the step's other kernels."""
     prop, k = su.prop, su.prop.k
-    st, other, mat = prop.new_state(), prop.new_state(), su.materials()
-    data = E._new_data(su, su.nt)
-    src = su.source_args()
+    st, other, mat = prop.new_state(), prop.new_state(), su.model()
+    data = su.new_data(su.nt)
+    src = su.sources_of(su.amplitudes, fixed=False)
     bx, bz = mat[0], mat[1]
     jobs = {
         "step_in_place": lambda: prop.step(st, mat, src, 0),
@@ -185,7 +186,7 @@ def variant_times(check, layout, device, reps):
 
 def adjoint_jobs(prop, st, nxt, mat, adj, adj_mat, src, adj_src, scratch):
     """Timing jobs of the hand-written adjoint step with prop.adjoint_layout: the whole Elastic.adjoint_step (as
-    adseismic.elastic.ElasticSweep launches it, without the receivers' adjoint) and each half step's launches
+    adseismic.solve.elastic.Levels launches it, without the receivers' adjoint) and each half step's launches
     (Elastic.adjoint_update's parts: pass 1, pass 2 and, fused, pass 2's tiles alone and, split, the sums' tiles)."""
     jobs = {"step_backward_hand": lambda: prop.adjoint_step(st, nxt, mat, adj, adj_mat, src, adj_src, scratch, 3)}
     lay = prop.adjoint_layout
@@ -201,14 +202,14 @@ def backward_times(su, device, reps):
     """Microseconds of one step's adjoint: the hand-written one and its launches (adjoint_jobs) with the device's
     AdjointLayout, the per-cell kernels' whole step (step_backward_cells, the CPU's path), and the backward of one
     taped step with Warp's generated adjoints."""
-    prop, located = su.prop, su.source_args()
+    prop, located = su.prop, su.sources_of(su.amplitudes, fixed=False)
     src = (*located[:3], prop.operator(located[3]))  # as the sweep injects sources whose locations are not differentiated
 
     def zeros(shape):
         return wp.zeros(shape, dtype=prop.dtype, device=device)
 
     st, nxt, adj = (prop.new_state() for _ in range(3))
-    mat = su.materials()
+    mat = su.model()
     prop.step(st, mat, src, 3, out=nxt)
     adj_mat = [zeros(prop.padded) for _ in mat[:-1]]
     adj_src = [zeros(a.shape) for a in located[1:]]
@@ -216,7 +217,7 @@ def backward_times(su, device, reps):
     a, b = prop.new_state(requires_grad=True), prop.new_state(requires_grad=True)
     tape = wp.Tape()
     with tape:
-        prop.step(a, su.materials(requires_grad=True), src, 3, out=b)
+        prop.step(a, su.model(on_tape=True), src, 3, out=b)
     layout = prop.adjoint_layout
     out = {"adjoint_layout": layout._asdict() if layout else None}
     out.update(timings({**adjoint_jobs(prop, st, nxt, mat, adj, adj_mat, src, adj_src, scratch), "step_backward_warp": tape.backward},
@@ -287,14 +288,14 @@ def adjoint_variant_times(check, layout, device, reps):
 def traces_vs_reference(su):
     """Max |optimised - reference| / max |reference| over vx, vz, pressure (forward_elastic's path vs the
     per-cell reference kernels that an active tape selects)."""
-    m = {k: v.numpy() for k, v in zip(("vp", "vs", "rho"), su.model)}
+    m = {k: v.numpy() for k, v in zip(("vp", "vs", "rho"), su.models)}
     force = su.components.numpy()
     fast = E.forward_elastic(m["vp"], m["vs"], m["rho"], bench.DX, bench.DT, su.amplitudes.numpy(), su.sources.numpy(),
                              su.receivers.numpy(), source_type="force", source_components=force, order=ORDER, pml_width=bench.PML,
                              device=su.prop.device)  # fmt: skip
-    data = E._new_data(su, su.nt)
+    data = su.new_data(su.nt)
     with wp.Tape():
-        E.run_elastic(su, su.prop.new_state(), su.materials(), data, range(su.nt))
+        run_levels(su, su.prop.new_state(), su.model(), data, range(su.nt))
     diffs = {}
     for name, ref in zip(E.COMPONENTS, data):
         ref = ref.numpy()

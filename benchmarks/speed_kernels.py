@@ -23,10 +23,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from speed import SCENES, scene  # noqa: E402
 
 import adseismic.solve.acoustic as P  # noqa: E402
-from adseismic.accel.graphs import graph_plan  # noqa: E402
+from adseismic.accel.graphs import graph_plan, replay  # noqa: E402
 from adseismic.accel.reductions import field_stats  # noqa: E402
 from adseismic.kernels.acoustic import DESCRIPTION  # noqa: E402
 from adseismic.solve.common import BlowupGuard, source_end  # noqa: E402
+from adseismic.solve.loop import capture, run_levels  # noqa: E402
 
 CORE_VARIANTS = [(4, 4, 128), (4, 2, 128), (8, 4, 128), (2, 4, 128), (4, 1, 128), (4, 4, 256)]  # (rows, columns per thread (one vector), threads per block) of the core kernels
 
@@ -41,26 +42,26 @@ def loop(su, s):
     """forward's time loop (graphs on a GPU, else run_steps); returns (seconds, data)."""
     prop = su.prop
     guard = BlowupGuard(prop, DESCRIPTION, lambda st: [st.u], source_end(s), 25)
-    K, graphs = graph_plan(prop.cuda, su.nt, guard.every, P.ROLES)
-    data = wp.zeros((prop.n_shots, su.receivers.shape[1], max(su.nt, K * graphs)), dtype=prop.dtype, device=prop.device)
-    st, vpad = prop.new_state(), prop.pad_model(su.velocity)
+    K, graphs = graph_plan(prop.cuda, su.nt, guard.every, su.period)
+    data = su.new_data(max(su.nt, K * graphs))
+    st, vpad = prop.new_state(), su.model()
     wp.synchronize_device(prop.device)
     t = time.perf_counter()
     if graphs:
-        P.run_graphs(su, st, vpad, data, guard)
+        replay(capture(su, st, vpad, data, guard.every), su.nt, guard)
     else:
-        P.run_steps(su, st, vpad, data, range(su.nt), callback=guard)
+        run_levels(su, st, vpad, data, range(su.nt), callback=guard)
     wp.synchronize_device(prop.device)
-    return time.perf_counter() - t, data.numpy()[:, :, : su.nt]
+    return time.perf_counter() - t, data[0].numpy()[:, :, : su.nt]
 
 
 def reference(su):
     """Traces from the per-cell reference kernels (the path Warp differentiates), no graphs."""
     prop = su.prop
-    data = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
+    data = su.new_data(su.nt)
     with wp.Tape():
-        P.run_steps(su, prop.new_state(), prop.pad_model(su.velocity), data, range(su.nt))
-    return data.numpy()
+        run_levels(su, prop.new_state(), su.model(), data, range(su.nt))
+    return data[0].numpy()
 
 
 def per_launch(fn, device, reps):

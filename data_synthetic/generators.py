@@ -13,7 +13,7 @@ import pathlib
 
 import numpy as np
 
-from adseismic.data.models import Model, ModelError, _per_axis
+from adseismic.data.model import Model, ModelError, per_axis
 
 
 def _grid(shape, spacing, origin) -> tuple[tuple[int, ...], tuple[float, ...], tuple[float, ...]]:
@@ -23,8 +23,8 @@ def _grid(shape, spacing, origin) -> tuple[tuple[int, ...], tuple[float, ...], t
         raise ModelError(f"shape: {shape!r} is not [nz, nx] or [nz, ny, nx] positive integers; "
                          f"give the number of grid nodes per axis")
     ndim = len(shape)
-    return (tuple(int(n) for n in shape), _per_axis(spacing, ndim, "spacing"),
-            _per_axis(0.0 if origin is None else origin, ndim, "origin"))
+    return (tuple(int(n) for n in shape), per_axis(spacing, ndim, "spacing"),
+            per_axis(0.0 if origin is None else origin, ndim, "origin"))
 
 
 def _positive(value, key: str) -> float:
@@ -75,7 +75,7 @@ def gaussian_anomaly(shape, spacing, background, perturbation, center, radius,
     background = _positive(background, "background")
     if not (isinstance(perturbation, (int, float, np.number)) and np.isfinite(perturbation)):
         raise ModelError(f"perturbation: {perturbation!r} is not a number; give it in m/s")
-    center = _per_axis(center, len(shape), "center")
+    center = per_axis(center, len(shape), "center")
     if not (isinstance(radius, (int, float, np.number)) and np.isfinite(radius) and radius > 0):
         raise ModelError(f"radius: {radius!r} is not a positive length; give the Gaussian's "
                          f"standard deviation in metres")

@@ -29,7 +29,10 @@ def write_location_demo(directory, seed: int = 1):
 
     from adseismic.location.locate import source_wavelet
     from adseismic.solve.acoustic import forward
-    from adseismic.data.traces import Reference, StationTraces, preprocess, write_station_traces
+    from adseismic.data.geometry import Reference
+    from adseismic.data.preprocess import preprocess
+    from adseismic.data.traces import StationTraces
+    from adseismic.data.write import write_station_traces
 
     fine = layered([121, 221], 10.0, MODEL["velocities"], MODEL["interfaces"])
     rec = np.array([[10.0, x] for x in np.linspace(100.0, 2100.0, 12)])

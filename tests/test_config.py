@@ -1,5 +1,7 @@
 """Tests for adseismic.config: the example configs validate, bad input fails with the key."""
 import copy
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -61,7 +63,7 @@ def test_example_configs_validate(name):
     assert c.geometry.receivers.shape[1] == ndim
     assert np.all(c.model.contains(c.geometry.sources))
     assert np.all(c.model.contains(c.geometry.receivers))
-    assert c.raw["model"]["kind"] == c.raw["model"]["kind"]  # raw kept
+    assert c.raw == yaml.safe_load((CONFIGS / f"{name}.yaml").read_text())  # the parsed YAML is kept
     if name == "marmousi_forward":
         assert c.model.shape == (401, 1601) and c.model.spacing == (7.5, 7.5)
         assert 1000 < c.model.vmin < 1100 and 4600 < c.model.vmax < 4800  # km/s -> m/s
@@ -194,8 +196,44 @@ def test_config_error_is_value_error():
 
 
 def test_spread_forms_concatenate():
-    from adseismic.config import _parse_spread
+    from adseismic.config.forward import _parse_spread
 
     pts = _parse_spread({"points": [{"x": 5.0, "z": 1.0}], "line": {"start": {"x": 0, "z": 0}, "end": {"x": 10, "z": 0}, "count": 3},
                          "lines": [{"start": {"x": 0, "z": 9}, "end": {"x": 10, "z": 9}, "count": 2}]}, "geometry.receivers", 2)  # fmt: skip
     np.testing.assert_allclose(pts, [[1, 5], [0, 0], [0, 5], [0, 10], [9, 0], [9, 10]])
+
+
+# ------------------------------------------------------------------------------ no workflow imports
+
+def test_accepted_names_match_the_workflow_registries():
+    """The config modules keep their own copies of the workflows' names (so that loading a config
+    imports no workflow); they must not drift apart."""
+    from adseismic.config.fwi import MISFIT_NAMES, OPTIMIZERS
+    from adseismic.config.locate import LOCATE_METHODS, STF_KINDS
+    from adseismic.inversion import misfits, optimize
+    from adseismic.location import locate
+
+    assert set(MISFIT_NAMES) == set(misfits.MISFITS)
+    assert set(OPTIMIZERS) == set(optimize.METHODS)
+    assert set(LOCATE_METHODS) == set(locate.METHODS)
+    assert set(STF_KINDS) == set(locate.STFS)
+
+
+def test_parsing_a_config_imports_no_workflow():
+    """Parsing a forward, an inversion and a location config loads the config and data layers only."""
+    fwi = {**BASE, "true_model": BASE["model"], "inversion": {"misfit": "l2", "optimizer": "lbfgs"}}
+    loc = {"model": BASE["model"], "traces": {"paths": ["event/*.mseed"]}, "preprocess": {"noise_window": [0, 0.1]},
+           "source": {"stf": "ricker"}, "search": {"method": "lbfgs"}}
+    code = f"""
+import sys
+import adseismic.config as c
+c.parse_config({BASE!r})
+c.parse_fwi_config({fwi!r})
+c.parse_locate_config({loc!r})
+bad = sorted(m for m in sys.modules if m.startswith(("adseismic.inversion", "adseismic.location",
+                                                      "adseismic.solve", "adseismic.cli", "adseismic.bench")))
+print(",".join(bad))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "", f"parsing a config imported workflow modules: {out.stdout.strip()}"

@@ -13,6 +13,8 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 import adseismic.solve.elastic as E
+from adseismic.solve import sweep
+from adseismic.solve.loop import run_levels
 import adseismic.kernels.elastic as K
 from adseismic.analytic import elastic_2d_force, elastic_2d_force_spectrum, lamb_2d
 from adseismic.kernels.numerics import (
@@ -421,9 +423,9 @@ def test_optimised_forward_equals_reference_kernels(free_surface, source_type):
     args, kw = small_problem(free_surface, source_type, nt=160)
     fast = E.forward_elastic(*args, precision="float32", check_every=7, **kw)
     su = E.setup_elastic(*args, precision="float32", **kw)
-    data = E._new_data(su, su.nt)
+    data = su.new_data(su.nt)
     with wp.Tape():
-        E.run_elastic(su, su.prop.new_state(), su.materials(), data, range(su.nt))
+        run_levels(su, su.prop.new_state(), su.model(), data, range(su.nt))
     limit = 0.0 if DEVICE == "cpu" else 1e-6
     for name, ref in zip(E.COMPONENTS, data):
         ref = ref.numpy()
@@ -729,7 +731,7 @@ def test_record_adjoint_is_the_records_transpose():
 
 
 def test_kept_sweep_is_refilled(monkeypatch):
-    # gradient_elastic keeps its ElasticSweep (GPU) for the next call with the same geometry: a call with another
+    # gradient_elastic keeps its sweep (GPU) for the next call with the same geometry: a call with another
     # model, wavelet, source components, positions and receivers through the kept sweep (forced here on any device)
     # gives what a fresh sweep gives
     from adseismic.accel import graphs
@@ -745,12 +747,12 @@ def test_kept_sweep_is_refilled(monkeypatch):
     fresh = E.gradient_elastic(*other, **common, **kw2)
     made = []
 
-    class Recorded(E.ElasticSweep):
+    class Recorded(sweep.Sweep):
         def __init__(self, *a):
             super().__init__(*a)
             made.append(self)
 
-    monkeypatch.setattr(E, "ElasticSweep", Recorded)
+    monkeypatch.setattr(sweep, "Sweep", Recorded)
     monkeypatch.setattr(graphs, "kept", lambda key: made[0] if made and made[0].key == key else None)
     E.gradient_elastic(*args, **common, **kw)
     reused = E.gradient_elastic(*other, **common, **kw2)

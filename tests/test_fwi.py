@@ -152,7 +152,9 @@ def test_bad_inversion_settings_write_nothing(tmp_path, capsys, inversion, messa
 def test_observed_miniseed_with_stationxml_matches_our_hdf5(tmp_path):
     # the same synthetic shots through both readers: our data.h5, and one MiniSEED + StationXML file
     # per shot with the receivers' latitude/longitude (projected back about the reference point)
-    from adseismic.data import traces
+    from adseismic.data.geometry import Reference
+    from adseismic.data.traces import StationTraces
+    from adseismic.data.write import write_station_traces
     from adseismic.config import parse_fwi_config
     from adseismic.inversion.fwi import prepare_fwi
     from adseismic.data.store import read_forward
@@ -160,13 +162,13 @@ def test_observed_miniseed_with_stationxml_matches_our_hdf5(tmp_path):
     fwd = {k: TINY[k] for k in ("model", "wavelet", "simulation", "geometry")}
     assert main(["forward", str(write(tmp_path, fwd, "fwd.yaml")), "-o", str(tmp_path / "obs"), "-q"]) == 0
     d = read_forward(tmp_path / "obs" / "data.h5")
-    ref = traces.Reference(46.0, 7.0)
+    ref = Reference(46.0, 7.0)
     rec = d.receiver_coordinates
     paths = []
     for i in range(d.receiver_data.shape[0]):
-        st = traces.StationTraces(data=d.receiver_data[i].astype(float), dt=d.dt, starttime=1.7e9, positions=rec,
+        st = StationTraces(data=d.receiver_data[i].astype(float), dt=d.dt, starttime=1.7e9, positions=rec,
                                   names=[f"XX.R{k:03d}..HHZ" for k in range(len(rec))], reference=ref)  # fmt: skip
-        mseed, _ = traces.write_station_traces(tmp_path / f"shot{i}", st, reference=ref, stem=f"shot{i}")
+        mseed, _ = write_station_traces(tmp_path / f"shot{i}", st, reference=ref, stem=f"shot{i}")
         paths.append(str(mseed))
     base = {k: v for k, v in TINY.items() if k != "true_model"}
     via_h5 = prepare_fwi(parse_fwi_config(dict(base, observed={"kind": "hdf5", "path": str(tmp_path / "obs" / "data.h5")})))

@@ -10,10 +10,11 @@ import pytest
 import warp as wp
 from scipy.ndimage import gaussian_filter
 
-from adseismic.solve import gradient as G
+from adseismic.solve import acoustic as G
 from adseismic.inversion.misfits import MISFITS
 from adseismic.inversion.parameterization import MLP, LogVelocity, SmoothBasis, Slowness
-from adseismic.solve.acoustic import forward, run_steps, setup
+from adseismic.solve.acoustic import forward, setup
+from adseismic.solve.loop import run_levels
 from adseismic.wavelets import ricker
 
 from .conftest import DEVICE
@@ -134,7 +135,7 @@ def test_equality_check_catches_reused_buffers():
     data = wp.zeros(obs.shape, dtype=su.prop.dtype, device=su.prop.device, requires_grad=True)
     tape = wp.Tape()
     with tape:
-        run_steps(su, su.prop.new_state(requires_grad=True), su.prop.pad_model(su.velocity, requires_grad=True), data, range(NT))
+        run_levels(su, su.prop.new_state(requires_grad=True), su.prop.pad_model(su.velocity, requires_grad=True), (data,), range(NT))
     tape.backward(grads={data: wp.array((data.numpy() - obs) * DT, dtype=su.prop.dtype, device=su.prop.device)})
     ring = su.velocity.grad.numpy().reshape(v.shape)
     assert np.abs(ring - good).max() > 1e-2 * np.abs(good).max()

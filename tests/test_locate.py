@@ -92,7 +92,7 @@ def test_quakeml_of_a_location_reads_back(tmp_path):
     from obspy import UTCDateTime, read_events
 
     from adseismic.location.quakeml import read_quakeml_origin, write_quakeml
-    from adseismic.data.traces import Reference, project
+    from adseismic.data.geometry import Reference, project
 
     r = noise_free()
     ref = Reference(46.0, 7.0, azimuth=90.0)

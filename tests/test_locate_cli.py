@@ -30,7 +30,9 @@ def observed():
 def write_event(directory, data=None, dt=DT, with_inventory=True, rec=None):
     from obspy import UTCDateTime
 
-    from adseismic.data.traces import Reference, StationTraces, write_station_traces
+    from adseismic.data.geometry import Reference
+    from adseismic.data.traces import StationTraces
+    from adseismic.data.write import write_station_traces
 
     _, rec0, _ = scene()
     rec = rec0 if rec is None else rec
@@ -58,7 +60,7 @@ def test_miniseed_stationxml_round_trip_gives_the_in_memory_location(tmp_path, c
     from obspy import UTCDateTime, read_events
 
     from adseismic.location.quakeml import read_quakeml_origin
-    from adseismic.data.traces import Reference, project
+    from adseismic.data.geometry import Reference, project
 
     mseed, xml = write_event(tmp_path)
     out = tmp_path / "run"

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from adseismic.data_synthetic import constant, gaussian_anomaly, layered, write_example_files
-from adseismic.data.models import Model, ModelError, load_model
+from adseismic.data.model import Model, ModelError
+from adseismic.data.models import load_model
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

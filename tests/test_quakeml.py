@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 
 from adseismic.location import quakeml as Q
-from adseismic.data import traces as T
+from adseismic.data import geometry as G
 
 obspy = pytest.importorskip("obspy")
 scipy_stats = pytest.importorskip("scipy.stats")
 from obspy import UTCDateTime  # noqa: E402
 
-REF3 = T.Reference(46.5, 7.25, 450.0)
-REF2 = T.Reference(-33.2, 151.1, 0.0, 60.0)
+REF3 = G.Reference(46.5, 7.25, 450.0)
+REF2 = G.Reference(-33.2, 151.1, 0.0, 60.0)
 T0 = UTCDateTime("2024-03-05T12:34:56.123456Z")
 
 
@@ -182,7 +182,7 @@ def test_write_read_3d_round_trip(tmp_path):
     assert org.evaluation_mode == "automatic" and org.evaluation_status == "preliminary"
     assert "adseismic" in str(org.method_id)
     assert abs(org.time - T0) < 1e-6
-    back = T.project(org.latitude, org.longitude, -org.depth, REF3, ndim=3)
+    back = G.project(org.latitude, org.longitude, -org.depth, REF3, ndim=3)
     np.testing.assert_allclose(back, pos, atol=1e-3)
 
     # scalar errors: 1 sigma
@@ -224,7 +224,7 @@ def test_latlon_errors_match_jacobian(tmp_path):
     path = tmp_path / "n.xml"
     Q.write_quakeml(path, position=pos, origin_time=T0, covariance=cov, reference=REF3, ndim=3)
     got = Q.read_quakeml_origin(path)
-    lat_p, _, _ = T.unproject(pos + [0, 1000.0, 0], REF3)
+    lat_p, _, _ = G.unproject(pos + [0, 1000.0, 0], REF3)
     assert got["latitude_error"] == pytest.approx(float(lat_p) - REF3.latitude, rel=1e-4)
     assert got["longitude_error"] < 1e-7  # east sigma 1 mm
 
@@ -240,7 +240,7 @@ def test_write_read_2d_round_trip(tmp_path):
     from obspy.io.quakeml.core import _validate
     assert _validate(str(path))
     org = obspy.read_events(str(path))[0].preferred_origin()
-    back = T.project(org.latitude, org.longitude, -org.depth, REF2, ndim=2)
+    back = G.project(org.latitude, org.longitude, -org.depth, REF2, ndim=2)
     np.testing.assert_allclose(back, pos, atol=1e-3)
     assert abs(org.time - T0) < 1e-6
     unc = org.origin_uncertainty

@@ -18,7 +18,6 @@ import math
 import weakref
 from dataclasses import dataclass
 
-import numpy as np
 import warp as wp
 
 from adseismic.accel.reductions import tick
@@ -35,13 +34,6 @@ def graph_plan(cuda: bool, nt: int, every: int, period: int = 2) -> tuple[int, i
     K *= max(1, GRAPH_STEPS // K)
     graphs = -(-nt // K)
     return K, graphs if cuda and graphs >= 2 else 0
-
-
-def padded_samples(amplitudes: np.ndarray, levels: int, dtype) -> np.ndarray:
-    """Source samples (S, n_src, nt) zero-padded to `levels` samples (the replays' levels past nt)."""
-    out = np.zeros((*amplitudes.shape[:2], levels), dtype=wp.dtype_to_numpy(dtype))
-    out[:, :, : amplitudes.shape[2]] = amplitudes
-    return out
 
 
 @dataclass

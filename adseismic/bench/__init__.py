@@ -59,8 +59,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from adseismic.cli import EXIT_ERROR, EXIT_OK, CommandError, _Logging, version
-from adseismic.data.store import write_text_atomic
+from adseismic.runs import EXIT_ERROR, EXIT_OK, CommandError, RunLog, version
+from adseismic.data.atomic import write_text_atomic
 
 log = logging.getLogger("adseismic.bench")
 
@@ -219,7 +219,7 @@ def run_elastic(mode: str, a: SceneArrays, device: str, order: int, memory_budge
 
 def run_acoustic(mode: str, a: SceneArrays, device: str, order: int, memory_budget, observed=None, segment_length=None):
     """propagate.forward or gradient.gradient (wrt velocity, L2 misfit against ``observed``)."""
-    from adseismic.solve.gradient import gradient
+    from adseismic.solve.acoustic import gradient
     from adseismic.solve.acoustic import forward
 
     args = (a.model["velocity"], DX, DT, a.amplitudes, a.sources, a.receivers)
@@ -746,7 +746,7 @@ def cmd_bench(args) -> int:
         raise CommandError(f"-o: {outdir} exists and is not a directory; choose another output directory")
     outdir.mkdir(parents=True, exist_ok=True)
     written, failed = [], []
-    with _Logging(outdir / "bench.log", args.quiet):
+    with RunLog(outdir / "bench.log", args.quiet):
         machine = machine_info(devices)
         log.info("adseismic %s bench %s -> %s; machine %s", version(), " ".join(sys.argv[1:]), outdir, json.dumps(machine))
         all_jobs = [j for dev in devices for j in jobs.get(dev, [])]
@@ -796,7 +796,3 @@ def _worker_main(argv) -> int:
     rows = run_job(job)
     print(WORKER_MARK + json.dumps([asdict(r) for r in rows]), flush=True)
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(_worker_main(sys.argv))

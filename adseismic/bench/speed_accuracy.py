@@ -257,7 +257,7 @@ def markdown(points) -> str:
 
 def write_outputs(outdir, points, machine: dict) -> list[pathlib.Path]:
     """speed_accuracy.json, speed_accuracy.md and one chart per device, written atomically."""
-    from adseismic.data.store import write_text_atomic
+    from adseismic.data.atomic import write_text_atomic
 
     outdir = pathlib.Path(outdir)
     devices = list(dict.fromkeys(p.device for p in points))

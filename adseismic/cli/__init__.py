@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import datetime
-import logging
 import pathlib
 import sys
 import time
@@ -26,30 +25,11 @@ import time
 import numpy as np
 
 from adseismic.config import ConfigError, ForwardConfig, load_config
-from adseismic.data.store import write_text_atomic
-from adseismic.data.models import ModelError
+from adseismic.data.atomic import write_text_atomic
+from adseismic.runs import EXIT_INPUT, EXIT_OK, EXIT_UNSTABLE, CommandError, RunLog, log, version
+from adseismic.data.model import ModelError
 
-log = logging.getLogger("adseismic")
-
-EXIT_OK, EXIT_ERROR, EXIT_INPUT, EXIT_UNSTABLE = 0, 1, 2, 3
 SNAPSHOT_LIMIT_BYTES = 8 * 2**30  # refuse snapshot settings that would hold more than this
-
-
-class CommandError(Exception):
-    """Raised by a subcommand to exit with ``code`` and ``message`` (no traceback)."""
-
-    def __init__(self, message: str, code: int = EXIT_INPUT):
-        super().__init__(message)
-        self.code = code
-
-
-def version() -> str:
-    try:
-        from importlib.metadata import version as _v
-
-        return _v("adseismic")
-    except Exception:  # not installed (running from a source tree)
-        return "unknown"
 
 
 # --------------------------------------------------------------------------------- helpers
@@ -86,37 +66,6 @@ def snapshot_every(config: ForwardConfig, plan) -> int:
         log.info("output.snapshot_interval %g s rounded to %d steps = %.4g s", interval, every,
                  every * plan.dt)
     return every
-
-
-class _Logging:
-    """Context: 'adseismic' logger to ``logfile`` (INFO) and stderr (INFO, or WARNING if quiet)."""
-
-    def __init__(self, logfile: pathlib.Path | None, quiet: bool):
-        self.logfile, self.quiet, self.handlers = logfile, quiet, []
-
-    def __enter__(self):
-        fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
-        err = logging.StreamHandler(sys.stderr)
-        err.setLevel(logging.WARNING if self.quiet else logging.INFO)
-        err.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
-        self.handlers.append(err)
-        if self.logfile is not None:
-            fh = logging.FileHandler(self.logfile, mode="w", encoding="utf-8")
-            fh.setLevel(logging.INFO)
-            fh.setFormatter(fmt)
-            self.handlers.append(fh)
-        self.level = log.level
-        log.setLevel(logging.INFO)
-        for h in self.handlers:
-            log.addHandler(h)
-        return self
-
-    def __exit__(self, *exc):
-        for h in self.handlers:
-            log.removeHandler(h)
-            h.close()
-        log.setLevel(self.level)
-        return False
 
 
 def _config_text(config: ForwardConfig) -> str:
@@ -175,7 +124,7 @@ def cmd_forward(args) -> int:
     progress = args.progress and not args.quiet
 
     outdir.mkdir(parents=True, exist_ok=True)
-    with _Logging(outdir / "forward.log", args.quiet):
+    with RunLog(outdir / "forward.log", args.quiet):
         log.info("adseismic %s forward %s -> %s", version(), args.config, outdir)
         log.info("plan:\n%s", plan.describe())
         for w in plan.warnings:
@@ -287,7 +236,7 @@ def cmd_fwi(args) -> int:
     elif started:
         raise CommandError(f"-o: {outdir} already holds a run; add --resume to continue it or choose another directory")
     outdir.mkdir(parents=True, exist_ok=True)
-    with _Logging(outdir / "fwi.log", args.quiet):
+    with RunLog(outdir / "fwi.log", args.quiet):
         log.info("adseismic %s fwi %s -> %s%s", version(), args.config, outdir, " (resume)" if args.resume else "")
         write_text_atomic(outdir / "config.yaml", text)
         try:
@@ -350,10 +299,10 @@ def cmd_locate(args) -> int:
     outdir = args.outdir
     if (outdir / "summary.json").exists():
         raise CommandError(f"-o: {outdir} already holds a location (summary.json); choose another directory")
-    with _Logging(None, args.quiet):
+    with RunLog(None, args.quiet):
         prep = prepare_locate(config)  # reads and checks every input before OUTDIR is touched
     outdir.mkdir(parents=True, exist_ok=True)
-    with _Logging(outdir / "locate.log", args.quiet):
+    with RunLog(outdir / "locate.log", args.quiet):
         log.info("adseismic %s locate %s -> %s", version(), args.config, outdir)
         for line in prep.plan.describe().splitlines():
             log.info("plan: %s", line)
@@ -436,7 +385,3 @@ def main(argv=None) -> int:
     except (ConfigError, ModelError, ValueError) as e:
         print(f"adseismic {args.command}: error: {e}", file=sys.stderr)
         return EXIT_INPUT
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,2 +1,3 @@
-"""Data in and out: velocity models (models), seismic traces (traces; ObsPy formats), the forward
-run's HDF5 store and atomic writes (store)."""
+"""Data in and out: velocity models (models), observed seismic data (traces: the data objects and
+TraceError; geometry: local frame, projection and checks; preprocess: onto the simulation's time
+axis; read / write: ObsPy formats), the forward run's HDF5 store (store) and atomic writes (atomic)."""

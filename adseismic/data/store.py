@@ -16,54 +16,21 @@ array axis order (z, [y,] x) as everywhere in adseismic):
   free_surface, pml_width, pml_reflection, adseismic_version, created_utc, config_yaml, plan).
 
 Nothing is half-written: the file is written as ``<name>.h5.part`` in the same directory and
-renamed into place with ``os.replace`` only when complete; on any error the part file is removed.
+renamed into place with ``os.replace`` only when complete; on any error the part file is removed
+(:func:`adseismic.data.atomic.write_h5_atomic`).
 """
 from __future__ import annotations
 
-import contextlib
-import os
 import pathlib
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["write_forward", "read_forward", "ForwardData", "atomic_path", "write_text_atomic", "write_h5_atomic", "AXES"]
+from adseismic.data.atomic import write_h5_atomic
+
+__all__ = ["write_forward", "read_forward", "ForwardData", "AXES"]
 
 AXES = {2: "z,x", 3: "z,y,x"}
-
-
-def atomic_path(path) -> pathlib.Path:
-    """The temporary name a file is written under before it is renamed to ``path``."""
-    path = pathlib.Path(path)
-    return path.with_name(path.name + ".part")  # data.h5 -> data.h5.part (= with_suffix(".h5.part"))
-
-
-@contextlib.contextmanager
-def atomic_write(path):
-    """Context yielding the .part path to write ``path`` under: renamed into place when the block
-    completes, removed on any error, so ``path`` appears complete or not at all."""
-    path = pathlib.Path(path)
-    part = atomic_path(path)
-    try:
-        yield part
-        os.replace(part, path)
-    except BaseException:
-        part.unlink(missing_ok=True)
-        raise
-
-
-def write_text_atomic(path, text: str) -> None:
-    """Write ``text`` to ``path`` via its .part name; nothing is left behind on error."""
-    with atomic_write(path) as part:
-        part.write_text(text, encoding="utf-8")
-
-
-def write_h5_atomic(path, fill) -> None:
-    """Create an HDF5 file at ``path`` with ``fill(h5py.File)`` via its .part name (atomic)."""
-    import h5py
-
-    with atomic_write(path) as part, h5py.File(part, "w") as f:
-        fill(f)
 
 
 @dataclass

@@ -28,8 +28,8 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 from adseismic.inversion import conditioning
-from adseismic.solve.gradient import gradient
-from adseismic.data.store import write_h5_atomic, write_text_atomic
+from adseismic.solve.acoustic import gradient
+from adseismic.data.atomic import write_h5_atomic, write_text_atomic
 from adseismic.inversion.misfits import misfit as named_misfit
 from adseismic.inversion.optimize import minimize
 from adseismic.solve.acoustic import forward
@@ -175,9 +175,9 @@ def read_observed(spec, scene, geometry):
         data, dt_in, t0 = d.receiver_data, d.dt, 0.0
         src, rec = d.source_coordinates, np.broadcast_to(d.receiver_coordinates, (len(d.source_coordinates), *d.receiver_coordinates.shape))
     else:
-        from adseismic.data import traces
+        from adseismic.data.read import read_shot_gathers
 
-        g = traces.read_shot_gathers([spec["path"]], fmt=spec["kind"].upper(), coordinate_scale=spec.get("coordinate_scale"), ndim=scene.model.ndim)
+        g = read_shot_gathers([spec["path"]], fmt=spec["kind"].upper(), coordinate_scale=spec.get("coordinate_scale"), ndim=scene.model.ndim)
         data, dt_in, t0, src, rec = g.data, g.dt, g.t0, g.sources, g.receivers
     n_shots, n_rec = scene.receiver_locations.shape[:2]
     if data.shape[:2] != (n_shots, n_rec):
@@ -189,7 +189,7 @@ def read_observed(spec, scene, geometry):
             raise ValueError(f"observed.path: the file's {name} coordinates differ from geometry.{name} by up to {off:.3g} m "
                              f"(more than half a cell, {0.5 * p.dx:g} m); make the config's geometry match the file")  # fmt: skip
     if abs(dt_in - p.dt) > 1e-9 * p.dt or data.shape[2] != p.nt or t0 != 0.0:
-        from adseismic.data.traces import preprocess
+        from adseismic.data.preprocess import preprocess
 
         data = preprocess(data, dt_in, dt=p.dt, nt=p.nt, t_shift=-t0, detrend=False, taper=0.0, fmax_required=p.f_max)
     return data
@@ -200,13 +200,15 @@ def _read_station_shots(spec, scene, geometry):
     SAC headers, projected about spec["reference"]); time zero = spec["shot_times"][i] or the first sample."""
     from obspy import UTCDateTime
 
-    from adseismic.data import traces
+    from adseismic.data.geometry import check_samples
+    from adseismic.data.preprocess import preprocess
+    from adseismic.data.read import read_station_traces
 
     p = scene.plan
     out = []
     for i, path in enumerate(spec["paths"]):
-        st = traces.read_station_traces(path, inventory=spec.get("inventory"), reference=spec.get("reference"),
-                                        ndim=scene.model.ndim, component=spec.get("component"))  # fmt: skip
+        st = read_station_traces(path, inventory=spec.get("inventory"), reference=spec.get("reference"),
+                                 ndim=scene.model.ndim, component=spec.get("component"))  # fmt: skip
         if len(st.names) != len(geometry.receivers):
             raise ValueError(f"observed.paths[{i}]: {len(st.names)} traces but geometry.receivers has {len(geometry.receivers)}")
         off = np.abs(st.positions - geometry.receivers).max()
@@ -214,8 +216,8 @@ def _read_station_shots(spec, scene, geometry):
             raise ValueError(f"observed.paths[{i}]: station coordinates differ from geometry.receivers by up to {off:.3g} m "
                              f"(more than half a cell, {0.5 * p.dx:g} m); order the receivers as the traces ({', '.join(st.names[:3])}, ...)")  # fmt: skip
         shift = 0.0 if spec.get("shot_times") is None else float(UTCDateTime(spec["shot_times"][i]) - st.starttime)
-        traces.check_samples(st.data, st.names)
-        out.append(traces.preprocess(st.data, st.dt, dt=p.dt, nt=p.nt, t_shift=shift, detrend=False, taper=0.0, fmax_required=p.f_max))
+        check_samples(st.data, st.names)
+        out.append(preprocess(st.data, st.dt, dt=p.dt, nt=p.nt, t_shift=shift, detrend=False, taper=0.0, fmax_required=p.f_max))
     return np.stack(out)
 
 

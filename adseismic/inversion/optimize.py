@@ -53,7 +53,7 @@ from typing import Callable
 
 import numpy as np
 
-from adseismic.data.store import atomic_path
+from adseismic.data.atomic import atomic_path
 
 __all__ = ["JournalMismatch", "Journal", "OptimizeResult", "minimize", "equal_cost_comparison",
            "hash_x", "projected_gradient_norm", "METHODS", "STOP_REASONS"]

@@ -35,8 +35,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import hilbert
 
-from adseismic.solve.gradient import gradient
-from adseismic.data.models import Model
+from adseismic.solve.acoustic import gradient
+from adseismic.data.model import Model
 from adseismic.inversion.optimize import minimize
 from adseismic.solve.common import dominant_frequency
 from adseismic.solve.acoustic import forward
@@ -217,7 +217,7 @@ def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_windo
     covariance is also inflated by the reduced chi-square of the fit when above 1 (misfit the noise
     does not explain: model or STF error). callback(iteration, evaluations, position, origin_time)
     after every iteration."""
-    from adseismic.data.traces import check_inside, check_samples
+    from adseismic.data.geometry import check_inside, check_samples
 
     _check_options(method, stf, multi_start, frequency_range, smoothness)
     dx = float(model.spacing[0])

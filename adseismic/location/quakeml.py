@@ -1,6 +1,6 @@
 """An earthquake location with its covariance, written as QuakeML through ObsPy (and read back).
 
-The locator works in the local Cartesian frame of :func:`adseismic.traces.project`: metres,
+The locator works in the local Cartesian frame of :func:`adseismic.data.geometry.project`: metres,
 axis order (z, [y,] x), z = depth = datum - elevation (positive down), 3D y = north, x = east,
 2D x along the line of azimuth ``Reference.azimuth``. :func:`write_quakeml` turns a position,
 an origin time and their joint covariance into a QuakeML ``Origin``.
@@ -42,7 +42,7 @@ Conventions
   ``min_horizontal_uncertainty`` (off-line) is left unset, because the 2D model does not
   constrain the off-line position at all (the event is placed on the line).
 * latitude / longitude errors: degrees, 1 sigma, from the local covariance mapped through the
-  Jacobian of :func:`adseismic.traces.unproject` at the event (central differences, 10 m);
+  Jacobian of :func:`adseismic.data.geometry.unproject` at the event (central differences, 10 m);
   depth in m below sea level (= -elevation = z - datum), depth error m, time error s.
 * nothing is lost: a comment (id ``.../adseismic-local``) holds JSON with the local position,
   the reference, the axis order and the full covariance (and ``extra``);
@@ -59,8 +59,8 @@ import re
 
 import numpy as np
 
-from adseismic.data.store import atomic_write
-from adseismic.data.traces import Reference, _as_reference, unproject
+from adseismic.data.atomic import atomic_write
+from adseismic.data.geometry import Reference, as_reference, unproject
 
 __all__ = [
     "confidence_scale",
@@ -279,10 +279,10 @@ def write_quakeml(path, *, position, origin_time, covariance, reference, ndim: i
                   creation_info="adseismic", extra=None) -> None:
     """Write one located event as QuakeML (Catalog -> Event -> Origin) to ``path``, atomically.
 
-    position: (ndim,) local metres, axis order (z,[y,]x) (see :func:`adseismic.traces.project`);
+    position: (ndim,) local metres, axis order (z,[y,]x) (see :func:`adseismic.data.geometry.project`);
     origin_time: obspy UTCDateTime (or anything UTCDateTime accepts);
     covariance: (ndim+1, ndim+1) 1-sigma covariance over (position..., origin time), m^2, m*s, s^2;
-    reference: the :class:`adseismic.traces.Reference` (or tuple) of the local frame (required);
+    reference: the :class:`adseismic.data.geometry.Reference` (or tuple) of the local frame (required);
     ndim: 2 (section along ``reference.azimuth``) or 3;
     confidence: probability (0, 1) of the confidence regions (stored as confidence_level in %);
     method: free text, stored as the origin's method_id ``smi:local/adseismic/method/<slug>``;
@@ -301,8 +301,8 @@ def write_quakeml(path, *, position, origin_time, covariance, reference, ndim: i
         raise ValueError(f"ndim: {ndim!r} is not 2 or 3")
     if reference is None:
         raise ValueError("reference: required (QuakeML needs latitude / longitude); pass the "
-                         "traces.Reference the local coordinates were projected about")
-    ref = _as_reference(reference)
+                         "adseismic.data.geometry.Reference the local coordinates were projected about")
+    ref = as_reference(reference)
     conf = _check_confidence(confidence)
     try:
         pos = np.array(position, dtype=float)
@@ -375,7 +375,7 @@ def write_quakeml(path, *, position, origin_time, covariance, reference, ndim: i
         "origin_time": str(t0),
         "reference": {"latitude": ref.latitude, "longitude": ref.longitude, "datum": ref.datum,
                       "azimuth": ref.azimuth},
-        "frame": "traces.project: z = datum - elevation (down); 3D y = north, x = east; "
+        "frame": "adseismic.data.geometry.project: z = datum - elevation (down); 3D y = north, x = east; "
                  "2D x along reference.azimuth",
         "confidence": conf,
         "method": str(method),
@@ -405,7 +405,7 @@ def read_quakeml_origin(path) -> dict:
     azimuth_max_horizontal_uncertainty (deg), ellipsoid (dict of the ConfidenceEllipsoid fields
     or None), method_id (str or None), evaluation_mode, evaluation_status, and local (the
     adseismic comment decoded from JSON, with "covariance" as an array and "reference" as a
-    traces.Reference; None for files written elsewhere).
+    adseismic.data.geometry.Reference; None for files written elsewhere).
     """
     import obspy
 

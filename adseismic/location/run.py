@@ -31,7 +31,7 @@ import numpy as np
 
 from adseismic.config import ForwardConfig, GeometryConfig, LocateConfig, OutputConfig, WaveletConfig
 from adseismic.inversion.fwi import band_pass
-from adseismic.data.store import write_h5_atomic, write_text_atomic
+from adseismic.data.atomic import write_h5_atomic, write_text_atomic
 from adseismic.location.locate import LocationResult, back_projection, locate, misfit_map, noise_from_window
 from adseismic.solve.common import dominant_frequency
 from adseismic.scene import plan_scene, straight_ray_times
@@ -78,20 +78,22 @@ def _seconds(value, starttime, key: str) -> float:
 def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
     """Read, check and preprocess the event's traces and plan the simulation (see the module
     docstring). Raises ValueError (ConfigError, TraceError) naming the key, file or station."""
-    from adseismic.data import traces as tr
+    from adseismic.data.geometry import check_inside
+    from adseismic.data.preprocess import preprocess
+    from adseismic.data.read import read_station_traces
 
     model, pre, src, sim = cfg.model, cfg.preprocess, cfg.source, cfg.simulation
     t = cfg.traces
-    st = tr.read_station_traces(t["paths"], inventory=t["inventory"], reference=t["reference"], ndim=model.ndim,
-                                local_coordinates=t["local_coordinates"], component=t["component"],
-                                fill_gaps=t["fill_gaps"], align=t["align"])  # fmt: skip
-    tr.check_inside(st.positions, model, "station", names=st.names)
+    st = read_station_traces(t["paths"], inventory=t["inventory"], reference=t["reference"], ndim=model.ndim,
+                             local_coordinates=t["local_coordinates"], component=t["component"],
+                             fill_gaps=t["fill_gaps"], align=t["align"])  # fmt: skip
+    check_inside(st.positions, model, "station", names=st.names)
     record = (st.nt - 1) * st.dt
     a, b = pre["noise_window"]
     if b > record:
         raise ValueError(f"preprocess.noise_window: ends at {b:g} s, after the {record:g} s record; give a window inside it")
     filt = dict(detrend=pre["detrend"], taper=pre["taper"], band=pre["band"])
-    raw = tr.preprocess(st.data, st.dt, dt=st.dt, nt=st.nt, name="traces", **filt)
+    raw = preprocess(st.data, st.dt, dt=st.dt, nt=st.nt, name="traces", **filt)
     f0 = float(src["peak_frequency"] or dominant_frequency(raw[None], st.dt))
     h = float(model.spacing[0])
     bounds = src["bounds"] or [(lo + 2 * h, hi - 2 * h) for lo, hi in model.extent]
@@ -126,7 +128,7 @@ def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
         log.info("plan: %s", line)
     k0 = int(round(w0 / plan.dt))
     n_full = int(math.floor(record / plan.dt)) + 1
-    data = tr.preprocess(st.data, st.dt, dt=plan.dt, nt=max(n_full, k0 + plan.nt), fmax_required=plan.f_max, name="traces", **filt)
+    data = preprocess(st.data, st.dt, dt=plan.dt, nt=max(n_full, k0 + plan.nt), fmax_required=plan.f_max, name="traces", **filt)
     try:
         noise = noise_from_window(data, plan.dt, (a, b))
     except ValueError as e:
@@ -187,7 +189,7 @@ def summary(prep: PreparedEvent, res: LocationResult) -> dict:
     """The location in numbers: local and geographic position, UTC origin time, 1-sigma errors,
     68% ellipse, fit, cost; the error against the truth when the config gives one."""
     from adseismic.location.quakeml import confidence_scale, ellipse_2d, ellipsoid
-    from adseismic.data.traces import unproject
+    from adseismic.data.geometry import unproject
 
     ndim = prep.model.ndim
     axes = "zyx" if ndim == 3 else "zx"

@@ -1,4 +1,4 @@
-"""Forward acoustic propagation: the small functional API on top of kernels/acoustic.py.
+"""Acoustic simulation and its exact gradients: the entry points and the acoustic setup for the shared solver.
 
 Conventions (shared by every public function of adseismic):
 - velocity: (nz, nx) or (nz, ny, nx) array in m/s on a regular grid of spacing dx (m), axis order
@@ -8,27 +8,32 @@ Conventions (shared by every public function of adseismic):
   (1/v^2) d2u/dt2 - laplacian(u) = s(t) delta(x - x_s), so that in a homogeneous medium
   u = s(t - r/v) / (4 pi r) in 3D (units of s: [u] m^(ndim-2)).
 - receiver data: (n_shots, n_receivers_per_shot, nt) samples of u at t = n dt, n = 0..nt-1.
+
+The time loop is solve/loop.py's and the checkpointed gradient solve/sweep.py's, as for every physics; this
+module says how the acoustic kernels (kernels/acoustic) map onto them (Setup) and holds the hand-written
+adjoint's arrays and segment functions (Levels).
 """
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
-from types import SimpleNamespace
+from typing import Callable
 
 import numpy as np
 import warp as wp
 from tqdm.auto import tqdm
 
-from adseismic.accel import graphs
-from adseismic.accel.reductions import field_stats, reduction_kernels, value_range
+from adseismic.accel.reductions import value_range
+from adseismic.inversion.misfits import misfit as named_misfit
 from adseismic.kernels.acoustic import DESCRIPTION, Acoustic, State
 from adseismic.kernels.common import operator_shape
 from adseismic.kernels.numerics import check_order
-from adseismic.solve.common import BlowupGuard, check_courant, check_geometry, pml_settings, precision_dtype, resolve_device, source_end
+from adseismic.solve import loop, sweep
+from adseismic.solve.common import (BlowupGuard, check_courant, check_geometry, padded_samples, pml_settings, precision_dtype,
+                                    resolve_device, source_end)
 
-log = logging.getLogger(__name__)
+WRT = ("velocity", "source_amplitudes", "source_locations")
 
 
 @dataclass
@@ -113,10 +118,11 @@ def velocity_3d(velocity) -> np.ndarray:
 
 @dataclass
 class Setup:
-    """Device-side inputs of one simulation: the launch helper and the Warp arrays it reads.
+    """Device-side inputs of one acoustic simulation and the verbs of the shared solver (solve/loop.py).
 
     amplitudes (S, n_src, nt); sources, receivers (S, n, 3) metres as (z, y, x); velocity (nz, ny, nx) m/s;
-    source_op, receiver_op: the operators at those points (Acoustic.operator).
+    source_op, receiver_op: the operators at those points (Acoustic.operator); velocity_map: the padded model
+    from another parameterisation (gradient's), else velocity padded.
     """
 
     prop: Acoustic
@@ -128,6 +134,65 @@ class Setup:
     receivers: wp.array
     source_op: object = None
     receiver_op: object = None
+    velocity_map: Callable | None = None
+
+    physics = DESCRIPTION
+    period = 3  # a captured loop's wavefield buffers: u[n+1] goes to the third
+    lookahead = 0
+
+    def model(self, on_tape=False):
+        if self.velocity_map is not None:
+            return self.velocity_map()
+        return self.prop.pad_model(self.velocity, requires_grad=on_tape)
+
+    def fill_model(self, vpad):
+        self.prop.pad_model(self.velocity, out=vpad)
+
+    def sources_of(self, amplitudes, fixed=True):
+        return amplitudes, self.source_op
+
+    def advance(self, st, vpad, src, data, k, n, out, clock):
+        nxt = self.prop.step(st, vpad, out, record=(data[0], self.receiver_op, k, clock))
+        self.prop.inject(nxt.u, vpad, src[0], src[1], n, clock)
+        return nxt
+
+    def record(self, st, data, k, clock):
+        self.prop.record(st.u, data[0], self.receiver_op, k, clock)
+
+    def new_data(self, n, requires_grad=False):
+        p = self.prop
+        return (wp.zeros((p.n_shots, self.receivers.shape[1], n), dtype=p.dtype, device=p.device, requires_grad=requires_grad),)
+
+    def new_level(self):
+        return self.prop.new_state(requires_grad=True, with_prev=False)
+
+    def fields(self, st):
+        return [st.u]
+
+    def spare(self, st):
+        return wp.zeros_like(st.u)
+
+    def out_state(self, st, spare):
+        return State(None, spare, st.psi, st.zeta)
+
+    def freed(self, st):
+        return st.u_prev
+
+    def key(self):
+        """What a captured time loop bakes in: kernels, grid, scalars, array shapes, operator kinds."""
+        p = self.prop
+        return ("acoustic", p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, self.nt, self.amplitudes.shape, self.receivers.shape,
+                operator_shape(self.source_op), operator_shape(self.receiver_op))  # fmt: skip
+
+    def loop_kernels(self):
+        k, p = self.prop.k, self.prop
+        return [k.step, k.pre_step, p.core_kernel(), *(k.psi[a][0] for a in range(3)), k.record_fixed, k.record,
+                k.inject_fixed if isinstance(self.source_op, tuple) else k.inject]  # fmt: skip
+
+    def inputs(self, src=None):
+        """The arrays a kept loop or sweep copies from a later setup: CPML coefficients and the operators' arrays."""
+        ops = [a for op in (self.source_op, self.receiver_op) for a in (op if isinstance(op, tuple) else (op,))]
+        return [a for ax in self.prop.axes for a in (ax.a, ax.b)] + ops
 
 
 def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4, pml_width=None,
@@ -152,91 +217,6 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
     return su
 
 
-def run_steps(su: Setup, st, vpad, data, steps: range, next_state=None, callback=None):
-    """Record u[n] into data[:, :, n - steps.start] and advance one step, for n in steps; returns the
-    state at steps.stop (or at nt - 1). next_state: callable returning the arrays of the next level
-    (each level needs its own under wp.Tape); None updates the state in place. callback(state, n)
-    runs at each level n before it is recorded and stepped from."""
-    prop = su.prop
-    for n in steps:
-        if callback is not None:
-            callback(st, n)
-        record = (data, su.receiver_op, n - steps.start, None)
-        if n == su.nt - 1:
-            prop.record(st.u, *record)
-            break
-        st = prop.step(st, vpad, next_state() if next_state is not None else None, record=record)
-        prop.inject(st.u, vpad, su.amplitudes, su.source_op, n)
-    return st
-
-
-ROLES = 3  # the GPU time loop's wavefield buffers: u[n+1] goes to the third (a GPU writes an array faster than it updates one in place)
-
-
-def capture(su: Setup, st, vpad, data, every: int) -> graphs.Loop:
-    """The untaped time loop of run_steps (record, the guard's check every `every` levels, step, inject)
-    captured as a CUDA graph (graphs.capture), u[n+1] written into a third buffer (kept.spare) instead of
-    over u[n-1]; data must have K * graphs samples (graphs.graph_plan with period ROLES)."""
-    prop = su.prop
-    K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every, ROLES)
-    if data.shape[2] < K * n_graphs:
-        raise ValueError(f"data has {data.shape[2]} samples; the graph replays record {K * n_graphs}")
-    amplitudes = wp.array(graphs.padded_samples(su.amplitudes.numpy(), K * n_graphs, prop.dtype), dtype=prop.dtype, device=prop.device)
-    spare = wp.zeros_like(st.u)
-    state = [st, spare]
-
-    def step(k, clock, stats):
-        st, spare = state
-        if stats is not None:
-            field_stats([st.u], stats)
-        nxt = prop.step(st, vpad, out=State(None, spare, st.psi, st.zeta), record=(data, su.receiver_op, k, clock))
-        prop.inject(nxt.u, vpad, amplitudes, su.source_op, k, clock)
-        state[:] = [nxt, st.u_prev]
-
-    kernels = [reduction_kernels(prop.dtype)[0], prop.k.step, prop.k.pre_step, prop.core_kernel(), *(prop.k.psi[a][0] for a in range(3))]
-    kernels += [prop.k.record_fixed, prop.k.record]
-    kernels += [prop.k.inject_fixed if isinstance(su.source_op, tuple) else prop.k.inject]
-    kept = SimpleNamespace(su=su, st=st, spare=spare, vpad=vpad, data=data, amplitudes=amplitudes)
-    return graphs.capture(_graph_key(su, every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept, su.nt)
-
-
-def run_graphs(su: Setup, st, vpad, data, guard: BlowupGuard, progress=None):
-    """The untaped time loop of run_steps on a CUDA device: capture, then replay (nothing kept)."""
-    graphs.replay(capture(su, st, vpad, data, guard.every), su.nt, guard, progress)
-
-
-def _graph_key(su: Setup, every: int) -> tuple:
-    """What a captured time loop bakes in: kernels, grid, scalars, array shapes, operator kinds."""
-    p = su.prop
-    return ("acoustic", p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, su.nt, su.amplitudes.shape, su.receivers.shape,
-            operator_shape(su.source_op), operator_shape(su.receiver_op), every)  # fmt: skip
-
-
-def _kept_loop(su: Setup, every: int) -> graphs.Loop:
-    """forward's time loop for su: the kept one refilled with su's inputs when the key matches, else a new
-    capture (which replaces it)."""
-    loop = graphs.kept(_graph_key(su, every))
-    if loop is None:
-        prop = su.prop
-        K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every, ROLES)
-        data = wp.zeros((prop.n_shots, su.receivers.shape[1], K * n_graphs), dtype=prop.dtype, device=prop.device)
-        return graphs.keep(capture(su, prop.new_state(), prop.pad_model(su.velocity), data, every))
-    mine = loop.kept
-    prop = mine.su.prop
-
-    def inputs(s):  # CPML coefficients (they depend on the model's maximum speed) and the operators' arrays
-        ops = [a for op in (s.source_op, s.receiver_op) for a in (op if isinstance(op, tuple) else (op,))]
-        return [a for ax in s.prop.axes for a in (ax.a, ax.b)] + ops
-
-    for a, b in zip(inputs(mine.su), inputs(su)):
-        wp.copy(a, b)
-    mine.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), loop.K * loop.graphs, prop.dtype))
-    prop.pad_model(su.velocity, out=mine.vpad)
-    for a in (*mine.st.arrays(), mine.spare, mine.data, loop.clock):
-        a.zero_()
-    return loop
-
-
 def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4,
             pml_width=None, pml_reflection=None, pml_frequency=None, pml_velocity=None, free_surface=False,
             device="cpu", precision="float32", snapshot_every=0, check_every=25, progress=False) -> ForwardResult:  # fmt: skip
@@ -254,45 +234,303 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
     PropagationError if the run blows up.
     On a GPU the time loop is captured as a CUDA graph and kept (with its wavefields) for the next call
     with the same grid, time step, number of steps, shots, sources and receivers, which then only copies
-    its inputs in (graphs.release frees it).
+    its inputs in (accel.graphs.release frees it).
     """
     su = setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order=order, pml_width=pml_width,
                pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
                free_surface=free_surface, device=device, precision=precision)  # fmt: skip
     prop = su.prop
-    guard = BlowupGuard(prop, DESCRIPTION, lambda st: [st.u], source_end(source_amplitudes), check_every)
-    use_graphs = graphs.graph_plan(prop.cuda, su.nt, guard.every, ROLES)[1] > 0 and not snapshot_every
+    guard = BlowupGuard(prop, DESCRIPTION, su.fields, source_end(source_amplitudes), check_every)
     snaps, snap_t = [], []
     o, ny = prop.origin, (prop.shape[1] if su.ndim == 3 else 1)
     phys = (slice(None), slice(o[0], o[0] + prop.shape[0]), slice(o[1], o[1] + ny), slice(o[2], o[2] + prop.shape[-1]))
-    bar = tqdm(total=su.nt, desc="time steps", unit="step", disable=not progress, leave=False)
 
-    def callback(st, n):
-        guard(st, n)
-        if snapshot_every and n % snapshot_every == 0:
+    def snapshot(st, n):
+        if n % snapshot_every == 0:
             field = st.u.numpy()[phys].copy()  # on the CPU .numpy() is a view of a reused buffer
             snaps.append(field[:, :, 0, :] if su.ndim == 2 else field)
             snap_t.append(n * dt)
-        bar.update()
 
-    if use_graphs:
-        loop = _kept_loop(su, guard.every)
-        graphs.replay(loop, su.nt, guard, bar)
-        data = loop.kept.data
-    else:
-        data = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
-        run_steps(su, prop.new_state(), prop.pad_model(su.velocity), data, range(su.nt), callback=callback)
-    bar.close()
-    if isinstance(velocity, wp.array):  # stays on the device (S600x16's 20 MB to fresh host memory: ~12 ms of ~75)
-        traces = data
-        if use_graphs:  # the kept loop's buffer (K * graphs samples), overwritten by the next call
-            traces = wp.empty((*data.shape[:2], su.nt), dtype=data.dtype, device=data.device)
-            wp.copy(traces, data[:, :, : su.nt])
-    else:
-        traces = data.numpy()[:, :, : su.nt]  # no float64 copy: it cost 6.7 ms of a 72 ms S600x16 call
+    data, kept = loop.run(su, guard, progress, snapshot if snapshot_every else None)
     return ForwardResult(
-        receiver_amplitudes=traces,
+        receiver_amplitudes=loop.traces(data[0], su.nt, isinstance(velocity, wp.array), kept),
         dt=float(dt),
         snapshots=np.stack(snaps) if snaps else None,
         snapshot_times=np.asarray(snap_t) if snaps else None,
     )
+
+
+@dataclass
+class GradientResult:
+    """Misfit and gradients. velocity: dJ/dv (nz, [ny,] nx) per m/s (a Warp array on the model's device
+    when the model was given as a Warp array, else a NumPy array); source_amplitudes: dJ/ds
+    (n_shots, n_src, nt); source_locations: dJ/dx_s (n_shots, n_src, ndim) per metre; parameters:
+    dJ/dtheta of a parameterization; illumination: sum over time and shots of u^2 (model shape;
+    the pseudo-Hessian diagonal of Shin et al. 2001); synthetic: (n_shots, n_receivers, nt). Entries
+    not requested are None; the gradients are in the simulation's precision (float32 or float64)."""
+
+    loss: float
+    synthetic: np.ndarray
+    velocity: np.ndarray | None = None
+    source_amplitudes: np.ndarray | None = None
+    source_locations: np.ndarray | None = None
+    parameters: np.ndarray | None = None
+    illumination: np.ndarray | None = None
+    segment_length: int = 0
+    n_segments: int = 0
+    peak_bytes_estimate: int = 0
+
+
+def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_length: int | None = None, adjoint: str = "hand"):
+    """(segment_length, estimated peak bytes) for the checkpointed sweep.
+
+    memory_budget (bytes) caps checkpoints + one segment's levels; None picks the memory minimum. The
+    hand-written sweep keeps, per level of a segment, u and the CPML strips (psi, zeta); Warp's tape keeps
+    their adjoints too. Its segments are a multiple of 6 steps long (the adjoint's buffers rotate in threes
+    and twos), and the last one runs past nt into zero sources and residuals.
+    """
+    item = 4 if prop.dtype == wp.float32 else 8
+    cells = prop.n_shots * math.prod(prop.padded)
+    strips = sum(math.prod(prop.strip_shape(a)) for a in range(3) if prop.strip_width[a])
+    hand = adjoint == "hand"
+    per_level = item * (cells + 2 * strips) * (1 if hand else 2)
+    per_ckpt = item * (2 * cells + 2 * strips)
+    fixed = item * (5 * cells + 4 * strips + 3 * math.prod(prop.padded)) if hand else 0  # adjoint ring, g pair, strips' adjoints, vpad, w
+    step = 6 if hand else 1
+
+    def total(seg):
+        n_seg = math.ceil(nt / seg)
+        kept = max(n_seg - 2, 0) if hand else n_seg - 1  # the Sweep keeps no checkpoint of the first and last starts
+        return fixed + kept * per_ckpt + (seg + 1) * per_level
+
+    return sweep.choose_segment(nt, step, total, memory_budget, segment_length)
+
+
+def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
+             misfit="l2", wrt=("velocity",), parameterization=None, order=4, pml_width=None, pml_reflection=None,
+             pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu", precision="float32",
+             memory_budget=None, segment_length=None, adjoint="hand", illumination=False,
+             progress=False) -> GradientResult:  # fmt: skip
+    """Misfit between simulated and observed data and its gradient for a batch of shots.
+
+    Arguments as in forward; observed (n_shots, n_receivers, nt). misfit: a name in
+    misfits.MISFITS, or a callable synthetic -> (J, dJ/dsynthetic). wrt: any of "velocity",
+    "source_amplitudes", "source_locations". parameterization: an object with `parameters`
+    (numpy array theta) and `velocity(theta: wp.array) -> wp.array` (nz, [ny,] nx) written with Warp
+    kernels; velocity is then ignored except for its shape and the gradient is returned for theta.
+    memory_budget: bytes for checkpoints plus one segment's levels; segment_length pins the checkpoint
+    spacing instead (at most nt, rounded up to a multiple of 6 for adjoint="hand").
+    adjoint: "hand" (the hand-written adjoint time loop; on a GPU captured as CUDA graphs and kept, with
+    its arrays, for the next call with the same grid, steps, shots and geometry: accel.graphs.release() frees it)
+    or "warp" (Warp's generated adjoints of every kernel under wp.Tape; the reference the hand-written one
+    is tested against).
+    illumination: also return sum_t sum_shots u^2 per cell.
+    """
+    if adjoint not in ("hand", "warp"):
+        raise ValueError(f"adjoint {adjoint!r} is not 'hand' or 'warp'")
+    wrt = tuple(wrt)
+    unknown = set(wrt) - set(WRT)
+    if unknown:
+        raise ValueError(f"wrt: {sorted(unknown)} not among {WRT}")
+    if parameterization is not None:
+        velocity = np.asarray(parameterization.initial_velocity())
+    want = set(wrt) - ({"velocity"} if parameterization is not None else set())
+    su = setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, order=order, pml_width=pml_width,
+               pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
+               free_surface=free_surface, device=device, precision=precision, requires_grad=want)  # fmt: skip
+    prop, nt = su.prop, su.nt
+    if callable(misfit):
+        loss_fn = misfit
+    else:
+        obs = np.asarray(observed, dtype=float)
+        loss_fn = lambda d: named_misfit(misfit, d, obs, dt)  # noqa: E731
+    theta = None
+    if parameterization is not None:
+        theta = wp.array(parameterization.parameters, dtype=prop.dtype, device=prop.device, requires_grad=True)
+
+    def model_on_tape():
+        v = su.velocity if theta is None else parameterization.velocity(theta, prop.dtype, prop.device)
+        return prop.pad_model(v if v.ndim == 3 else v.reshape(su.velocity.shape), requires_grad=True)
+
+    seg, peak = plan_segments(prop, nt, memory_budget, segment_length, adjoint)
+    n_seg = math.ceil(nt / seg)
+    energy = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device) if illumination else None
+    bar = tqdm(total=2 * n_seg, desc="gradient segments", disable=not progress, leave=False)
+    if adjoint == "hand":
+        model_tape = wp.Tape()
+        with model_tape:
+            vpad = model_on_tape()
+        synthetic, loss, amplitudes_grad = _hand_sweep(su, vpad, seg, n_seg, loss_fn, energy, bar)
+        model_tape.backward(grads={vpad: vpad.grad})
+        del model_tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
+    else:
+        su.velocity_map = model_on_tape
+
+        def on_level(st, n):
+            if energy is not None:
+                prop.accumulate_energy(st.u, energy, 0, prop.clock, nt)
+
+        data, loss = sweep.taped_sweep(su, seg, n_seg, lambda d: _host_loss(loss_fn, d[0]), bar, on_level)
+        synthetic = data[0].astype(float)
+        amplitudes_grad = su.amplitudes.grad
+    bar.close()
+
+    def grad_of(arr):  # in the simulation's precision (a float64 copy of an S4000 gradient costs as much as 60 time steps)
+        return arr.grad.numpy()
+
+    res = GradientResult(loss=float(loss), synthetic=synthetic, segment_length=seg, n_segments=n_seg, peak_bytes_estimate=peak)
+    if "velocity" in wrt:
+        if theta is not None:
+            res.parameters = grad_of(theta)
+        elif isinstance(velocity, wp.array):  # stays on the device (the S4000 gradient's copy to the host took 37 ms of 187)
+            res.velocity = su.velocity.grad.reshape(prop.shape)
+        else:
+            res.velocity = grad_of(su.velocity).reshape(prop.shape)
+    if energy is not None:
+        res.illumination = prop.physical(energy.numpy()).astype(float).reshape(prop.shape)
+    if "source_amplitudes" in wrt:
+        res.source_amplitudes = amplitudes_grad.numpy()[:, :, :nt]
+    if "source_locations" in wrt:
+        g = grad_of(su.sources)
+        res.source_locations = g if su.ndim == 3 else g[..., [0, 2]]
+    return res
+
+
+def _host_loss(loss_fn, synthetic):
+    """(J, (dJ/dsynthetic,)) of the misfit on the host, the synthetic in float64."""
+    loss, adj = loss_fn(synthetic.astype(float))
+    return loss, (adj,)
+
+
+def _hand_sweep(su, vpad, seg: int, n_seg: int, loss_fn, energy, bar):
+    """The hand-written adjoint time loop (Levels in a sweep.Sweep). vpad: the padded model (requires_grad; its .grad
+    gets dJ/dvpad). Returns (synthetic, loss, the padded source amplitudes, whose .grad is dJ/ds)."""
+    prop, nt = su.prop, su.nt
+    illumination = energy is not None
+    key = ("gradient", *su.key()[1:], seg, n_seg, su.amplitudes.requires_grad, illumination)
+    sw = sweep.kept_sweep(key, lambda: sweep.Sweep(key, Levels(su, seg, n_seg, illumination), seg, n_seg), prop.cuda)
+    lv = sw.levels
+    lv.refill(su, vpad)
+    sw.forward_sweep(bar)
+    synthetic = lv.data.numpy()[:, :, :nt].astype(float)
+    loss, adj = loss_fn(synthetic)
+    lv.residual.assign(padded_samples(np.asarray(adj), seg * n_seg, prop.dtype))
+    sw.backward_sweep(bar)
+    lv.collect(su, vpad, energy)
+    return synthetic, loss, lv.amplitudes.grad
+
+
+class Levels:
+    """The acoustic hand-written adjoint's arrays and segment functions (what sweep.Sweep drives).
+
+    The forward segment runs `seg` steps from levels[0] (its start state) into levels[1..seg] (u[n], psi[n],
+    zeta[n] of every level); the adjoint segment steps back through them: the adjoint of u at level j in
+    lam[j % 3], the sum g of the model gradient alternating between two buffers (a GPU writes an array faster than
+    it updates one in place), the adjoints of psi and zeta alternating likewise; seg is a multiple of 6, so every
+    segment starts with the same roles. Time indices are j + clock[0].
+    """
+
+    def __init__(self, su, seg: int, n_seg: int, illumination: bool):
+        prop = su.prop
+        self.su, self.seg, self.device = su, seg, prop.device
+        levels = seg * n_seg
+        self.levels = [prop.new_state()] + [prop.new_state(with_prev=False) for _ in range(seg)]
+        self.amplitudes = wp.zeros((*su.amplitudes.shape[:2], levels), dtype=prop.dtype, device=prop.device, requires_grad=su.amplitudes.requires_grad)
+        self.vpad = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device, requires_grad=True)
+        self.w = wp.zeros_like(self.vpad)
+        shape = (prop.n_shots, su.receivers.shape[1], levels)
+        self.data = wp.zeros(shape, dtype=prop.dtype, device=prop.device)
+        self.residual = wp.zeros(shape, dtype=prop.dtype, device=prop.device)
+        self.lam = [wp.zeros_like(self.levels[0].u) for _ in range(3)]
+        self.g = [wp.zeros_like(self.levels[0].u) for _ in range(2)]
+        self.adj_psi = [prop.new_state(with_prev=False).psi for _ in range(2)]
+        self.adj_zeta = [prop.new_state(with_prev=False).zeta for _ in range(2)]
+        self.energy = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device) if illumination else None
+        self.clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
+
+    def start(self):
+        return self.levels[0].arrays()
+
+    def end(self):
+        """The state at the segment's end (u_prev, u, psi, zeta)."""
+        return [self.levels[self.seg - 1].u, *self.levels[self.seg].arrays()]
+
+    def kernels(self):
+        """Every kernel the segments launch (loaded before a capture, which cannot compile)."""
+        prop, k = self.su.prop, self.su.prop.k
+        out = [k.step, k.pre_step, prop.core_kernel(), *(k.psi[a][0] for a in range(3)), k.record, k.record_fixed, k.inject, k.inject_fixed]
+        return out + [k.adjoint_step, k.post_adjoint, prop.adjoint_kernel(), *k.psi_adjoint, k.energy]
+
+    def forward_segment(self):
+        su, prop, lv = self.su, self.su.prop, self.levels
+        st = lv[0]
+        for j in range(self.seg):
+            st = prop.step(st, self.vpad, out=lv[j + 1], record=(self.data, su.receiver_op, j, self.clock))
+            prop.inject(st.u, self.vpad, self.amplitudes, su.source_op, j, self.clock)
+
+    def adjoint_segment(self):
+        su, prop, lv = self.su, self.su.prop, self.levels
+        for j in reversed(range(self.seg)):
+            lam, adj, out = (self.lam[(j + d) % 3] for d in (1, 2, 0))
+            psi = (self.adj_psi[(j + 1) % 2], self.adj_psi[j % 2])
+            zeta = (self.adj_zeta[(j + 1) % 2], self.adj_zeta[j % 2])
+            prop.inject_adjoint(lam, self.vpad, self.amplitudes, su.source_op, j, self.clock)
+            prop.adjoint_step(lv[j], lv[j + 1], self.vpad, self.w, lam, adj, self.g[(j + 1) % 2], psi, zeta,
+                              residual=(self.residual, su.receiver_op, j, self.clock), out=(out, self.g[j % 2]))  # fmt: skip
+            if self.energy is not None:
+                prop.accumulate_energy(lv[j].u, self.energy, j, self.clock, su.nt)
+
+    def finish(self):
+        pass
+
+    def refill(self, su, vpad):
+        """Copy su's inputs (model, CPML coefficients, operators, source samples) into these arrays and zero the
+        state, data and adjoints."""
+        mine = self.su
+        prop = mine.prop
+        for a, b in zip(mine.inputs(), su.inputs()):
+            wp.copy(a, b)
+        self.amplitudes.assign(padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], prop.dtype))
+        wp.copy(self.vpad, vpad)
+        wp.launch(prop.k.squared, dim=prop.padded, inputs=[self.vpad, prop.dt2, self.w], device=prop.device)
+        zero = [self.data, *self.g, *self.lam, *(a for r in (self.adj_psi, self.adj_zeta) for p in r for a in p), self.vpad.grad]
+        zero += [a.grad for a in (self.amplitudes, mine.sources) if a.requires_grad]
+        zero += [self.energy] if self.energy is not None else []
+        for a in zero:
+            a.zero_()
+
+    def collect(self, su, vpad, energy):
+        """Move the results to su's arrays: dJ/dvpad into vpad.grad, dJ/d(locations), the illumination."""
+        prop = su.prop
+        wp.launch(prop.k.model_gradient, dim=prop.padded, inputs=[self.vpad, self.g[0], prop.dt2, self.vpad.grad], device=prop.device)
+        wp.copy(vpad.grad, self.vpad.grad)
+        if su.sources.requires_grad and su.sources is not self.su.sources:
+            wp.copy(su.sources.grad, self.su.sources.grad)
+        if energy is not None:
+            wp.copy(energy, self.energy)
+
+
+def born(velocity, dvelocity, dx, dt, source_amplitudes, source_locations, receiver_locations, **kw) -> np.ndarray:
+    """Linearised (Born, tangent-linear) data F dv: the exact derivative of the simulated receiver
+    data along the model perturbation dvelocity (m/s, same shape as velocity). Returns
+    (n_shots, n_receivers, nt). Keyword arguments as in forward (no snapshots)."""
+    su = setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, **kw)
+    prop, nt = su.prop, su.nt
+    vpad = prop.pad_model(su.velocity)
+    dvpad = prop.pad_model(wp.array(velocity_3d(dvelocity), dtype=prop.dtype, device=prop.device))
+    shape = (prop.n_shots, su.receivers.shape[1], nt)
+    data = wp.zeros(shape, dtype=prop.dtype, device=prop.device)
+    ddata = wp.zeros(shape, dtype=prop.dtype, device=prop.device)
+    st, dst = prop.new_state(), prop.new_state()
+    u_prev = wp.zeros_like(st.u)
+    for n in range(nt):
+        prop.record(st.u, data, su.receiver_op, n)
+        prop.record(dst.u, ddata, su.receiver_op, n)
+        if n == nt - 1:
+            break
+        wp.copy(u_prev, st.u_prev)
+        st = prop.step(st, vpad)
+        prop.inject(st.u, vpad, su.amplitudes, su.source_op, n)
+        dst = prop.step(dst, vpad)
+        prop.scatter(dst.u, st.u, st.u_prev, u_prev, vpad, dvpad)
+    return ddata.numpy().astype(float)

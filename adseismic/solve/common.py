@@ -102,6 +102,13 @@ def source_end(source_amplitudes: np.ndarray, lag: int = 1, rate: bool = False) 
     return int(active[-1]) + lag
 
 
+def padded_samples(amplitudes: np.ndarray, levels: int, dtype) -> np.ndarray:
+    """Source samples (S, n_src, nt) zero-padded to `levels` samples (the replays' levels past nt)."""
+    out = np.zeros((*amplitudes.shape[:2], levels), dtype=wp.dtype_to_numpy(dtype))
+    out[:, :, : amplitudes.shape[2]] = amplitudes
+    return out
+
+
 class BlowupGuard:
     """Stops a run whose monitored fields turn non-finite or keep growing after the source has ended.
 

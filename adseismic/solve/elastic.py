@@ -1,6 +1,6 @@
 """2D isotropic elastic propagation and its exact, memory-bounded gradients (kernels/elastic.py).
 
-Conventions (as adseismic.propagate; z depth, positive down):
+Conventions (as adseismic.solve.acoustic; z depth, positive down):
 - vp, vs (m/s), rho (kg/m^3): (nz, nx) NumPy or Warp arrays (a Warp array of the run's precision, e.g. already
   on the GPU, is copied there without visiting the host) on a regular grid of spacing dx (m); node (0, 0) at 0 m.
   vs = 0 is a fluid; 0 <= vs <= vp / sqrt(2) (lambda >= 0).
@@ -14,29 +14,31 @@ Conventions (as adseismic.propagate; z depth, positive down):
 - receiver data: vx, vz (m/s) sample n at t = (n - 1/2) dt, pressure -(sxx + szz)/2 (Pa) at t = n dt
   (leapfrog staggering in time, see kernels/elastic.py), each (n_shots, n_receivers, nt).
 
-Gradients (gradient_elastic) are the discrete adjoint, checkpointed as in adseismic.gradient: by default an explicit
-time loop of the hand-written adjoint kernels (ElasticSweep; CUDA graphs on a GPU, kept for the next call with the
-same geometry) with Warp differentiating only the materials (vp, vs, rho -> MATERIALS) on a small tape;
-adjoint="warp" differentiates every kernel under wp.Tape (the reference).
+The time loop is solve/loop.py's and the checkpointed gradient solve/sweep.py's, as for every physics; this module
+says how the elastic kernels map onto them (ElasticSetup) and holds the hand-written adjoint's arrays and segment
+functions (Levels). Gradients (gradient_elastic) are the discrete adjoint: by default the hand-written adjoint kernels
+in an explicit time loop (CUDA graphs on a GPU, kept for the next call with the same geometry) with Warp
+differentiating only the materials (vp, vs, rho -> MATERIALS) on a small tape; adjoint="warp" differentiates every
+kernel under wp.Tape (the reference).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 from tqdm.auto import tqdm
 
 from adseismic.accel import graphs
-from adseismic.accel.reductions import field_stats, l2_residual_kernel, reduction_kernels, value_ranges
+from adseismic.accel.reductions import l2_residual_kernel, value_ranges
 from adseismic.inversion.misfits import misfit as named_misfit
 from adseismic.kernels.elastic import DESCRIPTION, MATERIALS, PSI, Elastic, shear_ratio
 from adseismic.kernels.numerics import check_order
-from adseismic.solve.common import BlowupGuard, check_courant, check_geometry, pml_settings, precision_dtype, resolve_device, source_end
-from adseismic.solve.gradient import choose_segment
+from adseismic.solve import loop, sweep
+from adseismic.solve.common import (BlowupGuard, check_courant, check_geometry, padded_samples, pml_settings, precision_dtype,
+                                    resolve_device, source_end)
 
 SOURCE_TYPES = {"force": 2, "moment": 3, "explosive": 3}
 COMPONENTS = ("vx", "vz", "pressure")
@@ -151,24 +153,80 @@ def check_elastic_inputs(shape, vmax, dx, dt, source_amplitudes, source_location
 
 @dataclass
 class ElasticSetup:
-    """Device-side inputs of one elastic simulation (see :func:`setup_elastic`)."""
+    """Device-side inputs of one elastic simulation (see :func:`setup_elastic`) and the verbs of the shared solver
+    (solve/loop.py). models: physical (vp, vs, rho) wp.array2d; source_op: the sources' fixed operator (None where
+    their locations are differentiated); receiver_op: the receivers' (Elastic.operator)."""
 
     prop: Elastic
     nt: int
     kind: str  # "force" or "moment"
-    model: tuple  # physical (vp, vs, rho) wp.array2d
+    models: tuple
     amplitudes: wp.array
     components: wp.array
     sources: wp.array
     receivers: wp.array
-    receiver_op: tuple  # Elastic.operator
+    receiver_op: tuple
+    source_op: tuple | None = None
 
-    def materials(self, requires_grad=False):
-        """The padded model's MATERIALS (kernels/elastic.py); differentiable under a tape."""
-        return self.prop.materials(*(self.prop.pad_model(m, requires_grad) for m in self.model), requires_grad=requires_grad)
+    physics = DESCRIPTION
+    period = 2  # a captured loop steps into a second state and back
+    lookahead = 1  # a moment source reads sample n + 1
 
-    def source_args(self):
-        return (self.kind, self.amplitudes, self.components, self.sources)
+    def model(self, on_tape=False):
+        """The padded model's MATERIALS (kernels/elastic); differentiable under a tape."""
+        return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape)
+
+    def fill_model(self, mat):
+        for a, b in zip(mat, self.model()):
+            wp.copy(a, b)
+
+    def sources_of(self, amplitudes, fixed=True):
+        """The step's sources: samples `amplitudes`, through the fixed operator (no Kaiser-sinc weights evaluated each
+        step) where fixed and the locations are not differentiated."""
+        where = self.source_op if fixed and self.source_op is not None else self.sources
+        return (self.kind, amplitudes, self.components, where)
+
+    def advance(self, st, mat, src, data, k, n, out, clock):
+        self.prop.record(st, data, self.receiver_op, k, clock)
+        return self.prop.step(st, mat, src, n, out, clock)
+
+    def record(self, st, data, k, clock):
+        self.prop.record(st, data, self.receiver_op, k, clock)
+
+    def new_data(self, n, requires_grad=False):
+        shape = (self.prop.n_shots, self.receivers.shape[1], n)
+        return tuple(wp.zeros(shape, dtype=self.prop.dtype, device=self.prop.device, requires_grad=requires_grad) for _ in COMPONENTS)
+
+    def new_level(self):
+        return self.prop.new_state(requires_grad=True)
+
+    def fields(self, st):
+        return (st.vx, st.vz)
+
+    def spare(self, st):
+        return self.prop.new_state()
+
+    def out_state(self, st, spare):
+        return spare
+
+    def freed(self, st):
+        return st
+
+    def key(self):
+        p = self.prop
+        return ("elastic", p.k, p.layout, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, self.nt, self.amplitudes.shape,
+                self.receivers.shape, self.kind)  # fmt: skip
+
+    def loop_kernels(self):
+        k = self.prop.k
+        return [k.velocity, k.stress, *self.prop.update_kernels(), k.record, k.inject_force_op if self.kind == "force" else k.inject_moment_op]
+
+    def inputs(self, src):
+        """The arrays a kept loop or sweep copies from a later setup: CPML coefficients, the receivers' operator, the
+        sources' components and locations and the fixed operator in src (sources_of)."""
+        out = [getattr(ax, f) for ax in self.prop.axes for f in ("a", "b", "ah", "bh")]
+        out += [*self.receiver_op, self.components, self.sources]
+        return out + (list(src[3]) if isinstance(src[3], tuple) else [])
 
 
 def setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, source_type="force",
@@ -179,101 +237,18 @@ def setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, rece
     amp = np.asarray(source_amplitudes, dtype=float)
     dtype = precision_dtype(precision)
     device = resolve_device(device)
-    model, vmax = upload_models(vp, vs, rho, dtype, device, requires_grad)
-    comp = check_elastic_inputs(model[0].shape, vmax, dx, dt, amp, source_locations, receiver_locations, order, source_type, source_components)
+    models, vmax = upload_models(vp, vs, rho, dtype, device, requires_grad)
+    comp = check_elastic_inputs(models[0].shape, vmax, dx, dt, amp, source_locations, receiver_locations, order, source_type, source_components)
     pml = pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
-    prop = Elastic(model[0].shape, dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype,
-                   device=device)  # fmt: skip
+    prop = Elastic(models[0].shape, dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
 
     def put(x, name):
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)
 
     kind = "force" if source_type == "force" else "moment"
-    receivers = put(receiver_locations, "receiver_locations")
-    return ElasticSetup(prop, amp.shape[2], kind, model, put(amp, "source_amplitudes"), put(comp, "source_components"),
-                        put(source_locations, "source_locations"), receivers, prop.operator(receivers))  # fmt: skip
-
-
-def run_elastic(su: ElasticSetup, st, mat, data, steps: range, next_state=None, callback=None):
-    """Record level n into data[..., n - steps.start] and advance one step, for n in steps; returns the state
-    at steps.stop (or nt - 1). mat: su.materials(); next_state: callable giving fresh arrays for the next
-    level (needed under a tape); None steps in place. callback(state, n) runs after recording."""
-    prop = su.prop
-    src = su.source_args()
-    for n in steps:
-        prop.record(st, data, su.receiver_op, n - steps.start)
-        if callback is not None:
-            callback(st, n)
-        if n == su.nt - 1:
-            break
-        st = prop.step(st, mat, src, n, next_state() if next_state is not None else None)
-    return st
-
-
-def capture(su: ElasticSetup, st, mat, data, every: int) -> graphs.Loop:
-    """The time loop of run_elastic (record, the guard's checks, step) captured as a CUDA graph
-    (graphs.capture), stepping from st into a second state (kept.spare) and back (a GPU writes an array
-    faster than it updates one in place); data must have K * graphs samples (graphs.graph_plan)."""
-    prop = su.prop
-    K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
-    amp = wp.array(graphs.padded_samples(su.amplitudes.numpy(), K * n_graphs + 1, prop.dtype), dtype=prop.dtype, device=prop.device)
-    op = prop.operator(su.sources)  # the sources' fixed operator: no Kaiser-sinc weights evaluated each step
-    src = (su.kind, amp, su.components, op)
-    states = [st, prop.new_state()]
-
-    def step(n, clock, stats):
-        cur, other = states
-        prop.record(cur, data, su.receiver_op, n, clock)
-        if stats is not None:
-            field_stats((cur.vx, cur.vz), stats)
-        prop.step(cur, mat, src, n, out=other, clock=clock)
-        states.reverse()
-
-    k = prop.k
-    kernels = (reduction_kernels(prop.dtype)[0], k.velocity, k.stress, *prop.update_kernels(), k.record,
-               k.inject_force_op if su.kind == "force" else k.inject_moment_op)  # fmt: skip
-    kept = SimpleNamespace(su=su, st=st, spare=states[1], mat=mat, data=data, amplitudes=amp, source_op=op)
-    return graphs.capture(_graph_key(su, every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept, su.nt)
-
-
-def _graph_key(su: ElasticSetup, every: int) -> tuple:
-    p = su.prop
-    return ("elastic", p.k, p.layout, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, su.nt, su.amplitudes.shape, su.receivers.shape, su.kind,
-            every)  # fmt: skip
-
-
-def _kept_loop(su: ElasticSetup, every: int) -> graphs.Loop:
-    """forward_elastic's time loop for su: the kept one refilled with su's inputs when the key matches, else
-    a new capture (which replaces it)."""
-    loop = graphs.kept(_graph_key(su, every))
-    prop = su.prop
-    if loop is None:
-        K, n_graphs = graphs.graph_plan(prop.cuda, su.nt, every)
-        return graphs.keep(capture(su, prop.new_state(), su.materials(), _new_data(su, K * n_graphs), every))
-    mine = loop.kept
-    _refill(mine.su, mine.mat, su, su.materials(), mine.source_op)
-    mine.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), loop.K * loop.graphs + 1, prop.dtype))
-    for a in (*mine.st.arrays(), *mine.spare.arrays(), *mine.data, loop.clock):
-        a.zero_()
-    return loop
-
-
-def _refill(mine: ElasticSetup, mine_mat, su: ElasticSetup, mat, source_op=None):
-    """Copy su's inputs (CPML coefficients, MATERIALS mat, receiver operator, source components and locations and,
-    into source_op, their fixed operator) into those of a kept loop or sweep made for `mine` (same key)."""
-    pairs = [(getattr(a, f), getattr(b, f)) for a, b in zip(mine.prop.axes, su.prop.axes) for f in ("a", "b", "ah", "bh")]
-    pairs += list(zip(mine_mat, mat)) + list(zip(mine.receiver_op, su.receiver_op))
-    pairs += [(mine.components, su.components), (mine.sources, su.sources)]
-    if source_op is not None:
-        pairs += list(zip(source_op, su.prop.operator(su.sources)))
-    for a, b in pairs:
-        if a.ptr != b.ptr:  # (mine is su on a sweep's first call)
-            wp.copy(a, b)
-
-
-def _new_data(su, n, requires_grad=False):
-    shape = (su.prop.n_shots, su.receivers.shape[1], n)
-    return tuple(wp.zeros(shape, dtype=su.prop.dtype, device=su.prop.device, requires_grad=requires_grad) for _ in COMPONENTS)
+    receivers, sources = put(receiver_locations, "receiver_locations"), put(source_locations, "source_locations")
+    return ElasticSetup(prop, amp.shape[2], kind, models, put(amp, "source_amplitudes"), put(comp, "source_components"), sources, receivers,
+                        prop.operator(receivers), None if sources.requires_grad else prop.operator(sources))  # fmt: skip
 
 
 def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, source_type="force",
@@ -291,29 +266,9 @@ def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
                        source_components=source_components, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
                        pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
                        precision=precision)  # fmt: skip
-    guard = BlowupGuard(su.prop, DESCRIPTION, lambda st: (st.vx, st.vz), source_end(source_amplitudes, lag=2, rate=True), check_every, "v")
-    bar = tqdm(total=su.nt, desc="time steps", unit="step", disable=not progress, leave=False)
-
-    def callback(st, n):
-        guard(st, n)
-        bar.update()
-
-    kept = graphs.graph_plan(su.prop.cuda, su.nt, guard.every)[1]
-    if kept:
-        loop = _kept_loop(su, guard.every)
-        graphs.replay(loop, su.nt, guard, bar)
-        data = loop.kept.data
-    else:
-        data = _new_data(su, su.nt)
-        run_elastic(su, su.prop.new_state(), su.materials(), data, range(su.nt), callback=callback)
-    bar.close()
-
-    def traces(d):
-        if not isinstance(vp, wp.array):
-            return d.numpy()[:, :, : su.nt]
-        return _traces_copy(d, su.nt, True) if kept else d  # (the kept loop's buffer is overwritten by the next call)
-
-    return ElasticResult(*(traces(d) for d in data), dt=float(dt))
+    guard = BlowupGuard(su.prop, DESCRIPTION, su.fields, source_end(source_amplitudes, lag=2, rate=True), check_every, "v")
+    data, kept = loop.run(su, guard, progress)
+    return ElasticResult(*(loop.traces(d, su.nt, isinstance(vp, wp.array), kept) for d in data), dt=float(dt))
 
 
 def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_length: int | None = None, adjoint: str = "hand"):
@@ -337,7 +292,7 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
             return fixed + max(n_seg - 2, 0) * state + (seg + 1) * state
         return (n_seg - 1) * state + (seg + 2) * 2 * state  # taped levels and two starts, with adjoints
 
-    return choose_segment(nt, 1, total, memory_budget, segment_length)
+    return sweep.choose_segment(nt, 1, total, memory_budget, segment_length)
 
 
 def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
@@ -351,9 +306,9 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
     `components`; misfit: a name in misfits.MISFITS (summed over components) or a callable
     synthetic dict -> (J, {name: dJ/d synthetic}). wrt: any of WRT. Memory is bounded by checkpointing
     (plan_segments): memory_budget bytes, None for the minimum (~sqrt(nt) steps per segment); segment_length
-    pins the checkpoint spacing instead. adjoint: "hand" (ElasticSweep:
+    pins the checkpoint spacing instead. adjoint: "hand" (Levels:
     the hand-written adjoints of the stencil kernels in an explicit time loop; on a GPU captured as CUDA graphs
-    and kept, with its arrays, for the next call with the same grid, steps, shots and geometry: graphs.release()
+    and kept, with its arrays, for the next call with the same grid, steps, shots and geometry: accel.graphs.release()
     frees it) or "warp" (Warp's generated adjoints of every kernel under wp.Tape, the reference the hand-written
     ones are tested against). The materials' chain rule to vp, vs, rho is Warp's in both. Other arguments as in
     forward_elastic. PML settings are treated as fixed (pin pml_velocity and pml_frequency when the model changes
@@ -401,7 +356,7 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
 def _gradients(su: ElasticSetup, sources) -> dict:
     """{name in WRT: gradient as a Warp array}: vp, vs, rho from the models' .grad, the sources' from `sources` (the
     adjoints of the amplitudes (nt or more samples), the components and the locations); names without one are left out."""
-    arrays = {**dict(zip(("vp", "vs", "rho"), (m.grad for m in su.model))), **dict(zip(WRT[3:], sources))}
+    arrays = {**dict(zip(("vp", "vs", "rho"), (m.grad for m in su.models))), **dict(zip(WRT[3:], sources))}
     return {k: a for k, a in arrays.items() if a is not None}
 
 
@@ -412,70 +367,23 @@ def _on_host(name: str, a: wp.array, nt: int) -> np.ndarray:
 
 
 def _taped_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar, observed_l2=None):
-    """Warp's generated adjoints: a forward sweep without a tape up to the last segment, keeping the state at the
-    start of every segment; then each segment, last first, re-run under a fresh tape with its own arrays per level
-    (the last one's run is the forward sweep's end) and back-propagated with the data residual and the adjoint State
-    carried from the later segment. Returns (loss, synthetic, gradients)."""
-    prop, nt = su.prop, su.nt
-    levels = [prop.new_state(requires_grad=True) for _ in range(seg)]
-    starts = [prop.new_state(requires_grad=True) for _ in range(2)]
+    """Warp's generated adjoints (sweep.taped_sweep). The misfit: loss_fn on the host, or with observed_l2 the "l2"
+    misfit formed as the hand-written sweep forms it (so that the two give the same loss). Returns (loss, synthetic,
+    gradients)."""
+    prop = su.prop
 
-    def taped(k, st0):
-        """Segment k (levels n0 .. n1) from st0 under a fresh tape: (tape, state at n1, data)."""
-        n0, n1 = k * seg, min((k + 1) * seg, nt)
-        for lvl in levels:
-            for a in lvl.arrays():
-                a.grad.zero_()
-        data_seg = _new_data(su, n1 - n0, requires_grad=True)
-        pool = iter(levels)
-        tape = wp.Tape()
-        with tape:
-            st = run_elastic(su, st0, su.materials(requires_grad=True), data_seg, range(n0, n1), next_state=lambda: next(pool))
-        return tape, st, data_seg
+    def loss(synthetic):
+        if observed_l2 is None:
+            J, adj = loss_fn(dict(zip(COMPONENTS, synthetic)))
+        else:
+            syn = [wp.array(s, dtype=prop.dtype, device=prop.device) for s in synthetic]
+            res = [wp.zeros_like(a) for a in syn]
+            J = 0.5 * float(_l2_on_device(syn, res, observed_l2, su.nt, prop.dt).numpy()[0]) * prop.dt
+            adj = {c: r.numpy() for c, r in zip(COMPONENTS, res) if c in observed_l2}
+        return J, tuple(adj.get(c) for c in COMPONENTS)
 
-    last = (n_seg - 1) * seg
-    data = _new_data(su, last)
-    checkpoints = []
-
-    def keep(st, n):
-        if n % seg == 0:
-            checkpoints.append([wp.clone(a) for a in st.arrays()])
-
-    st = run_elastic(su, prop.new_state(), su.materials(), data, range(last), callback=keep)
-    for dst, a in zip(starts[0].arrays(), st.arrays()):
-        wp.copy(dst, a)
-    pending = taped(n_seg - 1, starts[0])
-    bar.update(n_seg)
-    synthetic = {c: np.concatenate([a.numpy(), b.numpy()], axis=2) for c, a, b in zip(COMPONENTS, data, pending[2])}
-    if observed_l2 is None:
-        loss, adj = loss_fn(synthetic)
-    else:  # as the hand-written sweep forms it, so that the two give the same loss
-        syn = [wp.array(synthetic[c], dtype=prop.dtype, device=prop.device) for c in COMPONENTS]
-        res = [wp.zeros_like(a) for a in syn]
-        loss = 0.5 * float(_l2_on_device(syn, res, observed_l2, nt, prop.dt).numpy()[0]) * prop.dt
-        adj = {c: r.numpy() for c, r in zip(COMPONENTS, res) if c in observed_l2}
-    carry = None
-    for i, k in enumerate(reversed(range(n_seg))):
-        n0, n1 = k * seg, min((k + 1) * seg, nt)
-        st0 = starts[i % 2]
-        if i:
-            for dst, src in zip(st0.arrays(), checkpoints[k]):
-                wp.copy(dst, src)
-            checkpoints[k] = None
-            pending = taped(k, st0)
-        for a in st0.arrays():
-            a.grad.zero_()
-        tape, st, data_seg = pending
-        pending = None
-        seeds = {d: wp.array(np.ascontiguousarray(adj[c][:, :, n0:n1]), dtype=prop.dtype, device=prop.device)
-                 for c, d in zip(COMPONENTS, data_seg) if c in adj}  # fmt: skip
-        if carry is not None:
-            seeds.update(zip(st.arrays(), carry))
-        tape.backward(grads=seeds)
-        carry = [a.grad for a in st0.arrays()]
-        del tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
-        bar.update()
-    return loss, synthetic, _gradients(su, [a.grad for a in (su.amplitudes, su.components, su.sources)])
+    synthetic, J = sweep.taped_sweep(su, seg, n_seg, loss, bar)
+    return J, dict(zip(COMPONENTS, synthetic)), _gradients(su, [a.grad for a in (su.amplitudes, su.components, su.sources)])
 
 
 def _observed_array(su: ElasticSetup, observed, name: str) -> wp.array:
@@ -490,33 +398,35 @@ def _observed_array(su: ElasticSetup, observed, name: str) -> wp.array:
 
 
 def _hand_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar, observed_l2=None, on_device=False):
-    """The ElasticSweep (the kept one on a GPU), with MATERIALS differentiated by Warp on a small tape around them
-    (its backward maps the sweep's adjoints of MATERIALS to vp, vs, rho). The misfit: loss_fn on the host, or with
-    observed_l2 ({component: observed float64 device array}) the "l2" misfit on the device, the same residual as
-    misfits._l2's (the data stay there; E2000's host misfit alone took 4 ms of a 180 ms call under a profiler).
-    Returns (loss, synthetic as Warp arrays where on_device, else NumPy, gradients)."""
+    """The hand-written adjoint (Levels in a sweep.Sweep, the kept one on a GPU), with MATERIALS differentiated by Warp
+    on a small tape around them (its backward maps the sweep's adjoints of MATERIALS to vp, vs, rho). The misfit:
+    loss_fn on the host, or with observed_l2 ({component: observed float64 device array}) the "l2" misfit on the
+    device, the same residual as misfits._l2's (the data stay there; E2000's host misfit alone took 4 ms of a 180 ms
+    call under a profiler). Returns (loss, synthetic as Warp arrays where on_device, else NumPy, gradients)."""
     prop = su.prop
     model_tape = wp.Tape()
     with model_tape:
-        mat = su.materials(requires_grad=True)
-    sw = _kept_sweep(su, seg, n_seg)
-    sw.refill(su, mat)
+        mat = su.model(on_tape=True)
+    key = ("elastic_gradient", *su.key()[1:], prop.adjoint_layout, seg, n_seg, su.sources.requires_grad)
+    sw = sweep.kept_sweep(key, lambda: sweep.Sweep(key, Levels(su, seg, n_seg), seg, n_seg), prop.cuda)
+    lv = sw.levels
+    lv.refill(su, mat)
     sw.forward_sweep(bar)
-    # copied before the backward sweep records into sw.data again (a CPU array's numpy() is a view)
-    synthetic = {c: _traces_copy(d, su.nt, on_device) for c, d in zip(COMPONENTS, sw.data)}
+    # copied before the backward sweep records into the data again (a CPU array's numpy() is a view)
+    synthetic = {c: loop.traces(d, su.nt, True, True) if on_device else np.array(d.numpy()[:, :, : su.nt]) for c, d in zip(COMPONENTS, lv.data)}
     if observed_l2 is None:
         loss, adj = loss_fn({c: d if isinstance(d, np.ndarray) else d.numpy() for c, d in synthetic.items()})
-        for c, r in zip(COMPONENTS, sw.residual):
+        for c, r in zip(COMPONENTS, lv.residual):
             if c in adj:
-                r.assign(graphs.padded_samples(np.asarray(adj[c], dtype=float), seg * n_seg, prop.dtype))
+                r.assign(padded_samples(np.asarray(adj[c], dtype=float), seg * n_seg, prop.dtype))
     else:
-        total = _l2_on_device(sw.data, sw.residual, observed_l2, su.nt, prop.dt)
+        total = _l2_on_device(lv.data, lv.residual, observed_l2, su.nt, prop.dt)
     sw.backward_sweep(bar)
-    model_tape.backward(grads=dict(zip(mat[: len(sw.adj_mat)], sw.adj_mat)))
+    model_tape.backward(grads=dict(zip(mat[: len(lv.adj_mat)], lv.adj_mat)))
     del model_tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
     if observed_l2 is not None:  # read after the backward sweep is queued
         loss = 0.5 * float(total.numpy()[0]) * prop.dt
-    return loss, synthetic, _gradients(su, sw.adj_sources)
+    return loss, synthetic, _gradients(su, lv.adj_sources)
 
 
 def _l2_on_device(data, residual, observed_l2, nt: int, dt: float) -> wp.array:
@@ -531,48 +441,34 @@ def _l2_on_device(data, residual, observed_l2, nt: int, dt: float) -> wp.array:
     return total
 
 
-def _traces_copy(d: wp.array, nt: int, on_device: bool):
-    """The first nt samples of traces d (S, n_rec, >= nt): a fresh Warp array on d's device, or a NumPy array."""
-    if not on_device:
-        return np.array(d.numpy()[:, :, :nt])
-    out = wp.empty((*d.shape[:2], nt), dtype=d.dtype, device=d.device)
-    wp.copy(out, d[:, :, :nt])
-    return out
+class Levels:
+    """The elastic hand-written adjoint's arrays and segment functions (what sweep.Sweep drives).
 
-
-class ElasticSweep:
-    """The hand-written adjoint time loop of one geometry, with every array it reads.
-
-    The forward sweep runs the segments of `seg` steps, each from levels[0] (its start State) out of place into
-    levels[1..seg], and keeps the start of every segment but the first (zero) and the last (still in `levels` when
-    the backward sweep begins) as a checkpoint. The backward sweep runs the segments last first: the forward steps
-    again from the checkpoint, then the adjoint steps back through the levels, taking the adjoint State `adj` from
-    level j + 1's to level j's in place (Elastic.adjoint_step) and on to the previous segment. The adjoints of
-    MATERIALS (adj_mat) and of the sources' amplitudes, components and locations (adj_sources) accumulate over all
-    steps. Time indices are j + clock[0] (the segment's first level), so one captured graph per direction serves every
-    segment; nt is padded to n_seg * seg levels with zero source samples and residuals. data and residual: (vx, vz,
-    pressure) arrays (S, n_rec, n_seg * seg).
+    The forward segment runs `seg` steps from levels[0] (its start State) out of place into levels[1..seg]; the
+    adjoint segment steps back through them, taking the adjoint State `adj` from level j + 1's to level j's in place
+    (Elastic.adjoint_step) and on to the previous segment. The adjoints of MATERIALS (adj_mat) and of the sources'
+    amplitudes, components and locations (adj_sources) accumulate over all steps. Time indices are j + clock[0].
+    data and residual: (vx, vz, pressure) arrays (S, n_rec, n_seg * seg).
     """
 
-    def __init__(self, key, su: ElasticSetup, seg: int, n_seg: int):
+    def __init__(self, su: ElasticSetup, seg: int, n_seg: int):
         prop = su.prop
-        self.key, self.su, self.seg, self.n_seg = key, su, seg, n_seg
+        self.su, self.seg, self.device = su, seg, prop.device
         levels = seg * n_seg
 
         def zeros(shape):
             return wp.zeros(shape, dtype=prop.dtype, device=prop.device)
 
         self.levels = [prop.new_state() for _ in range(seg + 1)]
-        self.checkpoints = [prop.new_state() for _ in range(n_seg - 2)]
         self.mat = tuple(zeros(prop.padded) for _ in MATERIALS)
         self.adj_mat = tuple(zeros(prop.padded) for _ in MATERIALS[:-1])  # b is the lean core's alone (not differentiated)
-        self.amplitudes = zeros((*su.amplitudes.shape[:2], levels + 1))  # + 1: a moment source reads sample n + 1
+        self.amplitudes = zeros((*su.amplitudes.shape[:2], levels + su.lookahead))
         # the sources' fixed operator unless their locations are differentiated (the generated adjoint of the injection
         # at its locations evaluates the operator and its derivative every step: E2000 23 us a step)
-        self.sources = (su.kind, self.amplitudes, su.components, su.sources if su.sources.requires_grad else prop.operator(su.sources))
+        self.sources = su.sources_of(self.amplitudes, fixed=True)
         self.adj_sources = tuple(zeros(a.shape) for a in (self.amplitudes, su.components, su.sources))
-        self.data = _new_data(su, levels)
-        self.residual = _new_data(su, levels)
+        self.data = su.new_data(levels)
+        self.residual = su.new_data(levels)
         self.adj = prop.new_state()
         self.scratch = [zeros((prop.n_shots, *prop.padded)) for _ in range(4)]  # their halo stays zero
         self.clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
@@ -581,9 +477,22 @@ class ElasticSweep:
         # kept apart until the backward sweep ends
         self.source_buoyancy = tuple(zeros(prop.padded) for _ in range(2)) if prop.cuda and su.kind == "force" else ()
         self.beside = (self.side, self.source_buoyancy) if self.source_buoyancy else None
-        self.segments = graphs.Segments(prop.device, self.clock, _sweep_kernels(su), (self._forward_segment, self._adjoint_segment))
 
-    def _forward_segment(self):
+    def start(self):
+        return self.levels[0].arrays()
+
+    def end(self):
+        return self.levels[self.seg].arrays()
+
+    def kernels(self):
+        """Every kernel the segments launch (loaded before a capture, which cannot compile)."""
+        su = self.su
+        prop, k = su.prop, su.prop.k
+        updates = prop.update_kernels() if prop.has_core else (k.velocity, k.stress)
+        inject = {"force": (k.inject_force, k.inject_force_op), "moment": (k.inject_moment, k.inject_moment_op)}[su.kind]
+        return (*updates, k.record, k.record_adjoint, inject[not su.sources.requires_grad], *prop.adjoint_kernels())
+
+    def forward_segment(self):
         su, lv = self.su, self.levels
         for j in range(self.seg):
             with self.side():  # beside the step, which writes level j + 1 only (E2000: 5 us a step)
@@ -591,74 +500,24 @@ class ElasticSweep:
             su.prop.step(lv[j], self.mat, self.sources, j, out=lv[j + 1], clock=self.clock)
         self.side.join()
 
-    def _adjoint_segment(self):
+    def adjoint_segment(self):
         su, lv = self.su, self.levels
         for j in reversed(range(self.seg)):
             su.prop.adjoint_step(lv[j], lv[j + 1], self.mat, self.adj, self.adj_mat, self.sources, self.adj_sources, self.scratch, j,
                                  self.clock, self.beside)  # fmt: skip
             su.prop.record_adjoint(self.adj, self.residual, su.receiver_op, j, self.clock)
 
-    def forward_sweep(self, bar):
-        """The forward steps of every segment; data then holds the synthetic (the backward sweep adds to it again)."""
-        end = self.levels[self.seg]
-        for k in range(self.n_seg):
-            if k > 0:
-                _copy_state(self.levels[0], end)
-                if k < self.n_seg - 1:
-                    _copy_state(self.checkpoints[k - 1], end)
-            self.segments.run(0, k * self.seg)
-            bar.update()
-
-    def backward_sweep(self, bar):
-        """The adjoint steps of every segment, last first (the residual set)."""
-        for k in reversed(range(self.n_seg)):
-            if k < self.n_seg - 1:
-                if k == 0:
-                    for a in self.levels[0].arrays():
-                        a.zero_()
-                else:
-                    _copy_state(self.levels[0], self.checkpoints[k - 1])
-                self.segments.run(0, k * self.seg)
-            self.segments.run(1, k * self.seg)
-            bar.update()
+    def finish(self):
         for g, b in zip(self.adj_mat, self.source_buoyancy):
             wp.launch(self.su.prop.k.add_into, dim=g.shape, inputs=[g, b], device=g.device)
 
     def refill(self, su: ElasticSetup, mat):
-        """Copy su's inputs (CPML coefficients, MATERIALS mat, operators, source samples) into the kept arrays and
-        zero the start State, data, residuals and adjoints."""
-        _refill(self.su, self.mat, su, mat, self.sources[3] if isinstance(self.sources[3], tuple) else None)
-        self.amplitudes.assign(graphs.padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], su.prop.dtype))
+        """Copy su's inputs (CPML coefficients, MATERIALS mat, operators, source samples) into these arrays and zero the
+        start State, data, residuals and adjoints."""
+        for a, b in [*zip(self.su.inputs(self.sources), su.inputs(su.sources_of(self.amplitudes, fixed=True))), *zip(self.mat, mat)]:
+            if a.ptr != b.ptr:  # (self.su is su on a sweep's first call)
+                wp.copy(a, b)
+        self.amplitudes.assign(padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], su.prop.dtype))
         for a in (*self.levels[0].arrays(), *self.data, *self.residual, *self.adj.arrays(), *self.adj_mat,
                   *self.adj_sources, *self.source_buoyancy):  # fmt: skip
             a.zero_()
-
-
-def _copy_state(dst, src):
-    for a, b in zip(dst.arrays(), src.arrays()):
-        wp.copy(a, b)
-
-
-def _sweep_kernels(su: ElasticSetup):
-    """Every kernel an ElasticSweep launches (loaded before a capture, which cannot compile)."""
-    prop, k = su.prop, su.prop.k
-    updates = prop.update_kernels() if prop.has_core else (k.velocity, k.stress)
-    inject = {"force": (k.inject_force, k.inject_force_op), "moment": (k.inject_moment, k.inject_moment_op)}[su.kind]
-    return (*updates, k.record, k.record_adjoint, inject[not su.sources.requires_grad], *prop.adjoint_kernels())
-
-
-def _sweep_key(su: ElasticSetup, seg: int, n_seg: int) -> tuple:
-    p = su.prop
-    return ("elastic_gradient", p.k, p.layout, p.adjoint_layout, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, seg, n_seg,
-            su.amplitudes.shape, su.receivers.shape, su.kind, su.sources.requires_grad)  # fmt: skip
-
-
-def _kept_sweep(su: ElasticSetup, seg: int, n_seg: int) -> ElasticSweep:
-    """The kept ElasticSweep for this geometry (CUDA), else a new one (kept on CUDA)."""
-    key = _sweep_key(su, seg, n_seg)
-    sw = graphs.kept(key)
-    if sw is None:
-        sw = ElasticSweep(key, su, seg, n_seg)
-        if su.prop.cuda:
-            graphs.keep(sw)
-    return sw

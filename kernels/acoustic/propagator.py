@@ -40,10 +40,8 @@ import warp as wp
 from adseismic.kernels.common import HICKS_RADIUS, Kernels, aligned, adjoint_launch, as_vectors, block_rows, hicks_weight, vector_access
 from adseismic.kernels.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 
-# 2D GPU core steps: rows (along z) x adjacent columns per thread (read and written as one vector; fewer where
-# the row length is no multiple), threads per block (H200, S4000, us, writing into fresh arrays: step 4 x 2: 72.8,
-# 4 x 4: 74.2, 2 x 4: 73.8, 8 x 4: 79.8, 4 x 1: 93.0; adjoint core 4 x 2: 134.5, 4 x 4: 146, 8 x 4: 156, 4 x 1:
-# 189; 256 threads 2-5% slower)
+# 2D GPU core steps: rows (along z) x adjacent columns per thread (one vector), threads per block
+# (docs/benchmarks.md, "Layout timings")
 GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS = 4, 2, 128
 CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over row blocks of a CPU step
 

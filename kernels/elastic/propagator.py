@@ -86,15 +86,7 @@ class Layout(NamedTuple):
     merged: bool = True
 
 
-# Timed on the H200 (benchmarks/speed_elastic.py's variant timings, in place; step us, E2000 / E600x16, 2026-11-21), vector
-# tiles (rows x columns, the columns one vector) loaded and stored a vector per access (vector_access), merged: 1 x 2
-# 104.1 / 173.0 (chosen), 2 x 2 108.1 / 187.4, 2 x 4 108.2 / 204.5, 1 x 4 109.8 / 184.3, 3 x 2 116.7 / 202.3, 4 x 2 120.6 /
-# 206.1, 4 x 4 114.5 / 211.0; 2 x 2 with 256 or 64 threads 108.6-110.7 / 190.5-192.9. Before the vector accesses (Warp
-# reads a vector array component by component): 4 x 2 122.8 / 211.7 (chosen then), 4 x 4 120.1 / 230.0, 8 x 2 132.7 /
-# 222.3, 8 x 1 160.4 / 252.1, 8 x 2 split 148.9 / 241.0, lean 8 x 2 130.2 / 232.4; scalar tiles 8 x 2 173 / 283.
-# Capping the registers (Warp's cuda_max_registers) at 40 or 32 slowed 4 x 2 to 135.5 and 197.7 (spills). After the frame's
-# per-cell kernels loaded before storing (cpml_psi): 1 x 2 lean 97.9 / 163.3 (chosen: E2000's gradient has a target),
-# 1 x 2 100.9 / 159.1, 1 x 4 lean 100.8 / 179.6.
+# The GPU's forward layout, chosen from LAYOUTS by benchmarks/speed_elastic.py (timings: docs/benchmarks.md, "Layout timings").
 CORE_LAYOUT = Layout(1, 2, 128, lean=True, merged=True)
 LAYOUTS = (
     Layout(1, 2, 128, True, True),
@@ -129,23 +121,8 @@ class AdjointLayout(NamedTuple):
     merged: bool = True
 
 
-# The GPU's default by order: timed on an H200 (benchmarks/speed_elastic.py's adjoint_variant_times, which its
-# --adjoint-variants runs over ADJOINT_LAYOUTS; whole adjoint step on E2000, us, 2026-11-21, in place, the split tiles'
-# sums by the gathers' threads). With vector accesses (vector_access),
-# split merged, order 4: 1 x 4 246.8 (128 threads; 250.7 with 256, 247.6 with 64), 2 x 4 258.0-268.8, 3 x 4 271.3,
-# 4 x 4 275.4-275.9, 1 x 2 294.1, 4 x 2 303.7-336.7, 2 x 2 330.5; order 8: 1 x 4 340.6, 2 x 4 346.7-372.9, 1 x 2 353.4,
-# 4 x 2 355.2-429.9, 4 x 4 416.5; order 2 untimed (1 x 4, as 4 and 8). Capping the registers at 64-88 (4 x 4: 275.9 ->
-# 280.0-368.3) or running pass 1's frame threads in the tiles' launch (the frame's gathers then in a launch of their own:
-# 4 x 4 275.4) gained nothing. Before the vector accesses: split merged 2 x 4 286,
-# 4 x 4 287, 2 x 2 296, 8 x 4 309, 4 x 2 313, 8 x 2 (64, 128 or 256 threads) 359, 8 x 1 432, 16 x 2 439, 16 x 1 477;
-# split with the sums in their own launch 4 x 4 309, 4 x 2 333; fused (one kernel per half step) 4 x 2 432, 2 x 2 466,
-# 8 x 1 467, 8 x 2 468, 4 x 1 480, 16 x 2 589 (the per-cell kernels: 746). Order 8 (E2000, split merged): 4 x 2 378,
-# 2 x 2 384, 4 x 4 387, 2 x 4 390, 8 x 2 402; its 4 x 4 tiles hold twice the window values. Registers per thread from
-# ptxas (sm_90, float32, velocity / stress; before the adjoint ran in place and the sums merged): fused, order 4: 8 x 2,
-# 4 x 2, 16 x 2 127-128 / 128, 8 x 1 88 / 80, 16 x 1 80 / 96, 4 x 4 196 / 227; order 8: 8 x 2 194 / 230, 8 x 1
-# 143 / 137. Split (gathers velocity / stress, sums velocity / stress): order 4: 4 x 2 72 / 80, 48 / 48, 8 x 2 and
-# 16 x 2 72 / 80, 48-56 / 56, 8 x 1 56 / 64, 40 / 40, 4 x 4 and 8 x 4 122 / 128, 80 / 94; order 8: 8 x 2 122 / 128,
-# 80 / 96, 8 x 1 72 / 72, 64 / 62. The CPU runs the per-cell kernels unless told otherwise.
+# The GPU's adjoint layout by order, chosen from ADJOINT_LAYOUTS by benchmarks/speed_elastic.py --adjoint-variants
+# (timings and registers per thread: docs/benchmarks.md, "Layout timings"). The CPU runs the per-cell kernels.
 ADJOINT_LAYOUT = {o: AdjointLayout(1, 4, 128, split=True) for o in (2, 4, 8)}
 ADJOINT_LAYOUTS = (
     AdjointLayout(1, 4, 128, split=True),
@@ -174,8 +151,7 @@ ADJOINT_LAYOUTS = (
     AdjointLayout(4, 2, 128, split=True, merged=False),
     AdjointLayout(4, 4, 128, split=True, merged=False),
 )
-# threads per block of the hand adjoints' pass 1 (a thread a cell; H200, E2000, velocity / stress us: 128 11.5 / 12.0,
-# 64 11.6 / 12.0, 192 12.1 / 14.1, 256 (Warp's default) 12.9 / 12.6)
+# threads per block of the hand adjoints' pass 1, a thread a cell (docs/benchmarks.md, "Layout timings")
 PASS1_THREADS = 128
 TRANSPOSE_ROWS, TRANSPOSE_THREADS = 16, 128  # cells per thread along z, threads per block of the hand adjoints' gathers
 

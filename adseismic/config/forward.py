@@ -1,0 +1,378 @@
+"""Forward-run configuration (``adseismic run``): the schema, its validation and the dataclasses the
+planner consumes.
+
+A config file has the top-level sections ``model``, ``geometry``, ``wavelet`` (required),
+``simulation`` and ``output`` (optional). Every value is checked before any work is done; a
+problem raises :class:`ConfigError` whose message starts with the dotted key path (for example
+``simulation.order: 3 is not one of 2, 4, 8; ...``), says what was found and how to fix it.
+Unknown keys are errors, since a typo would otherwise silently fall back to a default.
+
+Units: metres, seconds, m/s and Hz everywhere. Coordinates are world metres in the frame of the
+model's ``origin``; arrays use the model axis order (z, [y,] x), z depth positive down.
+
+PyYAML reads ``1e-3`` (no dot, no sign in the exponent) as a string; float fields therefore accept
+any string that ``float()`` parses.
+"""
+from __future__ import annotations
+
+import pathlib
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from adseismic.config.common import (ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number,
+                                     _optional, _positive, _read_yaml)
+from adseismic.data.models import Model, ModelError, load_model
+
+__all__ = [
+    "GeometryConfig",
+    "WaveletConfig",
+    "SimulationConfig",
+    "OutputConfig",
+    "ForwardConfig",
+    "load_config",
+    "parse_config",
+    "SECTIONS",
+    "SIMULATION_KEYS",
+    "OUTPUT_KEYS",
+]
+
+
+# ------------------------------------------------------------------------------ dataclasses
+
+@dataclass
+class GeometryConfig:
+    """Acquisition geometry in world metres, axis order (z, [y,] x).
+
+    sources: (n_shots, ndim); every source point is one shot.
+    receivers: (n_receivers, ndim); one spread shared by all shots.
+    """
+
+    sources: np.ndarray
+    receivers: np.ndarray
+
+
+@dataclass
+class WaveletConfig:
+    """``make_wavelet(kind, nt, dt, **params)``; for kind ``array`` the file is already loaded
+    into ``params["samples"]`` (and ``params["dt_in"]`` is its sample interval in seconds)."""
+
+    kind: str
+    params: dict
+
+
+@dataclass
+class SimulationConfig:
+    """Numerical choices and optional pins; ``None`` lets the planner choose."""
+
+    order: int = 4
+    accuracy: float = 0.01
+    free_surface: bool = False
+    device: str = "cpu"
+    precision: str = "float32"
+    cfl_safety: float = 0.9
+    dx: float | None = None
+    dt: float | None = None
+    duration: float | None = None
+    pml_width: int | None = None
+    pml_reflection: float | None = None
+    margin: float | None = None
+    domain: str = "auto"
+
+
+@dataclass
+class OutputConfig:
+    snapshot_interval: float = 0.0  # seconds between wavefield snapshots (0: none)
+
+
+@dataclass
+class ForwardConfig:
+    model: Model
+    geometry: GeometryConfig
+    wavelet: WaveletConfig
+    simulation: SimulationConfig
+    output: OutputConfig
+    path: Path | None = None  # the YAML file (None when parsed from a dict)
+    raw: dict = field(default_factory=dict)  # the parsed YAML, kept for provenance
+
+    @property
+    def ndim(self) -> int:
+        return self.model.ndim
+
+    @property
+    def n_shots(self) -> int:
+        return int(self.geometry.sources.shape[0])
+
+
+# ------------------------------------------------------------------------------ key tables
+
+SECTIONS = ("model", "geometry", "wavelet", "simulation", "output")
+REQUIRED_SECTIONS = ("model", "geometry", "wavelet")
+SIMULATION_KEYS = ("order", "accuracy", "free_surface", "device", "precision", "cfl_safety",
+                   "dx", "dt", "duration", "pml_width", "pml_reflection", "margin", "domain")
+OUTPUT_KEYS = ("snapshot_interval",)
+GEOMETRY_KEYS = ("sources", "receivers")
+SPREAD_FORMS = ("points", "line", "lines")
+LINE_KEYS = ("start", "end", "count")
+WAVELET_KEYS = {
+    "ricker": ("kind", "peak_frequency", "delay"),
+    "gaussian_derivative": ("kind", "peak_frequency", "delay"),
+    "array": ("kind", "file", "dt_in"),
+}
+ORDERS = (2, 4, 8)
+PRECISIONS = ("float32", "float64")
+DOMAINS = ("auto", "model")
+DEVICE_RE = re.compile(r"^cpu$|^cuda(:\d+)?$")
+MIN_PML_WIDTH = 4  # half-width of the sinc source/receiver operator (kernels.acoustic.HICKS_RADIUS)
+AXES = {2: ("z", "x"), 3: ("z", "y", "x")}  # model axis order by dimension
+
+# ------------------------------------------------------------------------------ sections
+
+def _parse_simulation(raw, key="simulation") -> SimulationConfig:
+    s = _mapping({} if raw is None else raw, key, "the numerical settings")
+    _check_keys(s, key, SIMULATION_KEYS)
+    d = SimulationConfig()
+    out = {}
+    if s.get("order") is not None:
+        try:
+            order = _integer(s["order"], f"{key}.order")
+        except ConfigError:
+            order = None
+        if order not in ORDERS:
+            raise ConfigError(f"{key}.order: {s['order']!r} is not one of 2, 4, 8; set the "
+                              f"spatial finite-difference order (4 is a good default)")
+        out["order"] = order
+    if s.get("accuracy") is not None:
+        acc = _number(s["accuracy"], f"{key}.accuracy")
+        if not 0 < acc < 0.5:
+            raise ConfigError(f"{key}.accuracy: {s['accuracy']!r} is not in (0, 0.5); give the "
+                              f"target relative group-velocity error, e.g. 0.01 for 1%")
+        out["accuracy"] = acc
+    if s.get("free_surface") is not None:
+        out["free_surface"] = _boolean(s["free_surface"], f"{key}.free_surface")
+    if s.get("device") is not None:
+        dev = s["device"]
+        if not (isinstance(dev, str) and DEVICE_RE.match(dev)):
+            raise ConfigError(f"{key}.device: {dev!r} is not a device; write cpu, cuda or "
+                              f"cuda:N (N = GPU index)")
+        out["device"] = dev
+    if s.get("precision") is not None:
+        out["precision"] = _choice(s["precision"], f"{key}.precision", PRECISIONS)
+    if s.get("cfl_safety") is not None:
+        c = _number(s["cfl_safety"], f"{key}.cfl_safety")
+        if not 0 < c <= 1:
+            raise ConfigError(f"{key}.cfl_safety: {s['cfl_safety']!r} is not in (0, 1]; give "
+                              f"the fraction of the exact stability limit to use, e.g. 0.9")
+        out["cfl_safety"] = c
+    for name, unit in (("dx", "metres"), ("dt", "seconds"), ("duration", "seconds")):
+        v = _optional(s, name, _positive, f"{key}.{name}", unit)
+        if v is not None:
+            out[name] = v
+    if s.get("pml_width") is not None:
+        w = _integer(s["pml_width"], f"{key}.pml_width")
+        if w < MIN_PML_WIDTH:
+            raise ConfigError(f"{key}.pml_width: {s['pml_width']!r} cells is below "
+                              f"{MIN_PML_WIDTH}, the half-width of the source/receiver "
+                              f"operator; use >= {MIN_PML_WIDTH} (10-20 absorbs well) or null")
+        out["pml_width"] = w
+    if s.get("pml_reflection") is not None:
+        r = _number(s["pml_reflection"], f"{key}.pml_reflection")
+        if not 0 < r < 1:
+            raise ConfigError(f"{key}.pml_reflection: {s['pml_reflection']!r} is not in (0, 1); "
+                              f"give the target reflection coefficient, e.g. 1e-3, or null")
+        out["pml_reflection"] = r
+    if s.get("margin") is not None:
+        m = _number(s["margin"], f"{key}.margin", "metres")
+        if m < 0:
+            raise ConfigError(f"{key}.margin: {s['margin']!r} is negative; give the aperture "
+                              f"margin around sources and receivers in metres (>= 0) or null")
+        out["margin"] = m
+    if s.get("domain") is not None:
+        out["domain"] = _choice(s["domain"], f"{key}.domain", DOMAINS)
+    return SimulationConfig(**{**d.__dict__, **out})
+
+
+def _parse_output(raw, key="output") -> OutputConfig:
+    o = _mapping({} if raw is None else raw, key, "the output settings")
+    _check_keys(o, key, OUTPUT_KEYS)
+    out = OutputConfig()
+    if o.get("snapshot_interval") is not None:
+        v = _number(o["snapshot_interval"], f"{key}.snapshot_interval", "seconds")
+        if v < 0:
+            raise ConfigError(f"{key}.snapshot_interval: {o['snapshot_interval']!r} is negative; "
+                              f"give seconds between snapshots, or 0 for none")
+        out.snapshot_interval = v
+    return out
+
+
+def _parse_wavelet(raw, base_dir: Path, key="wavelet") -> WaveletConfig:
+    w = _mapping(raw, key, "kind and its parameters")
+    kind = w.get("kind")
+    if kind not in WAVELET_KEYS:
+        raise ConfigError(f"{key}.kind: {kind!r} is not one of {', '.join(WAVELET_KEYS)}; "
+                          f"set the source time function")
+    _check_keys(w, key, WAVELET_KEYS[kind])
+    if kind in ("ricker", "gaussian_derivative"):
+        if w.get("peak_frequency") is None:
+            raise ConfigError(f"{key}.peak_frequency: missing; a {kind} wavelet needs its peak "
+                              f"frequency in Hz")
+        params = {"peak_frequency": _positive(w["peak_frequency"], f"{key}.peak_frequency", "Hz")}
+        if w.get("delay") is not None:
+            delay = _number(w["delay"], f"{key}.delay", "seconds")
+            if delay < 0:
+                raise ConfigError(f"{key}.delay: {w['delay']!r} is negative; give the time of the "
+                                  f"wavelet's centre in seconds (>= 0) or leave it out")
+            params["delay"] = delay
+        return WaveletConfig(kind, params)
+    # kind: array
+    for k, what in (("file", "the path of a .npy file with the samples"),
+                    ("dt_in", "the sample interval of the file in seconds")):
+        if w.get(k) is None:
+            raise ConfigError(f"{key}.{k}: missing; an array wavelet needs {what}")
+    dt_in = _positive(w["dt_in"], f"{key}.dt_in", "seconds")
+    path = pathlib.Path(str(w["file"])).expanduser()
+    path = path if path.is_absolute() else base_dir / path
+    if not path.is_file():
+        raise ConfigError(f"{key}.file: {str(w['file'])!r} does not exist (looked for {path}); "
+                          f"give an absolute path or one relative to {base_dir}")
+    try:
+        samples = np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as e:
+        raise ConfigError(f"{key}.file: {path} is not a readable .npy array ({e}); save the "
+                          f"samples with numpy.save") from None
+    samples = np.asarray(samples, dtype=np.float64).squeeze()
+    if samples.ndim != 1 or samples.size < 2:
+        raise ConfigError(f"{key}.file: {path.name} holds an array of shape {samples.shape}; "
+                          f"give a 1D array of at least 2 samples")
+    if not np.all(np.isfinite(samples)) or not np.any(samples):
+        raise ConfigError(f"{key}.file: {path.name} has non-finite samples or only zeros; "
+                          f"give a finite, non-zero wavelet")
+    return WaveletConfig("array", {"samples": samples, "dt_in": dt_in})
+
+
+def _point(p, key: str, ndim: int) -> list[float]:
+    axes = AXES[ndim]
+    allowed = ", ".join(sorted(axes, key="xyz".index))
+    p = _mapping(p, key, f"the coordinates {allowed} in metres")
+    for k in p:
+        if k not in axes:
+            raise ConfigError(f"{key}.{k}: unknown key for a {ndim}D model; allowed: {allowed} "
+                              f"(world metres)")
+    for a in sorted(axes, key="xyz".index):
+        if a not in p:
+            raise ConfigError(f"{key}.{a}: missing; a point in a {ndim}D model needs {allowed} "
+                              f"(world metres)")
+    return [_number(p[a], f"{key}.{a}", "metres") for a in axes]
+
+
+def _parse_line(raw, key: str, ndim: int) -> np.ndarray:
+    line = _mapping(raw, key, "start, end and count")
+    _check_keys(line, key, LINE_KEYS)
+    for k in LINE_KEYS:
+        if k not in line:
+            raise ConfigError(f"{key}.{k}: missing; a line needs start, end (points in "
+                              f"metres) and count (number of points, >= 1)")
+    start = _point(line["start"], f"{key}.start", ndim)
+    end = _point(line["end"], f"{key}.end", ndim)
+    count = _integer(line["count"], f"{key}.count")
+    if count < 1:
+        raise ConfigError(f"{key}.count: {line['count']!r} is not >= 1; give the number of "
+                          f"evenly spaced points from start to end")
+    return np.linspace(start, end, count).reshape(count, ndim)
+
+
+def _parse_spread(raw, key: str, ndim: int) -> np.ndarray:
+    """Points from any of 'points: [...]', 'line: {start, end, count}' and 'lines: [{...}, ...]',
+    concatenated in that order."""
+    s = _mapping(raw, key, "'points: [...]', 'line: {start, end, count}' or 'lines: [...]'")
+    _check_keys(s, key, SPREAD_FORMS)
+    if not s:
+        raise ConfigError(f"{key}: empty; give 'points: [{{x: .., z: ..}}, ...]', "
+                          f"'line: {{start: .., end: .., count: ..}}' or 'lines: [...]'")
+    parts = []
+    if "points" in s:
+        pts = s["points"]
+        if not isinstance(pts, list) or not pts:
+            raise ConfigError(f"{key}.points: {pts!r} is not a non-empty list; give a list of "
+                              f"points like {{x: 100, z: 10}}")
+        parts.append(np.array([_point(p, f"{key}.points[{i}]", ndim) for i, p in enumerate(pts)]))
+    if "line" in s:
+        parts.append(_parse_line(s["line"], f"{key}.line", ndim))
+    if "lines" in s:
+        if not isinstance(s["lines"], list) or not s["lines"]:
+            raise ConfigError(f"{key}.lines: {s['lines']!r} is not a non-empty list of lines")
+        parts += [_parse_line(ln, f"{key}.lines[{i}]", ndim) for i, ln in enumerate(s["lines"])]
+    return np.concatenate(parts)
+
+
+def _check_inside(points: np.ndarray, key: str, model: Model) -> None:
+    inside = model.contains(points)
+    if not inside.all():
+        i = int(np.argmin(inside))
+        axes = AXES[model.ndim]
+        where = ", ".join(f"{a}={v:g}" for a, v in zip(axes, points[i]))
+        box = ", ".join(f"{a} [{lo:g}, {hi:g}]" for a, (lo, hi) in zip(axes, model.extent))
+        raise ConfigError(f"{key}: point {i} ({where}) m lies outside the model ({box} m); "
+                          f"{int((~inside).sum())} of {len(points)} points are outside: move "
+                          f"them inside or change the model's origin")
+
+
+def _parse_geometry(raw, model: Model, key="geometry") -> GeometryConfig:
+    g = _mapping(raw, key, "sources and receivers")
+    _check_keys(g, key, GEOMETRY_KEYS)
+    arrays = {}
+    for k in GEOMETRY_KEYS:
+        if k not in g:
+            raise ConfigError(f"{key}.{k}: missing; give 'points: [...]' or 'line: {{...}}' "
+                              f"in world metres")
+        arrays[k] = _parse_spread(g[k], f"{key}.{k}", model.ndim)
+        _check_inside(arrays[k], f"{key}.{k}", model)
+    return GeometryConfig(arrays["sources"], arrays["receivers"])
+
+
+def _load_model(spec, base_dir: Path) -> Model:
+    """:func:`adseismic.data.models.load_model`, its ModelError re-raised as ConfigError (message
+    unchanged when it already starts with ``model``, else prefixed ``model.``)."""
+    try:
+        return load_model(spec, base_dir=base_dir)
+    except ModelError as e:
+        msg = str(e)
+        raise ConfigError(msg if msg.startswith("model") else f"model.{msg}") from e
+
+
+# ------------------------------------------------------------------------------ public API
+
+def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None,
+                 extra_sections: tuple = ()) -> ForwardConfig:
+    """Validate a parsed YAML config and build the :class:`ForwardConfig`.
+
+    ``base_dir`` (default: current directory) resolves relative file paths (model and wavelet
+    files). Cheap checks run first (sections, simulation, output, wavelet), then the model is
+    loaded with :func:`adseismic.data.models.load_model` (whose ModelError is re-raised as
+    ConfigError, message unchanged: it already starts with ``model.<key>``), then the geometry
+    is checked against the model's axes and extent.
+    """
+    base_dir = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
+    if not isinstance(raw, dict):
+        raise ConfigError(f"config: {type(raw).__name__} {raw!r:.60} is not a mapping; a config "
+                          f"file has the sections {', '.join(SECTIONS)}")
+    _check_keys(raw, "", SECTIONS + tuple(extra_sections))
+    for k in REQUIRED_SECTIONS:
+        if raw.get(k) is None:
+            raise ConfigError(f"{k}: missing; a config needs the sections "
+                              f"{', '.join(REQUIRED_SECTIONS)} (and optionally simulation, output)")
+    simulation = _parse_simulation(raw.get("simulation"))
+    output = _parse_output(raw.get("output"))
+    wavelet = _parse_wavelet(raw["wavelet"], base_dir)
+    model = _load_model(raw["model"], base_dir)
+    geometry = _parse_geometry(raw["geometry"], model)
+    return ForwardConfig(model, geometry, wavelet, simulation, output, path, raw)
+
+
+def load_config(path) -> ForwardConfig:
+    """Read and validate the YAML file ``path``; relative paths inside resolve from its folder."""
+    raw, path = _read_yaml(path)
+    return parse_config(raw, base_dir=path.resolve().parent, path=path)
+

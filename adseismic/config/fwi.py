@@ -1,0 +1,194 @@
+"""Full-waveform-inversion configuration (``adseismic fwi``): the forward sections (``model`` is the
+start model) plus ``inversion`` and exactly one of ``true_model`` or ``observed``.
+
+The accepted misfit names are :data:`MISFIT_NAMES` (kept equal to
+``adseismic.inversion.misfits.MISFITS`` by a test), so that loading a config imports no workflow.
+"""
+from __future__ import annotations
+
+import pathlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from adseismic.config.common import (ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number,
+                                     _positive, _read_yaml)
+from adseismic.config.forward import ForwardConfig, parse_config
+from adseismic.data.models import Model, ModelError, load_model
+
+__all__ = ["InversionConfig", "FWIConfig", "parse_fwi_config", "load_fwi_config", "MISFIT_NAMES", "OPTIMIZERS",
+           "PRECONDITIONERS"]
+
+INVERSION_KEYS = ("bands", "misfit", "optimizer", "iterations", "evaluations", "rel_decrease", "offsets", "time_window", "bounds", "water_depth",
+                  "source_radius", "smoothing", "preconditioning", "tikhonov", "tv", "wavelet_estimation",
+                  "shots_per_batch", "memory_budget_gb", "step", "lr")
+FWI_SECTIONS = ("true_model", "observed", "inversion")
+OPTIMIZERS = ("lbfgs", "gd", "adam")
+PRECONDITIONERS = ("none", "depth", "pseudo_hessian")
+MISFIT_NAMES = ("l2", "correlation", "traveltime", "envelope")  # adseismic.inversion.misfits.MISFITS
+
+
+
+@dataclass
+class InversionConfig:
+    """Full-waveform inversion settings (units: Hz, m/s, m). bands: list of (f_low or None, f_high or
+    None) pass bands, inverted in order; iterations / evaluations: limits per band (an evaluation is
+    one misfit + gradient over all shots); bounds: (v_min, v_max) m/s or None (start model range
+    +-25%); water_depth / source_radius: gradient masks (m, 0 = off); smoothing: Gaussian sigma of
+    the gradient (m); tikhonov / tv: regularisation weights (relative to the band's initial misfit);
+    offsets: (min, max) source-receiver distance (m) of the traces used (others muted); time_window:
+    (start, end) s of the samples used (cosine taper over 10% of the window at each end)."""
+
+    bands: list = field(default_factory=lambda: [(None, None)])
+    misfit: str = "l2"
+    optimizer: str = "lbfgs"
+    iterations: int | list = 20
+    evaluations: int | None = None
+    rel_decrease: float = 1e-4
+    bounds: tuple | None = None
+    water_depth: float = 0.0
+    source_radius: float = 0.0
+    smoothing: float = 0.0
+    preconditioning: str = "none"
+    tikhonov: float = 0.0
+    tv: float = 0.0
+    wavelet_estimation: bool = False
+    shots_per_batch: int | None = None
+    memory_budget_gb: float | None = None
+    step: float = 1.0
+    lr: float = 0.01
+    offsets: tuple | None = None
+    time_window: tuple | None = None
+
+
+@dataclass
+class FWIConfig:
+    """An inversion: `forward.model` is the START model; observed data come from `true_model`
+    (a synthetic study) or from `observed` (files: {kind: hdf5|segy|su, path: ...})."""
+
+    forward: ForwardConfig
+    inversion: InversionConfig
+    true_model: Model | None = None
+    observed: dict | None = None
+
+
+def _parse_band(b, key: str) -> tuple:
+    if b is None:  # the full band of the wavelet
+        return (None, None)
+    if isinstance(b, (int, float, str)):
+        return (None, _positive(b, key, "Hz"))
+    if isinstance(b, dict):
+        _check_keys(b, key, ("fmin", "fmax"))
+        lo = None if b.get("fmin") is None else _positive(b["fmin"], f"{key}.fmin", "Hz")
+        hi = None if b.get("fmax") is None else _positive(b["fmax"], f"{key}.fmax", "Hz")
+        if lo is not None and hi is not None and lo >= hi:
+            raise ConfigError(f"{key}: fmin {lo:g} Hz >= fmax {hi:g} Hz; give fmin < fmax")
+        return (lo, hi)
+    raise ConfigError(f"{key}: {b!r} is not a band; give fmax in Hz (e.g. 5), {{fmin: 2, fmax: 5}} or null (full band)")
+
+
+def _parse_inversion(raw, key="inversion") -> InversionConfig:
+    sec = _mapping(raw or {}, key, "inversion settings")
+    _check_keys(sec, key, INVERSION_KEYS)
+    out = InversionConfig()
+    if sec.get("bands") is not None:
+        if not isinstance(sec["bands"], list) or not sec["bands"]:
+            raise ConfigError(f"{key}.bands: {sec['bands']!r} is not a non-empty list; e.g. [3, 5, 8] (Hz, low to high)")
+        out.bands = [_parse_band(b, f"{key}.bands[{i}]") for i, b in enumerate(sec["bands"])]
+    for name, choices in (("misfit", MISFIT_NAMES), ("optimizer", OPTIMIZERS), ("preconditioning", PRECONDITIONERS)):
+        if sec.get(name) is not None:
+            setattr(out, name, _choice(sec[name], f"{key}.{name}", choices))
+    if sec.get("iterations") is not None:
+        its = sec["iterations"]
+        its = [_integer(n, f"{key}.iterations[{i}]") for i, n in enumerate(its)] if isinstance(its, list) else _integer(its, f"{key}.iterations")
+        if isinstance(its, list) and len(its) != len(out.bands):
+            raise ConfigError(f"{key}.iterations: {len(its)} values for {len(out.bands)} bands; give one per band or a single number")
+        if min(its if isinstance(its, list) else [its]) < 1:
+            raise ConfigError(f"{key}.iterations: {its} has a value < 1; give at least 1 iteration per band")
+        out.iterations = its
+    if sec.get("evaluations") is not None:
+        out.evaluations = _integer(sec["evaluations"], f"{key}.evaluations")
+        if out.evaluations < 1:
+            raise ConfigError(f"{key}.evaluations: {out.evaluations} < 1; give at least 1 gradient evaluation per band")
+    for name in ("rel_decrease", "step", "lr"):
+        if sec.get(name) is not None:
+            setattr(out, name, _positive(sec[name], f"{key}.{name}"))
+    for name, unit in (("water_depth", "m"), ("source_radius", "m"), ("smoothing", "m"), ("tikhonov", ""), ("tv", "")):
+        if sec.get(name) is not None:
+            val = _number(sec[name], f"{key}.{name}", unit)
+            if val < 0:
+                raise ConfigError(f"{key}.{name}: {val:g} is negative; give 0 (off) or a positive value")
+            setattr(out, name, val)
+    if sec.get("bounds") is not None:
+        b = sec["bounds"]
+        if not isinstance(b, list) or len(b) != 2:
+            raise ConfigError(f"{key}.bounds: {b!r} is not [v_min, v_max] in m/s")
+        lo, hi = _positive(b[0], f"{key}.bounds[0]", "m/s"), _positive(b[1], f"{key}.bounds[1]", "m/s")
+        if lo >= hi:
+            raise ConfigError(f"{key}.bounds: v_min {lo:g} >= v_max {hi:g} m/s; give v_min < v_max")
+        out.bounds = (lo, hi)
+    for name, unit in (("offsets", "m"), ("time_window", "s")):
+        if sec.get(name) is not None:
+            r = sec[name]
+            if not isinstance(r, list) or len(r) != 2:
+                raise ConfigError(f"{key}.{name}: {r!r} is not [min, max] in {unit}")
+            lo, hi = _number(r[0], f"{key}.{name}[0]", unit), _number(r[1], f"{key}.{name}[1]", unit)
+            if not 0 <= lo < hi:
+                raise ConfigError(f"{key}.{name}: [{lo:g}, {hi:g}] {unit} is not 0 <= min < max")
+            setattr(out, name, (lo, hi))
+    if sec.get("wavelet_estimation") is not None:
+        out.wavelet_estimation = _boolean(sec["wavelet_estimation"], f"{key}.wavelet_estimation")
+    if sec.get("shots_per_batch") is not None:
+        out.shots_per_batch = _integer(sec["shots_per_batch"], f"{key}.shots_per_batch")
+        if out.shots_per_batch < 1:
+            raise ConfigError(f"{key}.shots_per_batch: {out.shots_per_batch} < 1")
+    if sec.get("memory_budget_gb") is not None:
+        out.memory_budget_gb = _positive(sec["memory_budget_gb"], f"{key}.memory_budget_gb", "GB")
+    return out
+
+
+def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None) -> FWIConfig:
+    """Validate an inversion config: the forward sections (model = start model) plus `inversion`
+    and exactly one of `true_model` (synthetic study) or `observed` (data files)."""
+    base_dir = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
+    forward = parse_config(raw, base_dir, path, extra_sections=FWI_SECTIONS)
+    inversion = _parse_inversion(raw.get("inversion"))
+    has_true, has_obs = raw.get("true_model") is not None, raw.get("observed") is not None
+    if has_true == has_obs:
+        raise ConfigError("true_model/observed: give exactly one: true_model (a model spec, for a synthetic study) "
+                          "or observed (data files: {kind: hdf5|segy|su, path: ...})")
+    true_model = None
+    if has_true:
+        try:
+            true_model = load_model(raw["true_model"], base_dir=base_dir)
+        except ModelError as e:
+            raise ConfigError(f"true_{e}" if str(e).startswith("model") else f"true_model.{e}") from e
+        if true_model.ndim != forward.model.ndim:
+            raise ConfigError(f"true_model: {true_model.ndim}D but the start model is {forward.model.ndim}D")
+    observed = None
+    if has_obs:
+        observed = dict(_mapping(raw["observed"], "observed", "observed-data settings"))
+        _check_keys(observed, "observed", ("kind", "path", "paths", "coordinate_scale", "inventory", "reference", "component", "shot_times"))
+        observed["kind"] = _choice(observed.get("kind"), "observed.kind", ("hdf5", "segy", "su", "mseed", "sac"))
+        if observed["kind"] in ("mseed", "sac"):  # station traces: one file (or glob) per shot, in geometry order
+            paths = observed.get("paths")
+            if not isinstance(paths, list) or len(paths) != forward.n_shots:
+                raise ConfigError(f"observed.paths: {paths!r} is not a list of {forward.n_shots} files (one per shot of geometry.sources, in order)")
+            observed["paths"] = [str((base_dir / str(p)).resolve()) for p in paths]
+            if observed.get("inventory") is not None:
+                observed["inventory"] = str((base_dir / str(observed["inventory"])).resolve())
+            if observed.get("shot_times") is not None and len(observed["shot_times"]) != forward.n_shots:
+                raise ConfigError(f"observed.shot_times: {len(observed['shot_times'])} times for {forward.n_shots} shots")
+        else:
+            if observed.get("path") is None:
+                raise ConfigError("observed.path: missing; give the data file (relative to the config)")
+            observed["path"] = (base_dir / str(observed["path"])).resolve()
+            if not observed["path"].exists():
+                raise ConfigError(f"observed.path: {str(observed['path'])!r} does not exist")
+    return FWIConfig(forward, inversion, true_model, observed)
+
+
+def load_fwi_config(path) -> FWIConfig:
+    """Read and validate an inversion YAML file."""
+    raw, path = _read_yaml(path)
+    return parse_fwi_config(raw, base_dir=path.resolve().parent, path=path)
+

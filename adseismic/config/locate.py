@@ -1,0 +1,198 @@
+"""Event-location configuration (``adseismic locate``): sections model, traces, preprocess,
+source, search, simulation and truth; only model and traces are required.
+
+The accepted search methods and source-time-function kinds are :data:`LOCATE_METHODS` and
+:data:`STF_KINDS` (kept equal to ``adseismic.location.locate.METHODS`` / ``STFS`` by a test), so
+that loading a config imports no workflow.
+"""
+from __future__ import annotations
+
+import pathlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from adseismic.config.common import (ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number,
+                                     _positive, _read_yaml)
+from adseismic.config.forward import AXES, SimulationConfig, _check_inside, _load_model, _parse_simulation, _point
+from adseismic.data.models import Model
+
+__all__ = ["LocateConfig", "parse_locate_config", "load_locate_config", "LOCATE_METHODS", "STF_KINDS"]
+
+LOCATE_SECTIONS = ("model", "traces", "preprocess", "source", "search", "simulation", "truth")
+TRACES_KEYS = ("paths", "inventory", "reference", "local_coordinates", "component", "fill_gaps", "align")
+PREPROCESS_KEYS = ("detrend", "taper", "band", "noise_window", "window")
+SOURCE_KEYS = ("stf", "peak_frequency", "frequency_range", "smoothness", "bounds", "start")
+SEARCH_KEYS = ("method", "scaled", "iterations", "multi_start", "grid_spacing")
+LOCATE_METHODS = ("lbfgs", "gauss-newton", "gd", "adam")  # adseismic.location.locate.METHODS
+STF_KINDS = ("ricker", "free")  # adseismic.location.locate.STFS
+
+
+@dataclass
+class LocateConfig:
+    """An event location (``adseismic locate``). Times in the config are seconds after the traces'
+    first common sample, or UTC strings (origin times); positions are world metres, axis order
+    (z,[y,]x).
+
+    traces: paths (list of file paths / globs), inventory (StationXML path or None), reference
+    (dict latitude, longitude[, datum, azimuth] or None), local_coordinates, component, fill_gaps,
+    align (see traces.read_station_traces). preprocess: detrend, taper (fraction at each end), band
+    ((fmin or None, fmax or None) Hz or None), noise_window (start, end) s, window "auto" (trim
+    around the expected arrivals) or (start, end) s. source: stf ("ricker" or "free"),
+    peak_frequency (Hz start or None: the data's dominant frequency), frequency_range (factors),
+    smoothness (free STF), bounds ([(lo, hi)] per axis, m, or None: the model less 2 cells), start
+    ({position, origin_time} or None: back-projection). search: method, scaled, iterations,
+    multi_start, grid_spacing (back-projection candidates, m, or None). truth: optional known
+    {position, origin_time} of a synthetic event, reported beside the result.
+    """
+
+    model: Model
+    traces: dict
+    preprocess: dict
+    source: dict
+    search: dict
+    simulation: SimulationConfig
+    truth: dict | None = None
+    path: Path | None = None
+    raw: dict = field(default_factory=dict)
+
+
+def _pair(value, key: str, unit: str, allow_none=False) -> tuple:
+    if not isinstance(value, list) or len(value) != 2:
+        raise ConfigError(f"{key}: {value!r} is not [start, end] in {unit}")
+    out = tuple(None if (allow_none and v is None) else _number(v, f"{key}[{i}]", unit) for i, v in enumerate(value))
+    if None not in out and not out[0] < out[1]:
+        raise ConfigError(f"{key}: [{out[0]:g}, {out[1]:g}] {unit} is not increasing; give [start, end] with start < end")
+    return out
+
+
+def _time(value, key: str):
+    """Seconds after the record start (a number) or a UTC time string, checked later against the traces."""
+    if isinstance(value, str):
+        try:
+            return _number(value, key)
+        except ConfigError:
+            return value
+    return _number(value, key, "s")
+
+
+def _parse_location_point(raw, key: str, model: Model) -> dict:
+    p = _mapping(raw, key, "position (m) and origin_time (s after the record start, or UTC)")
+    _check_keys(p, key, ("position", "origin_time"))
+    if p.get("position") is None:
+        raise ConfigError(f"{key}.position: missing; give [{', '.join(AXES[model.ndim])}] in world metres")
+    pos = np.asarray(_point(p["position"], f"{key}.position", model.ndim))
+    _check_inside(pos[None], f"{key}.position", model)
+    return {"position": pos, "origin_time": None if p.get("origin_time") is None else _time(p["origin_time"], f"{key}.origin_time")}
+
+
+def _parse_location_bounds(raw, key: str, model: Model):
+    b = _mapping(raw, key, f"one [lo, hi] range in metres per axis ({', '.join(AXES[model.ndim])})")
+    _check_keys(b, key, AXES[model.ndim])
+    out = []
+    for a, (lo_m, hi_m) in zip(AXES[model.ndim], model.extent):
+        lo, hi = (lo_m, hi_m) if b.get(a) is None else _pair(b[a], f"{key}.{a}", "m")
+        if lo < lo_m - 1e-6 or hi > hi_m + 1e-6:
+            raise ConfigError(f"{key}.{a}: [{lo:g}, {hi:g}] m reaches outside the model ({lo_m:g}..{hi_m:g} m); keep the search inside it")
+        out.append((lo, hi))
+    return out
+
+
+def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None) -> LocateConfig:
+    """Validate a location config (sections model, traces, preprocess, source, search, simulation,
+    truth); only model and traces are required. Raises ConfigError naming the key."""
+    base_dir = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
+    if not isinstance(raw, dict):
+        raise ConfigError(f"config: {type(raw).__name__} is not a mapping; a location config has the sections {', '.join(LOCATE_SECTIONS)}")
+    _check_keys(raw, "", LOCATE_SECTIONS)
+    for k in ("model", "traces"):
+        if raw.get(k) is None:
+            raise ConfigError(f"{k}: missing; a location config needs model (the velocity model) and traces (the event's files)")
+    simulation = _parse_simulation(raw.get("simulation"))
+    if (raw.get("simulation") or {}).get("precision") is None:
+        simulation.precision = "float64"  # the covariance comes from differences of simulations
+    model = _load_model(raw["model"], base_dir)
+
+    t = _mapping(raw["traces"], "traces", "paths (MiniSEED, SAC, ...) and station metadata")
+    _check_keys(t, "traces", TRACES_KEYS)
+    paths = t.get("paths")
+    paths = [paths] if isinstance(paths, str) else paths
+    if not isinstance(paths, list) or not paths or not all(isinstance(p, str) for p in paths):
+        raise ConfigError(f"traces.paths: {t.get('paths')!r} is not a file path, glob or list of them (relative to the config)")
+    traces = {"paths": [str(base_dir / p) for p in paths], "inventory": None, "reference": t.get("reference"),
+              "local_coordinates": t.get("local_coordinates"), "component": t.get("component"),
+              "fill_gaps": t.get("fill_gaps"), "align": False}  # fmt: skip
+    if t.get("inventory") is not None:
+        inv = base_dir / str(t["inventory"])
+        if not inv.exists():
+            raise ConfigError(f"traces.inventory: {str(inv)!r} does not exist; give the StationXML file (relative to the config)")
+        traces["inventory"] = str(inv)
+    if t.get("align") is not None:
+        traces["align"] = _boolean(t["align"], "traces.align")
+
+    p = _mapping(raw.get("preprocess") or {}, "preprocess", "detrend, taper, band, noise_window, window")
+    _check_keys(p, "preprocess", PREPROCESS_KEYS)
+    pre = {"detrend": True, "taper": 0.05, "band": None, "noise_window": None, "window": "auto"}
+    if p.get("detrend") is not None:
+        pre["detrend"] = _boolean(p["detrend"], "preprocess.detrend")
+    if p.get("taper") is not None:
+        pre["taper"] = _number(p["taper"], "preprocess.taper")
+        if not 0 <= pre["taper"] <= 0.5:
+            raise ConfigError(f"preprocess.taper: {pre['taper']:g} is not a fraction in [0, 0.5] of the record at each end")
+    if p.get("band") is not None:
+        pre["band"] = _pair(p["band"], "preprocess.band", "Hz", allow_none=True)
+    if p.get("noise_window") is None:
+        raise ConfigError("preprocess.noise_window: missing; give [start, end] s after the record start of a window "
+                          "before the first arrival (the data noise that weights the misfit and sets the uncertainty)")
+    pre["noise_window"] = _pair(p["noise_window"], "preprocess.noise_window", "s")
+    if pre["noise_window"][0] < 0:
+        raise ConfigError(f"preprocess.noise_window: starts at {pre['noise_window'][0]:g} s, before the record; give times >= 0")
+    if p.get("window") is not None and p["window"] != "auto":
+        pre["window"] = _pair(p["window"], "preprocess.window", "s")
+
+    s = _mapping(raw.get("source") or {}, "source", "the source-time function and search region")
+    _check_keys(s, "source", SOURCE_KEYS)
+    src = {"stf": "ricker", "peak_frequency": None, "frequency_range": (0.3, 3.0), "smoothness": 0.01, "bounds": None, "start": None}
+    if s.get("stf") is not None:
+        src["stf"] = _choice(s["stf"], "source.stf", STF_KINDS)
+    if s.get("peak_frequency") is not None:
+        src["peak_frequency"] = _positive(s["peak_frequency"], "source.peak_frequency", "Hz")
+    if s.get("frequency_range") is not None:
+        fr = _pair(s["frequency_range"], "source.frequency_range", "(factors of the start peak frequency)")
+        if not 0 < fr[0] < 1 < fr[1]:
+            raise ConfigError(f"source.frequency_range: {list(fr)} must bracket 1, e.g. [0.3, 3]")
+        src["frequency_range"] = fr
+    if s.get("smoothness") is not None:
+        src["smoothness"] = _number(s["smoothness"], "source.smoothness")
+        if src["smoothness"] < 0:
+            raise ConfigError(f"source.smoothness: {src['smoothness']:g} is negative; give 0 (none) or a positive weight")
+    if s.get("bounds") is not None:
+        src["bounds"] = _parse_location_bounds(s["bounds"], "source.bounds", model)
+    if s.get("start") is not None:
+        src["start"] = _parse_location_point(s["start"], "source.start", model)
+        if src["start"]["origin_time"] is None:
+            raise ConfigError("source.start.origin_time: missing; give it with the start position (or drop source.start)")
+
+    q = _mapping(raw.get("search") or {}, "search", "the optimiser settings")
+    _check_keys(q, "search", SEARCH_KEYS)
+    search = {"method": "lbfgs", "scaled": True, "iterations": 60, "multi_start": 1, "grid_spacing": None}
+    if q.get("method") is not None:
+        search["method"] = _choice(q["method"], "search.method", LOCATE_METHODS)
+    if q.get("scaled") is not None:
+        search["scaled"] = _boolean(q["scaled"], "search.scaled")
+    for name in ("iterations", "multi_start"):
+        if q.get(name) is not None:
+            search[name] = _integer(q[name], f"search.{name}")
+            if search[name] < 1:
+                raise ConfigError(f"search.{name}: {search[name]} < 1; give at least 1")
+    if q.get("grid_spacing") is not None:
+        search["grid_spacing"] = _positive(q["grid_spacing"], "search.grid_spacing", "m")
+    truth = None if raw.get("truth") is None else _parse_location_point(raw["truth"], "truth", model)
+    return LocateConfig(model, traces, pre, src, search, simulation, truth, path, raw)
+
+
+def load_locate_config(path) -> LocateConfig:
+    """Read and validate a location YAML file; relative paths resolve from its folder."""
+    raw, path = _read_yaml(path)
+    return parse_locate_config(raw, base_dir=path.resolve().parent, path=path)

@@ -1,0 +1,300 @@
+"""Where observed data sit: the local Cartesian frame of stations and events (:class:`Reference`,
+:func:`project`, :func:`unproject`) and the checks of data and geometry before a run
+(:func:`check_samples`, :func:`check_inside`).
+
+Conventions as in :mod:`adseismic.data.traces`: metres, coordinate arrays in axis order
+(z, [y,] x) with z = depth, positive down (:data:`AXES`); problems raise
+:class:`adseismic.data.traces.TraceError`. No ObsPy needed.
+
+Local projection (:func:`project`)
+----------------------------------
+Ellipsoidal **azimuthal equidistant** projection on WGS84 about the reference point
+(lat0, lon0): a point at geodesic distance ``s`` and azimuth ``alpha`` (clockwise from north)
+from the reference maps to east = s sin(alpha), north = s cos(alpha). The geodesic is computed
+with Vincenty's formulae (the same ones ``obspy.geodetics.gps2dist_azimuth`` falls back to
+without geographiclib; direct and inverse problem, iterated to 1e-13 rad), so
+
+* distances and azimuths *from the reference point* are the WGS84 geodesic ones (Vincenty's
+  error: < 0.5 mm at any distance);
+* :func:`unproject` inverts :func:`project` to < 1e-6 m horizontally (tested < 1 mm within
+  100 km); elevation round-trips to floating-point rounding (z = datum - elevation);
+* distances between two points that are not the reference are distorted by the transverse scale
+  factor of the projection, ~ 1 + (r/R)^2 / 6 at distance r from the reference (R = 6371 km):
+  4e-6 relative at 30 km, 4e-5 (4 m per 100 km) at 100 km, 1e-3 at 500 km. Place the reference
+  near the centre of the network / model.
+* the vertical is **flat-earth**: z = datum - elevation (elevation in m above the ellipsoid /
+  sea level as given by the metadata, minus any sensor burial depth); Earth curvature is ignored
+  (the surface drops ~ r^2 / (2R) below the tangent plane: 8 m at 10 km, 785 m at 100 km), as is
+  usual for local earthquake location in a Cartesian model.
+
+2D (ndim=2): x is the coordinate along a straight line through the reference with azimuth
+``Reference.azimuth`` (degrees clockwise from north; default 90, so x = east):
+x = east sin(azimuth) + north cos(azimuth). The perpendicular (off-line) offset is dropped and
+its largest value logged; :func:`unproject` places 2D points on the line. 3D: x = east,
+y = north; arrays (z, y, x).
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from adseismic.data.traces import TraceError
+
+__all__ = ["AXES", "Reference", "as_reference", "project", "unproject", "check_samples", "check_inside"]
+
+log = logging.getLogger(__name__)
+
+AXES = {2: "zx", 3: "zyx"}  # coordinate axis letters by dimension, slowest first
+
+
+@dataclass(frozen=True)
+class Reference:
+    """Origin of the local frame of :func:`project`.
+
+    latitude, longitude: degrees (WGS84) of the point mapped to x = 0 (and y = 0);
+    datum: elevation (m) mapped to z = 0, so z = datum - elevation (default 0: sea level);
+    azimuth: 2D only, direction of the +x line, degrees clockwise from north (default 90: east).
+    Accepted wherever a reference is asked for: a Reference, a tuple
+    (lat, lon[, datum[, azimuth]]) or a dict with keys latitude/lat, longitude/lon, datum, azimuth.
+    """
+
+    latitude: float
+    longitude: float
+    datum: float = 0.0
+    azimuth: float = 90.0
+
+
+def as_reference(ref, key: str = "reference") -> Reference:
+    if isinstance(ref, Reference):
+        out = ref
+    elif isinstance(ref, dict):
+        d = dict(ref)
+        lat = d.pop("latitude", d.pop("lat", None))
+        lon = d.pop("longitude", d.pop("lon", None))
+        extra = sorted(set(d) - {"datum", "azimuth"})
+        if lat is None or lon is None or extra:
+            raise TraceError(f"{key}: {ref!r} needs keys latitude and longitude (degrees) and "
+                             f"optionally datum (m) and azimuth (degrees){'; unknown ' + ', '.join(extra) if extra else ''}")
+        out = Reference(lat, lon, d.get("datum", 0.0), d.get("azimuth", 90.0))
+    elif isinstance(ref, (tuple, list, np.ndarray)) and 2 <= len(ref) <= 4:
+        out = Reference(*ref)
+    else:
+        raise TraceError(f"{key}: {ref!r} is not a reference point; give (latitude, longitude"
+                         f"[, datum, azimuth]) in degrees / metres / degrees or a Reference")
+    try:
+        vals = [float(v) for v in (out.latitude, out.longitude, out.datum, out.azimuth)]
+    except (TypeError, ValueError):
+        vals = [math.nan]
+    if not all(math.isfinite(v) for v in vals) or abs(vals[0]) > 90 or not -180 <= vals[1] <= 360:
+        raise TraceError(f"{key}: {ref!r} is not a valid reference; latitude must be in "
+                         f"[-90, 90], longitude in [-180, 360] degrees, datum and azimuth finite")
+    return Reference(*vals)
+
+
+# ------------------------------------------------------------------------------- projection
+
+_A = 6378137.0                 # WGS84 semi-major axis (m)
+_F = 1 / 298.257223563         # WGS84 flattening
+_B = _A * (1 - _F)
+
+
+def _series(cos2_alpha):
+    u2 = cos2_alpha * (_A ** 2 - _B ** 2) / _B ** 2
+    big_a = 1 + u2 / 16384 * (4096 + u2 * (-768 + u2 * (320 - 175 * u2)))
+    big_b = u2 / 1024 * (256 + u2 * (-128 + u2 * (74 - 47 * u2)))
+    return big_a, big_b
+
+
+def _delta_sigma(big_b, sin_s, cos_s, cos2sm):
+    return big_b * sin_s * (cos2sm + big_b / 4 * (cos_s * (-1 + 2 * cos2sm ** 2)
+                                                   - big_b / 6 * cos2sm * (-3 + 4 * sin_s ** 2)
+                                                   * (-3 + 4 * cos2sm ** 2)))
+
+
+def _vincenty_inverse(lat1, lon1, lat2, lon2):
+    """Geodesic distance (m) and forward azimuth (rad) from (lat1, lon1) to (lat2, lon2), degrees."""
+    lat2, lon2 = np.broadcast_arrays(np.asarray(lat2, float), np.asarray(lon2, float))
+    u1 = np.arctan((1 - _F) * np.tan(np.radians(lat1)))
+    u2 = np.arctan((1 - _F) * np.tan(np.radians(lat2)))
+    big_l = np.radians((lon2 - lon1 + 180.0) % 360.0 - 180.0)
+    su1, cu1, su2, cu2 = np.sin(u1), np.cos(u1), np.sin(u2), np.cos(u2)
+    lam = big_l.copy()
+    for _ in range(200):
+        sl, cl = np.sin(lam), np.cos(lam)
+        sin_s = np.hypot(cu2 * sl, cu1 * su2 - su1 * cu2 * cl)
+        cos_s = su1 * su2 + cu1 * cu2 * cl
+        sigma = np.arctan2(sin_s, cos_s)
+        safe = np.where(sin_s == 0, 1.0, sin_s)
+        sin_a = np.where(sin_s == 0, 0.0, cu1 * cu2 * sl / safe)
+        cos2a = 1 - sin_a ** 2
+        cos2sm = np.where(cos2a == 0, 0.0, cos_s - 2 * su1 * su2 / np.where(cos2a == 0, 1, cos2a))
+        c = _F / 16 * cos2a * (4 + _F * (4 - 3 * cos2a))
+        new = big_l + (1 - c) * _F * sin_a * (
+            sigma + c * sin_s * (cos2sm + c * cos_s * (-1 + 2 * cos2sm ** 2)))
+        done = np.all(np.abs(new - lam) < 1e-13)
+        lam = new
+        if done:
+            break
+    else:
+        raise TraceError("project: Vincenty's inverse formula did not converge (nearly antipodal "
+                         "points); choose a reference point near the stations")
+    big_a, big_b = _series(cos2a)
+    s = _B * big_a * (sigma - _delta_sigma(big_b, sin_s, cos_s, cos2sm))
+    sl, cl = np.sin(lam), np.cos(lam)
+    alpha = np.arctan2(cu2 * sl, cu1 * su2 - su1 * cu2 * cl)
+    return np.where(sin_s == 0, 0.0, s), np.where(sin_s == 0, 0.0, alpha)
+
+
+def _vincenty_direct(lat1, lon1, s, alpha1):
+    """Point (lat, lon degrees) at geodesic distance s (m) and azimuth alpha1 (rad) from (lat1, lon1)."""
+    s, alpha1 = np.broadcast_arrays(np.asarray(s, float), np.asarray(alpha1, float))
+    u1 = np.arctan((1 - _F) * np.tan(np.radians(lat1)))
+    su1, cu1 = np.sin(u1), np.cos(u1)
+    sa1, ca1 = np.sin(alpha1), np.cos(alpha1)
+    sigma1 = np.arctan2(np.tan(u1), ca1)
+    sin_a = cu1 * sa1
+    cos2a = 1 - sin_a ** 2
+    big_a, big_b = _series(cos2a)
+    sigma = s / (_B * big_a)
+    for _ in range(200):
+        cos2sm = np.cos(2 * sigma1 + sigma)
+        new = s / (_B * big_a) + _delta_sigma(big_b, np.sin(sigma), np.cos(sigma), cos2sm)
+        done = np.all(np.abs(new - sigma) < 1e-13)
+        sigma = new
+        if done:
+            break
+    sin_s, cos_s = np.sin(sigma), np.cos(sigma)
+    cos2sm = np.cos(2 * sigma1 + sigma)
+    lat2 = np.arctan2(su1 * cos_s + cu1 * sin_s * ca1,
+                      (1 - _F) * np.hypot(sin_a, su1 * sin_s - cu1 * cos_s * ca1))
+    lam = np.arctan2(sin_s * sa1, cu1 * cos_s - su1 * sin_s * ca1)
+    c = _F / 16 * cos2a * (4 + _F * (4 - 3 * cos2a))
+    big_l = lam - (1 - c) * _F * sin_a * (
+        sigma + c * sin_s * (cos2sm + c * cos_s * (-1 + 2 * cos2sm ** 2)))
+    lon2 = (lon1 + np.degrees(big_l) + 180.0) % 360.0 - 180.0
+    return np.degrees(lat2), lon2
+
+
+def project(lat, lon, elevation, reference, *, ndim: int = 3) -> np.ndarray:
+    """Geographic coordinates -> local Cartesian metres about ``reference``.
+
+    lat, lon: degrees (WGS84), any broadcastable shapes; elevation: m above the datum surface
+    (sea level), positive up; reference: a :class:`Reference` or (lat0, lon0[, datum[, azimuth]]).
+    Returns (..., ndim) metres in axis order (z, [y,] x): z = datum - elevation (depth, positive
+    down), 3D: y = north, x = east; 2D: x along the line of azimuth ``reference.azimuth``.
+    Azimuthal equidistant projection on WGS84 (see the module docstring for its accuracy).
+    """
+    ref = as_reference(reference)
+    if ndim not in (2, 3):
+        raise TraceError(f"ndim: {ndim!r} is not 2 or 3")
+    lat, lon, elev = np.broadcast_arrays(np.asarray(lat, float), np.asarray(lon, float),
+                                         np.asarray(elevation, float))
+    bad = ~(np.isfinite(lat) & np.isfinite(lon) & np.isfinite(elev) & (np.abs(lat) <= 90))
+    if bad.any():
+        i = np.unravel_index(int(np.argmax(bad)), bad.shape)
+        raise TraceError(f"project: point {i} (lat {lat[i]}, lon {lon[i]}, elevation {elev[i]}) "
+                         f"is not a valid position; latitude in [-90, 90] degrees, all finite")
+    s, alpha = _vincenty_inverse(ref.latitude, ref.longitude, lat, lon)
+    east, north = s * np.sin(alpha), s * np.cos(alpha)
+    z = ref.datum - elev
+    if ndim == 3:
+        return np.stack([z, north, east], axis=-1)
+    az = math.radians(ref.azimuth)
+    x = east * math.sin(az) + north * math.cos(az)
+    off = -east * math.cos(az) + north * math.sin(az)
+    if off.size:
+        log.info("project (2D, line azimuth %g deg): largest off-line distance %.1f m dropped",
+                 ref.azimuth, float(np.max(np.abs(off))))
+    return np.stack([z, x], axis=-1)
+
+
+def unproject(points, reference):
+    """Inverse of :func:`project`: local points (..., ndim) metres, axis order (z,[y,]x) ->
+    (lat, lon, elevation) arrays of shape (...) in degrees, degrees, metres (elevation =
+    datum - z; a QuakeML depth below sea level is -elevation). 2D points are placed on the line
+    of azimuth ``reference.azimuth``. Exact inverse to < 1e-6 m within a few hundred km."""
+    ref = as_reference(reference)
+    p = np.asarray(points, dtype=float)
+    if p.ndim < 1 or p.shape[-1] not in (2, 3) or not np.all(np.isfinite(p)):
+        raise TraceError(f"unproject: points of shape {p.shape} are not finite (..., 2) or "
+                         f"(..., 3) arrays in axis order (z,[y,]x), metres")
+    if p.shape[-1] == 3:
+        z, north, east = p[..., 0], p[..., 1], p[..., 2]
+    else:
+        az = math.radians(ref.azimuth)
+        z, east, north = p[..., 0], p[..., 1] * math.sin(az), p[..., 1] * math.cos(az)
+    s, alpha = np.hypot(east, north), np.arctan2(east, north)
+    lat, lon = _vincenty_direct(ref.latitude, ref.longitude, s, alpha)
+    lon = np.where(s == 0, ref.longitude, lon)
+    lat = np.where(s == 0, ref.latitude, lat)
+    return lat, lon, ref.datum - z
+
+
+# ------------------------------------------------------------------------------- checks
+
+def check_samples(data, names, *, min_clip_run: int = 3) -> None:
+    """Raise TraceError if any sample is NaN or inf; log a warning for clipped traces.
+
+    data: (..., nt) array, one trace per row of data.reshape(-1, nt); names: one name per trace
+    (same flattened order). A trace counts as clipped when ``min_clip_run`` or more consecutive
+    samples sit exactly at its maximum |value| (a digitizer / recorder limit); an all-zero trace
+    is reported as dead (warning).
+    """
+    a = np.asarray(data)
+    rows = a.reshape(-1, a.shape[-1]) if a.ndim else a.reshape(1, 1)
+    names = list(names)
+    if len(names) != rows.shape[0]:
+        raise TraceError(f"names: {len(names)} names for {rows.shape[0]} traces of data shape "
+                         f"{a.shape}; give one name per trace")
+    bad = ~np.isfinite(rows)
+    if bad.any():
+        rows_bad = np.flatnonzero(bad.any(axis=1))
+        i = int(rows_bad[0])
+        k = int(np.argmax(bad[i]))
+        raise TraceError(f"{names[i]}: sample {k} is {rows[i, k]} ({int(bad[i].sum())} non-finite "
+                         f"samples; {len(rows_bad)} traces affected, e.g. "
+                         f"{', '.join(str(names[j]) for j in rows_bad[:5])}); remove the traces or "
+                         f"replace the bad samples before use")
+    if rows.shape[-1] == 0:
+        return
+    amax = np.max(np.abs(rows), axis=1)
+    for i in np.flatnonzero(amax == 0):
+        log.warning("%s: all samples are zero (dead trace)", names[i])
+    for i in np.flatnonzero(amax > 0):
+        at_max = np.abs(rows[i]) == amax[i]
+        if at_max.sum() < min_clip_run:
+            continue
+        edges = np.diff(np.concatenate([[0], at_max.astype(np.int8), [0]]))
+        runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+        if runs.max() >= min_clip_run:
+            log.warning("%s: looks clipped: %d consecutive samples at max |value| %g (%d runs)",
+                        names[i], int(runs.max()), float(amax[i]), int((runs >= min_clip_run).sum()))
+
+
+def check_inside(points, model, what: str, *, names=None) -> None:
+    """Raise TraceError if any point (..., ndim) (world metres, axis order (z,[y,]x)) lies outside
+    ``model`` (an :class:`adseismic.data.models.Model`). The message names the ``what`` (e.g.
+    "station", "receiver") with its index (and name, if ``names`` gives one per point) and
+    coordinates, and the model's extent."""
+    p = np.asarray(points, dtype=float)
+    if p.ndim < 1 or p.shape[-1] != model.ndim:
+        raise TraceError(f"{what}: coordinates of shape {p.shape} do not end in {model.ndim} "
+                         f"values ({AXES[model.ndim]}) for the {model.ndim}D model; use "
+                         f"ndim={model.ndim} when reading")
+    inside = model.contains(p)
+    if inside.all():
+        return
+    outside = np.argwhere(~inside)
+    idx = tuple(int(i) for i in outside[0])
+    flat = int(np.ravel_multi_index(idx, inside.shape)) if inside.ndim else 0
+    label = f"{what} {idx[0] if len(idx) == 1 else idx}"
+    if names is not None:
+        label += f" ({list(names)[flat]})"
+    coords = ", ".join(f"{a}={v:.3f}" for a, v in zip(AXES[model.ndim], p[idx]))
+    extent = ", ".join(f"{a} {lo:g}..{hi:g}" for a, (lo, hi) in zip(AXES[model.ndim], model.extent))
+    raise TraceError(f"{label}: at ({coords}) m is outside the model ({extent} m); "
+                     f"{len(outside)} of {inside.size} {what} positions are outside; extend the "
+                     f"model or its origin, or drop those {what}s")
