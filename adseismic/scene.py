@@ -24,8 +24,9 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from adseismic.data.model import Model
+from adseismic.kernels.acoustic import DESCRIPTION as ACOUSTIC
 from adseismic.kernels.numerics import cfl_limit, dispersion_error, ppw_for_error, rayleigh_speed, staggered_cfl_limit, staggered_dispersion_error
-from adseismic.solve.common import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH
+from adseismic.solve.common import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH, check_courant
 from adseismic.solve.acoustic import ForwardResult, forward
 from adseismic.wavelets import duration, make_wavelet, spectral_fmax
 
@@ -228,13 +229,12 @@ def plan_scene(config, velocity_range=None, f_max=None) -> Plan:
 
     pins = {"dx": sim.dx, "dt": sim.dt}
     dx, dt, why_dx, why_dt = _choose_dx_dt(order, ndim, vmin, vmax, f_max, float(sim.accuracy), float(sim.cfl_safety), pins, cells, t_record)
+    try:
+        check_courant(ACOUSTIC, order, ndim, vmax, dx, dt)
+    except ValueError as e:
+        raise ValueError(f"simulation.{e}") from None
     limit = cfl_limit(order, ndim)
     courant = vmax * dt / dx
-    if courant > limit:
-        raise ValueError(
-            f"simulation.dt: {dt:g} s is unstable with dx = {dx:g} m and v_max = {vmax:.0f} m/s: Courant number "
-            f"{courant:.4f} exceeds the exact limit {limit:.4f} (order {order}, {ndim}D); use dt <= {limit * dx / vmax:.6g} s"
-        )
     err = _group_error(order, ndim, vmin, vmax, f_max, dx, dt)
     if err > float(sim.accuracy):
         warnings.append(

@@ -210,8 +210,9 @@ def test_accepted_names_match_the_workflow_registries():
     imports no workflow); they must not drift apart."""
     from adseismic.config.fwi import MISFIT_NAMES, OPTIMIZERS
     from adseismic.config.locate import LOCATE_METHODS, STF_KINDS
-    from adseismic.inversion import misfits, optimize
+    from adseismic.inversion import optimize
     from adseismic.location import locate
+    from adseismic.solve import misfits
 
     assert set(MISFIT_NAMES) == set(misfits.MISFITS)
     assert set(OPTIMIZERS) == set(optimize.METHODS)

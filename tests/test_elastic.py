@@ -1,6 +1,9 @@
 """2D elastic propagator: analytic full space and Lamb's problem (absolute amplitude), fluid limit against
-the acoustic propagator, stability at the CFL limit, CPML reflection, guards, and gradients (Taylor and
-dot-product tests for vp, vs, rho, source wavelet, moment tensor / force components and source position).
+the acoustic propagator, stability at the CFL limit, CPML reflection, guards, and gradients (the dot-product test
+of a moment-tensor source without a free surface, for vp, vs, rho, source wavelet and moment tensor; the optimised
+and hand-written adjoint kernels against the reference ones). The Taylor, dot-product and checkpointed vs. all-steps
+tests of a point force and of a moment-tensor source under a free surface (every parameter) are test_adjoint.py's,
+one module over every physics.
 
 Tolerances are the measured values (docs/accuracy.md, "Elastic") with headroom for platform rounding; a
 regression in the scheme, free surface, CPML or source operator moves them by factors, not percent.
@@ -277,7 +280,6 @@ def test_elastic_planner(vs_min, free_surface, slowest):
 # --- gradients -----------------------------------------------------------------------------------------
 
 DX, DT, NT = 10.0, 1e-3, 200
-STEPS = np.array([1e-1, 1e-2, 1e-3, 1e-4])
 P_SCALE = 1e-6  # pressure (Pa) scaled to be commensurate with velocities (m/s) in the misfit
 
 
@@ -300,19 +302,6 @@ def grad_problem(free_surface, source_type):
     return base, rec, obs, kw
 
 
-def l2_all(obs):
-    def misfit(syn):
-        total, adj = 0.0, {}
-        for c in E.COMPONENTS:
-            scale = P_SCALE if c == "pressure" else 1.0
-            r = syn[c] * scale - obs[c]
-            total += 0.5 * float(np.sum(r * r))
-            adj[c] = r * scale
-        return total, adj
-
-    return misfit
-
-
 def run_gradient(base, rec, misfit, kw, wrt=(), **changes):
     a = dict(base, **changes)
     return E.gradient_elastic(a["vp"], a["vs"], a["rho"], DX, DT, a["source_amplitudes"], a["source_locations"], rec,
@@ -320,33 +309,8 @@ def run_gradient(base, rec, misfit, kw, wrt=(), **changes):
                               segment_length=NT if not wrt else None, **kw)  # fmt: skip
 
 
-SIZES = {"vp": 50.0, "vs": 50.0, "rho": 50.0, "source_amplitudes": 0.05, "source_components": 0.05, "source_locations": 3.0}
-
-
-@pytest.mark.parametrize("free_surface, source_type", [(False, "force"), (True, "moment")])
-def test_taylor(free_surface, source_type):
-    # First-order remainder slope 1 and second-order slope 2 (within 0.1) over h = 1e-1..1e-4 for every
-    # parameter, through the checkpointed sweep (15 segments). Measured: 1.002-1.038 / 1.999-2.001.
-    base, rec, obs, kw = grad_problem(free_surface, source_type)
-    misfit = l2_all(obs)
-    g = run_gradient(base, rec, misfit, kw, wrt=E.WRT)
-    assert g.n_segments > 4
-    rng = np.random.default_rng(1)
-    for kind in E.WRT:
-        grad = getattr(g, kind)
-        d = rng.standard_normal(base[kind].shape)
-        if kind in ("vp", "vs", "rho"):
-            d = gaussian_filter(d, 2)
-        d = d / np.abs(d).max() + grad / np.abs(grad).max()  # half along the gradient: first order dominates
-        d = SIZES[kind] * d / np.abs(d).max()
-        j = np.array([run_gradient(base, rec, misfit, kw, **{kind: base[kind] + h * d}).loss for h in STEPS])
-        r1, r2 = np.abs(j - g.loss), np.abs(j - g.loss - STEPS * np.sum(grad * d))
-        fit = lambda r: np.polyfit(np.log(STEPS), np.log(r), 1)[0]
-        assert abs(fit(r1) - 1.0) <= 0.1, kind
-        assert abs(fit(r2) - 2.0) <= 0.1, kind
-
-
-@pytest.mark.parametrize("free_surface, source_type", [(False, "force"), (True, "moment"), (False, "moment")])
+# (False, "force") and (True, "moment"): test_adjoint.test_adjoint_dot_product
+@pytest.mark.parametrize("free_surface, source_type", [(False, "moment")])
 def test_adjoint_dot_product(free_surface, source_type):
     # The data are linear in the source wavelet and in the source components, so the forward run is the
     # exact linear operator F and the tape's reverse sweep seeded with d is F^T: <F ds, d> = <ds, F^T d> to
@@ -380,19 +344,6 @@ def test_adjoint_dot_product(free_surface, source_type):
         lhs = (project(data(**{kind: base[kind] + dm}))[0] - project(data(**{kind: base[kind] - dm}))[0]) / 2.0
         rhs = float(np.sum(dm * getattr(adj, kind)))
         assert abs(lhs - rhs) <= 1e-6 * abs(lhs), kind
-
-
-def test_checkpointed_equals_all_steps():
-    base, rec, obs, kw = grad_problem(False, "force")
-    misfit = l2_all(obs)
-    a = dict(base)
-    common = (a["vp"], a["vs"], a["rho"], DX, DT, a["source_amplitudes"], a["source_locations"], rec)
-    every = E.gradient_elastic(*common, misfit=misfit, wrt=E.WRT, source_components=a["source_components"], segment_length=NT, **kw)
-    ckpt = E.gradient_elastic(*common, misfit=misfit, wrt=E.WRT, source_components=a["source_components"], segment_length=13, **kw)
-    assert every.n_segments == 1 and ckpt.n_segments > 10
-    for k in E.WRT:  # float64 on the CPU: equal to rounding (measured <= 1e-15 relative)
-        x, y = getattr(every, k), getattr(ckpt, k)
-        assert np.linalg.norm(x - y) <= 1e-12 * np.linalg.norm(x), k
 
 
 # --- optimised kernels -----------------------------------------------------------------------------------

@@ -372,7 +372,9 @@ def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | Non
 
 
 def load_config(path) -> ForwardConfig:
-    """Read and validate the YAML file ``path``; relative paths inside resolve from its folder."""
+    """Read and validate the forward YAML file ``path`` (README, "Config"): a ForwardConfig whose model is in m/s,
+    geometry in metres (axis order z, [y,] x) and wavelet in Hz and s; relative paths inside resolve from its
+    folder. Raises ConfigError naming the key, the value and the fix."""
     raw, path = _read_yaml(path)
     return parse_config(raw, base_dir=path.resolve().parent, path=path)
 

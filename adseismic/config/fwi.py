@@ -2,7 +2,7 @@
 start model) plus ``inversion`` and exactly one of ``true_model`` or ``observed``.
 
 The accepted misfit names are :data:`MISFIT_NAMES` (kept equal to
-``adseismic.inversion.misfits.MISFITS`` by a test), so that loading a config imports no workflow.
+``adseismic.solve.misfits.MISFITS`` by a test), so that loading a config imports no workflow.
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ INVERSION_KEYS = ("bands", "misfit", "optimizer", "iterations", "evaluations", "
 FWI_SECTIONS = ("true_model", "observed", "inversion")
 OPTIMIZERS = ("lbfgs", "gd", "adam")
 PRECONDITIONERS = ("none", "depth", "pseudo_hessian")
-MISFIT_NAMES = ("l2", "correlation", "traveltime", "envelope")  # adseismic.inversion.misfits.MISFITS
+MISFIT_NAMES = ("l2", "correlation", "traveltime", "envelope")  # adseismic.solve.misfits.MISFITS
 
 
 

@@ -37,7 +37,7 @@ class LocateConfig:
 
     traces: paths (list of file paths / globs), inventory (StationXML path or None), reference
     (dict latitude, longitude[, datum, azimuth] or None), local_coordinates, component, fill_gaps,
-    align (see traces.read_station_traces). preprocess: detrend, taper (fraction at each end), band
+    align (see adseismic.data.read.read_station_traces). preprocess: detrend, taper (fraction at each end), band
     ((fmin or None, fmax or None) Hz or None), noise_window (start, end) s, window "auto" (trim
     around the expected arrivals) or (start, end) s. source: stf ("ricker" or "free"),
     peak_frequency (Hz start or None: the data's dominant frequency), frequency_range (factors),

@@ -27,12 +27,8 @@ value and the fix. ObsPy is imported inside the functions of :mod:`adseismic.dat
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from adseismic.data.geometry import Reference
 
 __all__ = ["TraceError", "ShotGathers", "StationTraces"]
 
@@ -100,7 +96,7 @@ class StationTraces:
     positions: np.ndarray
     names: list
     noise_std: np.ndarray | None = None
-    reference: "Reference | None" = None
+    reference: object = None  # adseismic.data.geometry.Reference
 
     @property
     def nt(self) -> int:

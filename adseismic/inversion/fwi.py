@@ -30,7 +30,7 @@ from scipy.signal import butter, sosfiltfilt
 from adseismic.inversion import conditioning
 from adseismic.solve.acoustic import gradient
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
-from adseismic.inversion.misfits import misfit as named_misfit
+from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.inversion.optimize import minimize
 from adseismic.solve.acoustic import forward
 from adseismic.scene import build_scene, plan_scene
@@ -239,7 +239,9 @@ def data_weights(scene, inv, geometry):
 
 
 def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWIResult:
-    """Run (or resume, when RUNDIR holds journals) the inversion described by an FWIConfig."""
+    """Run (or resume, when rundir holds journals) the inversion described by cfg, an FWIConfig
+    (config.load_fwi_config), writing model.h5, history.h5, the log and PNGs into the folder rundir. Returns the
+    FWIResult: the inverted model (nz, [ny,] nx) in m/s on the simulation grid (spacing dx m, origin m)."""
     t_start = time.perf_counter()
     prep = prepared or prepare_fwi(cfg)
     rundir = Path(rundir)

@@ -25,7 +25,7 @@ import warp as wp
 from tqdm.auto import tqdm
 
 from adseismic.accel.reductions import value_range
-from adseismic.inversion.misfits import misfit as named_misfit
+from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.kernels.acoustic import DESCRIPTION, Acoustic, State
 from adseismic.kernels.common import operator_shape
 from adseismic.kernels.numerics import check_order

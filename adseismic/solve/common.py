@@ -75,8 +75,9 @@ def check_courant(physics: Description, order: int, ndim: int, vmax: float, dx: 
     courant = vmax * dt / dx
     if courant > limit:
         raise ValueError(
-            f"dt = {dt:.6g} s is unstable: Courant number {physics.courant_speed}_max dt/dx = {courant:.4f} exceeds the "
-            f"{physics.name} limit {limit:.4f} of order {order} in {ndim}D; use dt <= {limit * dx / vmax:.6g} s"
+            f"dt = {dt:.6g} s is unstable with dx = {dx:g} m and {physics.courant_speed}_max = {vmax:.0f} m/s: Courant number "
+            f"{courant:.4f} exceeds the exact limit {limit:.4f} of the {physics.name} scheme (order {order}, {ndim}D); "
+            f"use dt <= {limit * dx / vmax:.6g} s"
         )
 
 

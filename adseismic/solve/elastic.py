@@ -33,7 +33,7 @@ from tqdm.auto import tqdm
 
 from adseismic.accel import graphs
 from adseismic.accel.reductions import l2_residual_kernel, value_ranges
-from adseismic.inversion.misfits import misfit as named_misfit
+from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.kernels.elastic import DESCRIPTION, MATERIALS, PSI, Elastic, shear_ratio
 from adseismic.kernels.numerics import check_order
 from adseismic.solve import loop, sweep
@@ -257,6 +257,9 @@ def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
                     progress=False) -> ElasticResult:  # fmt: skip
     """Simulate the 2D elastic wave equation for all shots at once (conventions: module docstring).
 
+    vp, vs (m/s), rho (kg/m^3): (nz, nx) NumPy or Warp arrays; dx m; dt s; source_amplitudes (n_shots, n_src, nt);
+    source/receiver_locations (n_shots, n, 2) metres (z, x); source_type "force", "moment" or "explosive" with
+    source_components (n_shots, n_src, 2 or 3). Returns vx, vz (m/s) and pressure (Pa), each (n_shots, n_receivers, nt).
     order 2, 4 or 8; pml_width cells (default 20); pml_reflection target; pml_frequency CPML alpha
     frequency (Hz, default the sources' dominant frequency); pml_velocity CPML reference speed (m/s, default
     max(vp)); free_surface: stress-free top boundary at z = 0. Raises ValueError on bad input or an

@@ -50,17 +50,41 @@ CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over 
 def build(ndim: int, order: int, dtype, free_surface: bool):
     """Kernels for one (ndim, order, dtype, free_surface) combination, compiled once per process."""
     R = order // 2
-    A = SECOND_DERIVATIVE[order]
-    B = FIRST_DERIVATIVE[order]
-    HR = HICKS_RADIUS
-    W = 2 * HR
+    W = 2 * HICKS_RADIUS
     NPTS = W**ndim
-    fs = bool(free_surface)
-    three = ndim == 3
-    arr1 = wp.array(dtype=dtype)
-    iarr1 = wp.array(dtype=wp.int32)
-    arr3 = wp.array3d(dtype=dtype)
-    arr4 = wp.array4d(dtype=dtype)
+    ns = _Parts(
+        ndim=ndim, dtype=dtype, R=R, A=SECOND_DERIVATIVE[order], B=FIRST_DERIVATIVE[order], HR=HICKS_RADIUS, W=W, NPTS=NPTS,
+        fs=bool(free_surface), three=ndim == 3, arr1=wp.array(dtype=dtype), iarr1=wp.array(dtype=wp.int32),
+        arr3=wp.array3d(dtype=dtype), arr4=wp.array4d(dtype=dtype),
+    )  # fmt: skip
+    # each builder reads what the ones before it made (pre_step calls _points' record_point)
+    for builder in (_stencils, _cpml, _reference_step, _cpu_rows, _points, _gpu_step, _psi_adjoint, _adjoint_terms, _adjoint_step, _model_ops):
+        vars(ns).update(builder(ns))
+    return Kernels(
+        Axis=ns.Axis, step=ns.step, step_core=functools.lru_cache(maxsize=None)(functools.partial(_step_core, ns)), step_rows=ns.step_rows,
+        step_core_rows=ns.step_core_rows, psi=ns.psi, inject=ns.inject, adjoint_step=ns.adjoint_step,
+        adjoint_core=functools.lru_cache(maxsize=None)(functools.partial(_adjoint_core, ns)), squared=ns.squared, model_gradient=ns.model_gradient,
+        psi_adjoint=ns.psi_adjoint, post_adjoint=ns.post_adjoint, pre_step=ns.pre_step, record=ns.record, weights=ns.weights, compact=ns.compact,
+        inject_fixed=ns.inject_fixed, record_fixed=ns.record_fixed, record_summed=ns.record_summed, pad_model=ns.pad_model, scatter=ns.scatter,
+        energy=ns.energy, halo=R, operator_points=NPTS,
+    )  # fmt: skip
+
+
+class _Parts:
+    """What the builders of one configuration share: its constants (R = order / 2, the stencil weights A and B, the
+    operator's HR, W and NPTS, the free-surface flag fs, three = 3D), its array types and, as attributes, the Warp
+    structs, funcs and kernels the builders have made so far. A builder reads what it uses into locals, the names
+    its Warp code resolves (closure variables), and returns what it makes. A plain object, hashed by identity: _lanes
+    and _core_tile are cached per configuration."""
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+
+def _stencils(ns):
+    """The CPML axis struct and the stencils: field reads (free-surface image), d2 and d1 along each axis, d1's
+    transpose, d2 of a window (d2w) and flat reads."""
+    dtype, R, A, B, fs, arr1, arr4 = ns.dtype, ns.R, ns.A, ns.B, ns.fs, ns.arr1, ns.arr4
 
     @wp.struct
     class Axis:
@@ -158,6 +182,13 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         # negative indices, and the select that takes keeps a loop over k from being vectorised
         return a[wp.max(base, 0) + k]
 
+    return dict(Axis=Axis, d2z=d2z, d2y=d2y, d2x=d2x, d1=d1, d1t=d1t, vecw=vecw, d2w=d2w, flat=flat)
+
+
+def _cpml(ns):
+    """The CPML: psi per cell and its kernels (GPU and CPU rows) along each axis, and the stretch terms of d2."""
+    dtype, R, B, arr1, arr4, Axis, d1, flat = ns.dtype, ns.R, ns.B, ns.arr1, ns.arr4, ns.Axis, ns.d1, ns.flat
+
     def make_psi_cell(axis: int):
         # psi along one axis (0: z, 1: y, 2: x) at one cell (s, i, j, k) of that axis' strip
         deriv = d1[axis]
@@ -241,6 +272,8 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
         return psi_kernel, psi_rows
 
+    psi = [make_psi(a) for a in range(3)]
+
     def make_stretch(axis: int):
         # CPML term of the second derivative along `axis`, from t = d2u/dx2 at (s, z, y, x): in the strip
         # d(psi)/dx + zeta_new (zeta_new stored), else 0
@@ -273,6 +306,13 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         return stretch
 
     stretch_z, stretch_y, stretch_x = make_stretch(0), make_stretch(1), make_stretch(2)
+    return dict(psi_cell_z=psi_cell_z, psi_cell_x=psi_cell_x, psi=psi, stretch_z=stretch_z, stretch_y=stretch_y, stretch_x=stretch_x)
+
+
+def _reference_step(ns):
+    """The per-cell update and the reference step (one thread per interior cell)."""
+    dtype, R, fs, three, arr3, arr4, Axis, d2z = ns.dtype, ns.R, ns.fs, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.d2z
+    d2y, d2x, stretch_z, stretch_y, stretch_x = ns.d2y, ns.d2x, ns.stretch_z, ns.stretch_y, ns.stretch_x
 
     @wp.func
     def advance(uc: dtype, up: dtype, vv: dtype, dt2: dtype, lap: dtype) -> dtype:
@@ -337,6 +377,14 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             y = yi + wp.static(R)
         cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
              az, ay, ax, dt2, inv_dx, top, s, z, y, x)  # fmt: skip
+
+    return dict(advance=advance, update=update, cell=cell, step=step)
+
+
+def _cpu_rows(ns):
+    """The CPU step's row kernels: step_rows (all but the core) and step_core_rows (the 2D core)."""
+    dtype, R, A, fs, three, arr1, arr3, arr4 = ns.dtype, ns.R, ns.A, ns.fs, ns.three, ns.arr1, ns.arr3, ns.arr4
+    Axis, vecw, d2z, d2w, flat, advance, update = ns.Axis, ns.vecw, ns.d2z, ns.d2w, ns.flat, ns.advance, ns.update
 
     @wp.func
     def row_cells(
@@ -425,6 +473,14 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         else:
             core_row(u, u_prev, u_next, v, i, c, core[3] - core[2], lx, dt2, inv_dx * inv_dx)
 
+    return dict(step_rows=step_rows, step_core_rows=step_core_rows)
+
+
+def _gpu_step(ns):
+    """The 2D GPU step's cell maps (frame_cell, strip_cell) and pre_step; its core is _step_core."""
+    dtype, R, arr3, arr4, iarr1, Axis, psi_cell_z = ns.dtype, ns.R, ns.arr3, ns.arr4, ns.iarr1, ns.Axis, ns.psi_cell_z
+    psi_cell_x, record_point = ns.psi_cell_x, ns.record_point
+
     @wp.func
     def frame_cell(f: int, lz: int, lx: int, box: wp.vec4i) -> wp.vec2i:
         # (z, x) of the f-th interior cell outside the rows [box[0], box[1]) x columns [box[2], box[3])
@@ -444,138 +500,6 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             x = x - box[2] + box[3]
         return wp.vec2i(box[0] + g // sides, x)
 
-    def make_tile(rows: int, cols: int):
-        @wp.func
-        def tile(t: int, box: wp.vec4i, lz: int, lx: int) -> wp.vec4i:
-            # thread t's tile of `rows` rows x `cols` columns of the box rows [box[0], box[1]) x columns
-            # [box[2], box[3]) of every shot (a 2D grid (lz, lx)): first row z, its number of columns, and the
-            # flat indices of its first cell in a model (z lx + x) and in the fields (shot s)
-            nxc = (box[3] - box[2] + wp.static(cols - 1)) // wp.static(cols)
-            blocks = (box[1] - box[0] + wp.static(rows - 1)) // wp.static(rows)
-            q = t // nxc
-            x = box[2] + (t - q * nxc) * wp.static(cols)
-            s = q // blocks
-            z = box[0] + (q - s * blocks) * wp.static(rows)
-            c = z * lx + x
-            return wp.vec4i(z, wp.min(wp.static(cols), box[3] - x), c, s * lz * lx + c)
-
-        return tile
-
-    @functools.lru_cache(maxsize=None)
-    def make_lanes(V: int):
-        # Types and row reads of tiles of V adjacent columns held as V-vectors: the flat arrays are viewed as
-        # arrays of vector(V) (the box's columns and the row length are multiples of V), so that a thread loads
-        # and stores V cells at once. Returns (vector, its array, window (V, 2R + 1), line (V + 2R), sides, row, and
-        # vector_access's load, put).
-        NB = -(-R // V)  # vectors each side that hold a row's R neighbours
-        vec = wp.types.vector(length=V, dtype=dtype)
-        arrv = wp.array(dtype=vec)
-        win = wp.types.matrix(shape=(V, 2 * R + 1), dtype=dtype)
-        line = wp.types.vector(length=V + 2 * R, dtype=dtype)
-        load, put = vector_access(V, dtype)
-
-        @wp.func
-        def sides(a: arrv, i: int) -> line:
-            # the R values left and right of vector i along its row, at r[0:R] and r[R + V:] (r[R:R + V] = 0)
-            r = line()
-            for b in range(wp.static(NB)):
-                lo = load(a, i - wp.static(NB) + b)
-                hi = load(a, i + 1 + b)
-                for j in range(wp.static(V)):
-                    if wp.static((b - NB) * V + j + R >= 0):
-                        r[wp.static((b - NB) * V + j + R)] = lo[j]
-                    if wp.static((b + 1) * V + j + R < V + 2 * R):
-                        r[wp.static((b + 1) * V + j + R)] = hi[j]
-            return r
-
-        @wp.func
-        def row(r: line, w: win) -> line:
-            # r with its centre r[R:R + V] taken from the window's centre (the tile's own cells)
-            out = line()
-            for p in range(wp.static(V + 2 * R)):
-                if wp.static(p >= R and p < R + V):
-                    out[p] = w[wp.static(p - R), wp.static(R)]
-                else:
-                    out[p] = r[p]
-            return out
-
-        return vec, arrv, win, line, sides, row, load, put
-
-    @functools.lru_cache(maxsize=None)
-    def make_core_tile(rows: int, V: int):
-        # 2D GPU step of one tile of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded
-        # indices), where there is neither CPML nor a free surface, on the flat arrays viewed as V-vectors
-        # (make_lanes; u: S * Lz * Lx / V, v: Lz * Lx / V). Thread t updates `rows` consecutive rows of V adjacent
-        # columns, with the stencil's values along z in sliding windows and one load per vector of a row along
-        # x; the loop over rows is unrolled.
-        vec, arrv, win, line, sides, row, load, put = make_lanes(V)
-        tile = make_tile(rows, V)
-
-        @wp.func
-        def core_tile(t: int, u: arrv, u_prev: arrv, u_next: arrv, v: arrv, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
-            tl = tile(t, core, lz, lx)
-            z = tl[0]
-            c = tl[2] // wp.static(V)
-            i = tl[3] // wp.static(V)
-            n = lx // wp.static(V)
-            w = win()
-            for m in range(wp.static(2 * R + 1)):
-                a = load(u, i + (m - wp.static(R)) * n)
-                for j in range(wp.static(V)):
-                    w[j, m] = a[j]
-            inv_dx2 = inv_dx * inv_dx
-            for k in range(wp.static(rows)):
-                if z + k < core[1]:
-                    r = row(sides(u, i), w)
-                    up = load(u_prev, i)
-                    vv = load(v, c)
-                    out = vec()
-                    for j in range(wp.static(V)):
-                        dxx = dtype(wp.static(A[0])) * w[j, wp.static(R)]
-                        for m in range(wp.static(R)):
-                            dxx += dtype(wp.static(A[m + 1])) * (r[j + wp.static(R + 1) + m] + r[j + wp.static(R - 1) - m])
-                        out[j] = advance(w[j, wp.static(R)], up[j], vv[j], dt2, (d2w(w[j]) + dxx) * inv_dx2)
-                    put(u_next, i, out)
-                    if wp.static(k + 1 < rows):
-                        a = load(u, i + wp.static(R + 1) * n)
-                        for j in range(wp.static(V)):
-                            for m in range(wp.static(2 * R)):
-                                w[j, m] = w[j, m + 1]
-                            w[j, wp.static(2 * R)] = a[j]
-                    i += n
-                    c += n
-
-        return core_tile, arrv
-
-    def make_step_core(rows: int, V: int):
-        # The 2D GPU step in one 1D launch (unravelling a multi-dimensional thread index costs 64-bit
-        # divisions): thread t + offset below `tiles` does a core tile (make_core_tile; uf..vf: the flat arrays
-        # as V-vectors), from `frame` (a block boundary, so that no warp mixes the two) one interior cell outside
-        # the core as the reference step does it (frame_cell: the CPML strips and the free-surface rows), `cells`
-        # per shot.
-        core_tile, arrv = make_core_tile(rows, V)
-
-        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def step_core(
-            u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
-            psi_z: arr4, psi_y: arr4, psi_x: arr4,
-            zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-            zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
-            az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
-            core: wp.vec4i, cells: int, uf: arrv, uf_prev: arrv, uf_next: arrv, vf: arrv, tiles: int, frame: int, offset: int,
-        ):  # fmt: skip
-            t = wp.tid() + offset
-            if t < frame:
-                if t < tiles:
-                    core_tile(t, uf, uf_prev, uf_next, vf, u.shape[1], u.shape[3], core, dt2, inv_dx)
-            else:
-                s = (t - frame) // cells
-                zx = frame_cell(t - frame - s * cells, u.shape[1], u.shape[3], core)
-                cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
-                     az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
-
-        return step_core
-
     @wp.func
     def strip_cell(t: int, a: arr4) -> wp.vec3i:
         # (s, i, k) of the t-th cell of a 2D strip array a (S, I, 1, K)
@@ -584,13 +508,6 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         r = t - s * n
         i = r // a.shape[3]
         return wp.vec3i(s, i, r - i * a.shape[3])
-
-    @wp.func
-    def record_point(u: arr4, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1, s: int, rec: int, q: int):
-        wq = w[s, rec, q]
-        if wq != dtype(0.0):
-            i = idx[s, rec, q]
-            wp.atomic_add(data, s, rec, n + clock[0], wq * u[s, i[0], i[1], i[2]])
 
     @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def pre_step(
@@ -613,11 +530,158 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             rec = (q - s * per) // idx.shape[2]
             record_point(u, data, idx, w, n, clock, s, rec, q - s * per - rec * idx.shape[2])
 
-    # --- Hand-written adjoints of psi_kernel and step, run by adseismic.gradient's backward sweep; they
-    # match Warp's generated adjoints (tests/test_gradient.py). The step's adjoint gathers: the Laplacian
-    # is symmetric, so the adjoint at a cell sums the weights of the cells whose stencils read it. Going
-    # back in time, the adjoint of u[n] = 2 lam[n+1] + (gathered terms) - adjoint of u[n+2] is written over
-    # the latter, an in-place time step like the forward one.
+    return dict(frame_cell=frame_cell, strip_cell=strip_cell, pre_step=pre_step)
+
+
+def _tile(rows: int, cols: int):
+    """The tile of each thread of a core-layout launch (_core_tile, _adjoint_core), `rows` x `cols` cells."""
+    @wp.func
+    def tile(t: int, box: wp.vec4i, lz: int, lx: int) -> wp.vec4i:
+        # thread t's tile of `rows` rows x `cols` columns of the box rows [box[0], box[1]) x columns
+        # [box[2], box[3]) of every shot (a 2D grid (lz, lx)): first row z, its number of columns, and the
+        # flat indices of its first cell in a model (z lx + x) and in the fields (shot s)
+        nxc = (box[3] - box[2] + wp.static(cols - 1)) // wp.static(cols)
+        blocks = (box[1] - box[0] + wp.static(rows - 1)) // wp.static(rows)
+        q = t // nxc
+        x = box[2] + (t - q * nxc) * wp.static(cols)
+        s = q // blocks
+        z = box[0] + (q - s * blocks) * wp.static(rows)
+        c = z * lx + x
+        return wp.vec4i(z, wp.min(wp.static(cols), box[3] - x), c, s * lz * lx + c)
+
+    return tile
+
+
+@functools.lru_cache(maxsize=None)
+def _lanes(ns, V: int):
+    # Types and row reads of tiles of V adjacent columns held as V-vectors: the flat arrays are viewed as
+    # arrays of vector(V) (the box's columns and the row length are multiples of V), so that a thread loads
+    # and stores V cells at once. Returns (vector, its array, window (V, 2R + 1), line (V + 2R), sides, row, and
+    # vector_access's load, put).
+    dtype, R = ns.dtype, ns.R
+    NB = -(-R // V)  # vectors each side that hold a row's R neighbours
+    vec = wp.types.vector(length=V, dtype=dtype)
+    arrv = wp.array(dtype=vec)
+    win = wp.types.matrix(shape=(V, 2 * R + 1), dtype=dtype)
+    line = wp.types.vector(length=V + 2 * R, dtype=dtype)
+    load, put = vector_access(V, dtype)
+
+    @wp.func
+    def sides(a: arrv, i: int) -> line:
+        # the R values left and right of vector i along its row, at r[0:R] and r[R + V:] (r[R:R + V] = 0)
+        r = line()
+        for b in range(wp.static(NB)):
+            lo = load(a, i - wp.static(NB) + b)
+            hi = load(a, i + 1 + b)
+            for j in range(wp.static(V)):
+                if wp.static((b - NB) * V + j + R >= 0):
+                    r[wp.static((b - NB) * V + j + R)] = lo[j]
+                if wp.static((b + 1) * V + j + R < V + 2 * R):
+                    r[wp.static((b + 1) * V + j + R)] = hi[j]
+        return r
+
+    @wp.func
+    def row(r: line, w: win) -> line:
+        # r with its centre r[R:R + V] taken from the window's centre (the tile's own cells)
+        out = line()
+        for p in range(wp.static(V + 2 * R)):
+            if wp.static(p >= R and p < R + V):
+                out[p] = w[wp.static(p - R), wp.static(R)]
+            else:
+                out[p] = r[p]
+        return out
+
+    return vec, arrv, win, line, sides, row, load, put
+
+
+@functools.lru_cache(maxsize=None)
+def _core_tile(ns, rows: int, V: int):
+    # 2D GPU step of one tile of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded
+    # indices), where there is neither CPML nor a free surface, on the flat arrays viewed as V-vectors
+    # (_lanes; u: S * Lz * Lx / V, v: Lz * Lx / V). Thread t updates `rows` consecutive rows of V adjacent
+    # columns, with the stencil's values along z in sliding windows and one load per vector of a row along
+    # x; the loop over rows is unrolled.
+    dtype, R, A, advance, d2w = ns.dtype, ns.R, ns.A, ns.advance, ns.d2w
+    vec, arrv, win, line, sides, row, load, put = _lanes(ns, V)
+    tile = _tile(rows, V)
+
+    @wp.func
+    def core_tile(t: int, u: arrv, u_prev: arrv, u_next: arrv, v: arrv, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
+        tl = tile(t, core, lz, lx)
+        z = tl[0]
+        c = tl[2] // wp.static(V)
+        i = tl[3] // wp.static(V)
+        n = lx // wp.static(V)
+        w = win()
+        for m in range(wp.static(2 * R + 1)):
+            a = load(u, i + (m - wp.static(R)) * n)
+            for j in range(wp.static(V)):
+                w[j, m] = a[j]
+        inv_dx2 = inv_dx * inv_dx
+        for k in range(wp.static(rows)):
+            if z + k < core[1]:
+                r = row(sides(u, i), w)
+                up = load(u_prev, i)
+                vv = load(v, c)
+                out = vec()
+                for j in range(wp.static(V)):
+                    dxx = dtype(wp.static(A[0])) * w[j, wp.static(R)]
+                    for m in range(wp.static(R)):
+                        dxx += dtype(wp.static(A[m + 1])) * (r[j + wp.static(R + 1) + m] + r[j + wp.static(R - 1) - m])
+                    out[j] = advance(w[j, wp.static(R)], up[j], vv[j], dt2, (d2w(w[j]) + dxx) * inv_dx2)
+                put(u_next, i, out)
+                if wp.static(k + 1 < rows):
+                    a = load(u, i + wp.static(R + 1) * n)
+                    for j in range(wp.static(V)):
+                        for m in range(wp.static(2 * R)):
+                            w[j, m] = w[j, m + 1]
+                        w[j, wp.static(2 * R)] = a[j]
+                i += n
+                c += n
+
+    return core_tile, arrv
+
+
+def _step_core(ns, rows: int, V: int):
+    # The 2D GPU step in one 1D launch (unravelling a multi-dimensional thread index costs 64-bit
+    # divisions): thread t + offset below `tiles` does a core tile (_core_tile; uf..vf: the flat arrays
+    # as V-vectors), from `frame` (a block boundary, so that no warp mixes the two) one interior cell outside
+    # the core as the reference step does it (frame_cell: the CPML strips and the free-surface rows), `cells`
+    # per shot.
+    dtype, arr3, arr4, Axis, frame_cell, cell = ns.dtype, ns.arr3, ns.arr4, ns.Axis, ns.frame_cell, ns.cell
+    core_tile, arrv = _core_tile(ns, rows, V)
+
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def step_core(
+        u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
+        psi_z: arr4, psi_y: arr4, psi_x: arr4,
+        zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
+        core: wp.vec4i, cells: int, uf: arrv, uf_prev: arrv, uf_next: arrv, vf: arrv, tiles: int, frame: int, offset: int,
+    ):  # fmt: skip
+        t = wp.tid() + offset
+        if t < frame:
+            if t < tiles:
+                core_tile(t, uf, uf_prev, uf_next, vf, u.shape[1], u.shape[3], core, dt2, inv_dx)
+        else:
+            s = (t - frame) // cells
+            zx = frame_cell(t - frame - s * cells, u.shape[1], u.shape[3], core)
+            cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                 az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
+
+    return step_core
+
+
+# --- Hand-written adjoints of psi_kernel and step, run by adseismic.gradient's backward sweep; they
+# match Warp's generated adjoints (tests/test_gradient.py). The step's adjoint gathers: the Laplacian
+# is symmetric, so the adjoint at a cell sums the weights of the cells whose stencils read it. Going
+# back in time, the adjoint of u[n] = 2 lam[n+1] + (gathered terms) - adjoint of u[n+2] is written over
+# the latter, an in-place time step like the forward one.
+def _psi_adjoint(ns):
+    """The adjoints of the psi kernels along each axis, and post_adjoint (a 2D adjoint step's last launch)."""
+    dtype, arr3, arr4, iarr1, Axis, d1t = ns.dtype, ns.arr3, ns.arr4, ns.iarr1, ns.Axis, ns.d1t
+    strip_cell = ns.strip_cell
 
     def make_psi_adjoint(axis: int):
         deriv_t = d1t[axis]
@@ -684,6 +748,13 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             if wq != dtype(0.0):
                 i = idx[s, rec, q]
                 wp.atomic_add(adj, s, i[0], i[1], i[2], wq * residual[s, rec, n + clock[0]])
+
+    return dict(psi_adjoint=tuple(k for _, k in psi_adjoints), post_adjoint=post_adjoint)
+
+
+def _adjoint_terms(ns):
+    """The adjoint step's terms along each axis: the gathered stencil weights and the strips' adjoints."""
+    dtype, R, A, fs, arr3, arr4, Axis, d1, d1t = ns.dtype, ns.R, ns.A, ns.fs, ns.arr3, ns.arr4, ns.Axis, ns.d1, ns.d1t
 
     def make_gather(axis: int):
         @wp.func
@@ -780,6 +851,15 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
     sadj_z, sadj_y, sadj_x = make_strip_adjoint(0), make_strip_adjoint(1), make_strip_adjoint(2)
 
+    return dict(gather_z=gather_z, gather_y=gather_y, gather_x=gather_x, sadj_z=sadj_z, sadj_y=sadj_y, sadj_x=sadj_x)
+
+
+def _adjoint_step(ns):
+    """The adjoint step per cell (adjoint_cell) and its kernel over the interior (adjoint_step)."""
+    dtype, R, fs, three, arr3, arr4, Axis, d2z = ns.dtype, ns.R, ns.fs, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.d2z
+    d2y, d2x, gather_z, gather_y, gather_x, sadj_z = ns.d2y, ns.d2x, ns.gather_z, ns.gather_y, ns.gather_x, ns.sadj_z
+    sadj_y, sadj_x = ns.sadj_y, ns.sadj_x
+
     @wp.func
     def adjoint_cell(
         u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
@@ -835,97 +915,114 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
                      adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
                      az, ay, ax, dt2, inv_dx, top, s, zi + wp.static(R), y, xi + wp.static(R))  # fmt: skip
 
-    def make_adjoint_core(rows: int, V: int):
-        # The 2D adjoint step in one 1D launch, laid out as step_core: thread t + offset below `tiles` does a
-        # tile of adjoint_cell on the flat arrays as V-vectors (make_lanes; u, lam, adj, g: S * Lz * Lx / V; w =
-        # v^2 dt^2: Lz * Lx / V) inside `box`, the cells whose stencil neighbours all lie in step_core's core (no
-        # CPML, no surface image), with windows of q = w lam (gathered) and of u (the model gradient's
-        # Laplacian); from `frame` (a block boundary) one interior cell outside `box` (frame_cell), `cells` per
-        # shot, by the per-cell gather.
-        vec, arrv, win, line, sides, row, load, put = make_lanes(V)
-        tile = make_tile(rows, V)
+    return dict(adjoint_cell=adjoint_cell, adjoint_step=adjoint_step)
 
-        @wp.func
-        def adjoint_tile(t: int, u: arrv, lam: arrv, adj: arrv, g: arrv, adj_out: arrv, g_out: arrv, w: arrv, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
-            tl = tile(t, box, lz, lx)
-            z = tl[0]
-            c = tl[2] // wp.static(V)
-            i = tl[3] // wp.static(V)
-            n = lx // wp.static(V)
-            wq = win()
-            wu = win()
-            for m in range(wp.static(2 * R + 1)):
-                o = (m - wp.static(R)) * n
-                a = wp.cw_mul(load(w, c + o), load(lam, i + o))
-                b = load(u, i + o)
+
+def _adjoint_core(ns, rows: int, V: int):
+    # The 2D adjoint step in one 1D launch, laid out as step_core: thread t + offset below `tiles` does a
+    # tile of adjoint_cell on the flat arrays as V-vectors (_lanes; u, lam, adj, g: S * Lz * Lx / V; w =
+    # v^2 dt^2: Lz * Lx / V) inside `box`, the cells whose stencil neighbours all lie in step_core's core (no
+    # CPML, no surface image), with windows of q = w lam (gathered) and of u (the model gradient's
+    # Laplacian); from `frame` (a block boundary) one interior cell outside `box` (frame_cell), `cells` per
+    # shot, by the per-cell gather.
+    dtype, R, A, arr3, arr4, Axis, d2w = ns.dtype, ns.R, ns.A, ns.arr3, ns.arr4, ns.Axis, ns.d2w
+    frame_cell, adjoint_cell = ns.frame_cell, ns.adjoint_cell
+    vec, arrv, win, line, sides, row, load, put = _lanes(ns, V)
+    tile = _tile(rows, V)
+
+    @wp.func
+    def adjoint_tile(t: int, u: arrv, lam: arrv, adj: arrv, g: arrv, adj_out: arrv, g_out: arrv, w: arrv, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
+        tl = tile(t, box, lz, lx)
+        z = tl[0]
+        c = tl[2] // wp.static(V)
+        i = tl[3] // wp.static(V)
+        n = lx // wp.static(V)
+        wq = win()
+        wu = win()
+        for m in range(wp.static(2 * R + 1)):
+            o = (m - wp.static(R)) * n
+            a = wp.cw_mul(load(w, c + o), load(lam, i + o))
+            b = load(u, i + o)
+            for j in range(wp.static(V)):
+                wq[j, m] = a[j]
+                wu[j, m] = b[j]
+        inv_dx2 = inv_dx * inv_dx
+        for k in range(wp.static(rows)):
+            if z + k < box[1]:
+                rq = row(wp.cw_mul(sides(w, c), sides(lam, i)), wq)
+                ru = row(sides(u, i), wu)
+                lc = load(lam, i)
+                ad = load(adj, i)
+                gi = load(g, i)
+                ao = vec()
+                go = vec()
                 for j in range(wp.static(V)):
-                    wq[j, m] = a[j]
-                    wu[j, m] = b[j]
-            inv_dx2 = inv_dx * inv_dx
-            for k in range(wp.static(rows)):
-                if z + k < box[1]:
-                    rq = row(wp.cw_mul(sides(w, c), sides(lam, i)), wq)
-                    ru = row(sides(u, i), wu)
-                    lc = load(lam, i)
-                    ad = load(adj, i)
-                    gi = load(g, i)
-                    ao = vec()
-                    go = vec()
+                    # the order of gather_z + gather_x (from the far neighbour to the near one)
+                    acz = dtype(0.0)
+                    acx = dtype(0.0)
+                    for m in range(wp.static(2 * R + 1)):
+                        acz += dtype(wp.static(A[abs(m - R)])) * wq[j, wp.static(2 * R) - m]
+                    for m in range(wp.static(2 * R + 1)):
+                        acx += dtype(wp.static(A[abs(m - R)])) * rq[j + wp.static(2 * R) - m]
+                    acc = (acz + acx) * inv_dx2
+                    acc += dtype(2.0) * lc[j]
+                    acc -= ad[j]
+                    ao[j] = acc
+                    dxx = dtype(wp.static(A[0])) * ru[j + wp.static(R)]
+                    for m in range(wp.static(R)):
+                        dxx += dtype(wp.static(A[m + 1])) * (ru[j + wp.static(R + 1) + m] + ru[j + wp.static(R - 1) - m])
+                    go[j] = gi[j] + lc[j] * (d2w(wu[j]) * inv_dx2 + dxx * inv_dx2)
+                put(adj_out, i, ao)
+                put(g_out, i, go)
+                if wp.static(k + 1 < rows):
+                    o = wp.static(R + 1) * n
+                    a = wp.cw_mul(load(w, c + o), load(lam, i + o))
+                    b = load(u, i + o)
                     for j in range(wp.static(V)):
-                        # the order of gather_z + gather_x (from the far neighbour to the near one)
-                        acz = dtype(0.0)
-                        acx = dtype(0.0)
-                        for m in range(wp.static(2 * R + 1)):
-                            acz += dtype(wp.static(A[abs(m - R)])) * wq[j, wp.static(2 * R) - m]
-                        for m in range(wp.static(2 * R + 1)):
-                            acx += dtype(wp.static(A[abs(m - R)])) * rq[j + wp.static(2 * R) - m]
-                        acc = (acz + acx) * inv_dx2
-                        acc += dtype(2.0) * lc[j]
-                        acc -= ad[j]
-                        ao[j] = acc
-                        dxx = dtype(wp.static(A[0])) * ru[j + wp.static(R)]
-                        for m in range(wp.static(R)):
-                            dxx += dtype(wp.static(A[m + 1])) * (ru[j + wp.static(R + 1) + m] + ru[j + wp.static(R - 1) - m])
-                        go[j] = gi[j] + lc[j] * (d2w(wu[j]) * inv_dx2 + dxx * inv_dx2)
-                    put(adj_out, i, ao)
-                    put(g_out, i, go)
-                    if wp.static(k + 1 < rows):
-                        o = wp.static(R + 1) * n
-                        a = wp.cw_mul(load(w, c + o), load(lam, i + o))
-                        b = load(u, i + o)
-                        for j in range(wp.static(V)):
-                            for m in range(wp.static(2 * R)):
-                                wq[j, m] = wq[j, m + 1]
-                                wu[j, m] = wu[j, m + 1]
-                            wq[j, wp.static(2 * R)] = a[j]
-                            wu[j, wp.static(2 * R)] = b[j]
-                    i += n
-                    c += n
+                        for m in range(wp.static(2 * R)):
+                            wq[j, m] = wq[j, m + 1]
+                            wu[j, m] = wu[j, m + 1]
+                        wq[j, wp.static(2 * R)] = a[j]
+                        wu[j, wp.static(2 * R)] = b[j]
+                i += n
+                c += n
 
-        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def adjoint_core(
-            u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-            lam: arr4, adj: arr4, g: arr4, adj_out: arr4, g_out: arr4,
-            adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
-            adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
-            adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
-            az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, box: wp.vec4i, cells: int,
-            uf: arrv, lamf: arrv, adjf: arrv, gf: arrv, adjf_out: arrv, gf_out: arrv, wf: arrv, tiles: int, frame: int, offset: int,
-        ):  # fmt: skip
-            t = wp.tid() + offset
-            if t < frame:
-                if t < tiles:
-                    adjoint_tile(t, uf, lamf, adjf, gf, adjf_out, gf_out, wf, u.shape[1], u.shape[3], box, inv_dx)
-            else:
-                s = (t - frame) // cells
-                zx = frame_cell(t - frame - s * cells, u.shape[1], u.shape[3], box)
-                adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_out, g_out, adj_psi_z, adj_psi_y, adj_psi_x,
-                             adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
-                             az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def adjoint_core(
+        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        lam: arr4, adj: arr4, g: arr4, adj_out: arr4, g_out: arr4,
+        adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
+        adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
+        adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, box: wp.vec4i, cells: int,
+        uf: arrv, lamf: arrv, adjf: arrv, gf: arrv, adjf_out: arrv, gf_out: arrv, wf: arrv, tiles: int, frame: int, offset: int,
+    ):  # fmt: skip
+        t = wp.tid() + offset
+        if t < frame:
+            if t < tiles:
+                adjoint_tile(t, uf, lamf, adjf, gf, adjf_out, gf_out, wf, u.shape[1], u.shape[3], box, inv_dx)
+        else:
+            s = (t - frame) // cells
+            zx = frame_cell(t - frame - s * cells, u.shape[1], u.shape[3], box)
+            adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_out, g_out, adj_psi_z, adj_psi_y, adj_psi_x,
+                         adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
+                         az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
 
-        return adjoint_core
+    return adjoint_core
 
-    psi = [make_psi(a) for a in range(3)]
+
+def _points(ns):
+    """Sources and receivers: the operator's points (Hicks), inject and record at locations or at precomputed
+    points (weights, compact), and record_point (a receiver point of pre_step)."""
+    dtype, ndim, HR, W, NPTS, fs, three, arr3 = ns.dtype, ns.ndim, ns.HR, ns.W, ns.NPTS, ns.fs, ns.three, ns.arr3
+    arr4, iarr1 = ns.arr4, ns.iarr1
+
+    @wp.func
+    def record_point(u: arr4, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1, s: int, rec: int, q: int):
+        wq = w[s, rec, q]
+        if wq != dtype(0.0):
+            i = idx[s, rec, q]
+            wp.atomic_add(data, s, rec, n + clock[0], wq * u[s, i[0], i[1], i[2]])
 
     hicks = hicks_weight(dtype)
 
@@ -1024,6 +1121,15 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
 
         return record_fixed
 
+    return dict(record_point=record_point, inject=inject, record=record, weights=weights, compact=compact, inject_fixed=inject_fixed,
+                record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS))  # fmt: skip
+
+
+def _model_ops(ns):
+    """Kernels on the model and the fields outside the time step: padding, Born scattering, illumination, v^2 dt^2 and
+    the model gradient."""
+    dtype, R, three, arr3, arr4, iarr1 = ns.dtype, ns.R, ns.three, ns.arr3, ns.arr4, ns.iarr1
+
     @wp.kernel(module="unique")
     def pad_model(v: arr3, vpad: arr3, origin: wp.vec3i):
         # Padded model from the physical one, extended by edge replication into PML and halo.
@@ -1071,12 +1177,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
             acc += g[s, z, y, x]
         grad[z, y, x] = grad[z, y, x] + dtype(2.0) * v[z, y, x] * dt2 * acc
 
-    return Kernels(
-        Axis=Axis, step=step, step_core=functools.lru_cache(maxsize=None)(make_step_core), step_rows=step_rows, step_core_rows=step_core_rows, psi=psi, inject=inject,
-        adjoint_step=adjoint_step, adjoint_core=functools.lru_cache(maxsize=None)(make_adjoint_core),
-        squared=squared, model_gradient=model_gradient, psi_adjoint=tuple(k for _, k in psi_adjoints), post_adjoint=post_adjoint, pre_step=pre_step,
-        record=record, weights=weights, compact=compact, inject_fixed=inject_fixed, record_fixed=make_record_fixed(1), record_summed=make_record_fixed(NPTS), pad_model=pad_model, scatter=scatter, energy=energy, halo=R, operator_points=NPTS,
-    )  # fmt: skip
+    return dict(pad_model=pad_model, scatter=scatter, energy=energy, squared=squared, model_gradient=model_gradient)
 
 
 def _strip_layout(n_lo: int, n_hi: int, length: int, halo: int):
@@ -1304,7 +1405,7 @@ class Acoustic:
                   adj_psi[0][2], adj_zeta[0][2], self.axes[0], self.axes[2], self.inv_dx, z, x, data, idx, wq, n, clock], device=self.device)  # fmt: skip
 
     def tiles(self, box, rows=None, cols=None) -> int:
-        """Threads of a core-layout launch over `box` (make_tile; default: this helper's rows and columns)."""
+        """Threads of a core-layout launch over `box` (_tile; default: this helper's rows and columns)."""
         rows, cols = rows or self.core_rows, cols or self.core_cols
         return self.n_shots * -(-(box[1] - box[0]) // rows) * -(-(box[3] - box[2]) // cols)
 
@@ -1315,7 +1416,7 @@ class Acoustic:
         return self.k.adjoint_core(self.core_rows, self.core_cols)
 
     def _merged(self, kernel, inputs, box, frame_cells: int, part=None):
-        """Launch a core-and-frame kernel (make_step_core, make_adjoint_core) over the tiles of `box`, then, from
+        """Launch a core-and-frame kernel (_step_core, _adjoint_core) over the tiles of `box`, then, from
         a block boundary, the frame's cells; part "core" or "frame": only that part (for timing)."""
         tiles = self.tiles(box)
         frame = -(-tiles // self.core_threads) * self.core_threads

@@ -62,6 +62,7 @@ kernels' adjoints are Warp's generated ones, launched directly (adjoint=True).
 
 import functools
 import math
+from types import SimpleNamespace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -160,12 +161,33 @@ TRANSPOSE_ROWS, TRANSPOSE_THREADS = 16, 128  # cells per thread along z, threads
 PSI = {"vx_x": 1, "vx_z": 0, "vz_x": 1, "vz_z": 0, "s_x": 1, "s_z": 0, "xz_z": 0, "xz_x": 1}
 PSI_V = ("vx_x", "vx_z", "vz_x", "vz_z")  # of the velocity update
 PSI_S = ("s_x", "s_z", "xz_z", "xz_x")  # of the stress update
-MATERIALS = ("bx", "bz", "l2m", "lam", "mu", "muh", "b")  # see build's `materials`
+MATERIALS = ("bx", "bz", "l2m", "lam", "mu", "muh", "b")  # see _materials' `materials`
 
 
 @functools.lru_cache(maxsize=None)
 def build(order: int, dtype, free_surface: bool):
     """Kernels for one (order, dtype, free_surface) combination, compiled once per process."""
+    ns = _types(order, dtype, free_surface)
+    for builder in (_derivatives, _cpml, _pointwise, _indexing, _cells, _values, _velocity_adjoints, _stress_adjoints, _shots,
+                    _materials, _sources, _receivers, _layouts):  # fmt: skip
+        vars(ns).update(builder(ns))  # the Warp funcs and kernels it makes, for the builders after it
+    return Kernels(
+        Axis=ns.Axis, materials=ns.materials, velocity=ns.velocity, stress=ns.stress, updates=ns.updates,
+        velocity_adjoint=ns.velocity_adjoint, velocity_transpose=ns.velocity_transpose, stress_adjoint=ns.stress_adjoint,
+        stress_transpose=ns.stress_transpose, adjoints=ns.adjoints, split_adjoints=ns.split_adjoints, sum_shots=ns.sum_shots,
+        inject_force=ns.inject_force, inject_moment=ns.inject_moment, inject_force_op=ns.inject_force_op,
+        inject_moment_op=ns.inject_moment_op, weights=ns.weights, record=ns.record, record_adjoint=ns.record_adjoint,
+        add_into=ns.add_into, pad_model=ns.pad_model, halo=ns.M, operator_points=ns.NPTS,
+    )  # fmt: skip
+
+
+# The builders below make build's Warp funcs and kernels, a concern each. Each takes the namespace `ns` (_types' constants
+# and types, and what the builders before it made) and returns what it makes; a Warp func or kernel finds the names it
+# uses among its builder's locals (unpacked from ns) and the module's globals.
+
+
+def _types(order: int, dtype, free_surface: bool):
+    """The constants and Warp types of one configuration: a namespace that build's builders read and add to."""
     M = order // 2
     HR = HICKS_RADIUS
     W = 2 * HR
@@ -187,100 +209,106 @@ def build(order: int, dtype, free_surface: bool):
         ah: wp.array(dtype=dtype)  # CPML a, b at half positions (index p stands for p + 1/2)
         bh: wp.array(dtype=dtype)
 
-    def make_dz(mr: int, half_in: bool, image: bool):
-        # d/dz (times dz) with mr staggered weights of a field on half (half_in) or integer z nodes,
-        # evaluated at integer (half_in) or half nodes; `image`: antisymmetric image above row `top`.
-        # Returns the derivative and its transpose (adj += g d(dz)/df, with atomics).
-        c = STAGGERED_DERIVATIVE[2 * mr]
-        h = 1 if half_in else 0
+    return SimpleNamespace(M=M, HR=HR, W=W, NPTS=NPTS, C=C, fs=fs, dtype=dtype, arr1=arr1, arr2=arr2, arr3=arr3, arr4=arr4,
+                           iarr1=iarr1, vecw=vecw, Axis=Axis)  # fmt: skip
 
-        @wp.func
-        def read(f: arr3, s: int, z: int, x: int, top: int) -> dtype:
-            if wp.static(image and fs):
-                if z < top:
-                    return -f[s, 2 * top - wp.static(h) - z, x]
-            return f[s, z, x]
 
-        @wp.func
-        def dz(f: arr3, s: int, z: int, x: int, top: int) -> dtype:
-            acc = dtype(0.0)
-            for m in range(wp.static(mr)):
-                lo = read(f, s, z - m - wp.static(h), x, top)
-                hi = read(f, s, z + m + wp.static(1 - h), x, top)
-                acc += dtype(wp.static(c[m])) * (hi - lo)
-            return acc
+def make_dz(ns, mr: int, half_in: bool, image: bool):
+    # d/dz (times dz) with mr staggered weights of a field on half (half_in) or integer z nodes,
+    # evaluated at integer (half_in) or half nodes; `image`: antisymmetric image above row `top`.
+    # Returns the derivative and its transpose (adj += g d(dz)/df, with atomics).
+    fs, dtype, arr3 = ns.fs, ns.dtype, ns.arr3
+    c = STAGGERED_DERIVATIVE[2 * mr]
+    h = 1 if half_in else 0
 
-        @wp.func
-        def spread(adj: arr3, s: int, z: int, x: int, top: int, g: dtype):
-            zz = z
-            gg = g
-            if wp.static(image and fs):
-                if z < top:
-                    zz = 2 * top - wp.static(h) - z
-                    gg = -g
-            wp.atomic_add(adj, s, zz, x, gg)
+    @wp.func
+    def read(f: arr3, s: int, z: int, x: int, top: int) -> dtype:
+        if wp.static(image and fs):
+            if z < top:
+                return -f[s, 2 * top - wp.static(h) - z, x]
+        return f[s, z, x]
 
-        @wp.func
-        def dz_t(adj: arr3, s: int, z: int, x: int, top: int, g: dtype):
-            for m in range(wp.static(mr)):
-                cg = dtype(wp.static(c[m])) * g
-                spread(adj, s, z - m - wp.static(h), x, top, -cg)
-                spread(adj, s, z + m + wp.static(1 - h), x, top, cg)
+    @wp.func
+    def dz(f: arr3, s: int, z: int, x: int, top: int) -> dtype:
+        acc = dtype(0.0)
+        for m in range(wp.static(mr)):
+            lo = read(f, s, z - m - wp.static(h), x, top)
+            hi = read(f, s, z + m + wp.static(1 - h), x, top)
+            acc += dtype(wp.static(c[m])) * (hi - lo)
+        return acc
 
-        return dz, dz_t
+    @wp.func
+    def spread(adj: arr3, s: int, z: int, x: int, top: int, g: dtype):
+        zz = z
+        gg = g
+        if wp.static(image and fs):
+            if z < top:
+                zz = 2 * top - wp.static(h) - z
+                gg = -g
+        wp.atomic_add(adj, s, zz, x, gg)
 
-    def make_dx(half_in: bool):
-        # d/dx (times dx) at integer (half_in) or half nodes on 3D and flat arrays, and its transpose
-        h = 1 if half_in else 0
+    @wp.func
+    def dz_t(adj: arr3, s: int, z: int, x: int, top: int, g: dtype):
+        for m in range(wp.static(mr)):
+            cg = dtype(wp.static(c[m])) * g
+            spread(adj, s, z - m - wp.static(h), x, top, -cg)
+            spread(adj, s, z + m + wp.static(1 - h), x, top, cg)
 
-        @wp.func
-        def dx(f: arr3, s: int, z: int, x: int) -> dtype:
-            acc = dtype(0.0)
-            for m in range(wp.static(M)):
-                acc += dtype(wp.static(C[m])) * (f[s, z, x + m + wp.static(1 - h)] - f[s, z, x - m - wp.static(h)])
-            return acc
+    return dz, dz_t
 
-        @wp.func
-        def dx_flat(f: arr1, i: int) -> dtype:
-            acc = dtype(0.0)
-            for m in range(wp.static(M)):
-                acc += dtype(wp.static(C[m])) * (f[i + m + wp.static(1 - h)] - f[i - m - wp.static(h)])
-            return acc
 
-        @wp.func
-        def dx_t(adj: arr3, s: int, z: int, x: int, g: dtype):
-            for m in range(wp.static(M)):
-                cg = dtype(wp.static(C[m])) * g
-                wp.atomic_add(adj, s, z, x - m - wp.static(h), -cg)
-                wp.atomic_add(adj, s, z, x + m + wp.static(1 - h), cg)
+def make_dx(ns, half_in: bool):
+    # d/dx (times dx) at integer (half_in) or half nodes, and its transpose
+    M, C, dtype, arr3 = ns.M, ns.C, ns.dtype, ns.arr3
+    h = 1 if half_in else 0
 
-        return dx, dx_flat, dx_t
+    @wp.func
+    def dx(f: arr3, s: int, z: int, x: int) -> dtype:
+        acc = dtype(0.0)
+        for m in range(wp.static(M)):
+            acc += dtype(wp.static(C[m])) * (f[s, z, x + m + wp.static(1 - h)] - f[s, z, x - m - wp.static(h)])
+        return acc
 
-    def make_gather(half_in: bool):
-        # transpose of a full-order derivative as a gather: sum over the nodes whose stencil reads node i
-        # (flat index; step 1 along x, lx along z) of their adjoint t
-        h = 1 if half_in else 0
+    @wp.func
+    def dx_t(adj: arr3, s: int, z: int, x: int, g: dtype):
+        for m in range(wp.static(M)):
+            cg = dtype(wp.static(C[m])) * g
+            wp.atomic_add(adj, s, z, x - m - wp.static(h), -cg)
+            wp.atomic_add(adj, s, z, x + m + wp.static(1 - h), cg)
 
-        @wp.func
-        def gather(t: arr1, i: int, step: int) -> dtype:
-            acc = dtype(0.0)
-            for m in range(wp.static(M)):
-                acc += dtype(wp.static(C[m])) * (t[i + (wp.static(h - 1) - m) * step] - t[i + (m + wp.static(h)) * step])
-            return acc
+    return dx, dx_t
 
-        return gather
 
-    dx_of_int, dxf_of_int, dxt_of_int = make_dx(False)
-    dx_of_half, dxf_of_half, dxt_of_half = make_dx(True)
-    gather_int, gather_half = make_gather(False), make_gather(True)
-    dz_szz, dzt_szz = make_dz(M, False, True)  # at vz nodes
-    dz_sxz, dzt_sxz = make_dz(M, True, True)  # at vx nodes
+def make_gather(ns, half_in: bool):
+    # transpose of a full-order derivative as a gather: sum over the nodes whose stencil reads node i
+    # (flat index; step 1 along x, lx along z) of their adjoint t
+    M, C, dtype, arr1 = ns.M, ns.C, ns.dtype, ns.arr1
+    h = 1 if half_in else 0
+
+    @wp.func
+    def gather(t: arr1, i: int, step: int) -> dtype:
+        acc = dtype(0.0)
+        for m in range(wp.static(M)):
+            acc += dtype(wp.static(C[m])) * (t[i + (wp.static(h - 1) - m) * step] - t[i + (m + wp.static(h)) * step])
+        return acc
+
+    return gather
+
+
+def _derivatives(ns):
+    """The staggered derivatives and their transposes (scatters with atomics, and gathers)."""
+    M, C, fs, dtype, arr3, vecw = ns.M, ns.C, ns.fs, ns.dtype, ns.arr3, ns.vecw
+    dx_of_int, dxt_of_int = make_dx(ns, False)
+    dx_of_half, dxt_of_half = make_dx(ns, True)
+    gather_int, gather_half = make_gather(ns, False), make_gather(ns, True)
+    dz_szz, dzt_szz = make_dz(ns, M, False, True)  # at vz nodes
+    dz_sxz, dzt_sxz = make_dz(ns, M, True, True)  # at vx nodes
     # velocity z-derivatives in the stress update: full order, and orders 2, 4, 6 (m = 1, 2, 3 weights) for
     # the rows next to a free surface
-    dz_vz, dzt_vz = make_dz(M, True, False)
-    dz_vx, dzt_vx = make_dz(M, False, False)
-    (dz_vz1, dzt_vz1), (dz_vz2, dzt_vz2), (dz_vz3, dzt_vz3) = (make_dz(m, True, False) for m in (1, 2, 3))
-    (dz_vx1, dzt_vx1), (dz_vx2, dzt_vx2), (dz_vx3, dzt_vx3) = (make_dz(m, False, False) for m in (1, 2, 3))
+    dz_vz, dzt_vz = make_dz(ns, M, True, False)
+    dz_vx, dzt_vx = make_dz(ns, M, False, False)
+    (dz_vz1, dzt_vz1), (dz_vz2, dzt_vz2), (dz_vz3, dzt_vz3) = (make_dz(ns, m, True, False) for m in (1, 2, 3))
+    (dz_vx1, dzt_vx1), (dz_vx2, dzt_vx2), (dz_vx3, dzt_vx3) = (make_dz(ns, m, False, False) for m in (1, 2, 3))
 
     @wp.func
     def dvz_normal(vz: arr3, s: int, z: int, x: int, top: int) -> dtype:
@@ -358,6 +386,17 @@ def build(order: int, dtype, free_surface: bool):
             acc += dtype(wp.static(C[m])) * (w[wp.static(M) + m] - w[wp.static(M - 1) - m])
         return acc
 
+    return dict(
+        dx_of_int=dx_of_int, dxt_of_int=dxt_of_int, dx_of_half=dx_of_half, dxt_of_half=dxt_of_half, gather_int=gather_int,
+        gather_half=gather_half, dz_szz=dz_szz, dzt_szz=dzt_szz, dz_sxz=dz_sxz, dzt_sxz=dzt_sxz, dvz_normal=dvz_normal,
+        dvz_normal_t=dvz_normal_t, dvx_shear=dvx_shear, dvx_shear_t=dvx_shear_t, dwin=dwin,
+    )  # fmt: skip
+
+
+def _cpml(ns):
+    """The CPML memory variables' updates and their adjoints."""
+    dtype, arr1, arr3 = ns.dtype, ns.arr1, ns.arr3
+
     # The per-cell kernels load everything a cell needs before they store anything: Warp's arrays may alias, so the
     # compiler keeps a load after an earlier store, and a load, store, load, ... chain waits on memory at each load.
 
@@ -400,6 +439,13 @@ def build(order: int, dtype, free_surface: bool):
         adj[s, row, col] = bp * q
         return g + ap * q
 
+    return dict(cpml_psi=cpml_psi, cpml=cpml, cpml_value=cpml_value, psi_adjoint=psi_adjoint, cpml_t=cpml_t)
+
+
+def _pointwise(ns):
+    """The updates' pointwise terms, and the free surface's rows."""
+    M, fs, dtype = ns.M, ns.fs, ns.dtype
+
     @wp.func
     def advance(f: dtype, dt: dtype, m: dtype, d: dtype) -> dtype:
         return f + dt * m * d
@@ -420,7 +466,64 @@ def build(order: int, dtype, free_surface: bool):
             return z < top + wp.static(M)
         return False
 
-    # --- per-cell updates (reference kernels and the frame) -------------------------------------------
+    return dict(advance=advance, normal_rates=normal_rates, surface_modulus=surface_modulus, surface_row=surface_row)
+
+
+def _indexing(ns):
+    """Which cells a thread takes: the frame's (outside a box), a column's, and whether a cell lies in a box."""
+    M = ns.M
+
+    @wp.func
+    def frame_cell(f: int, lz: int, lx: int, core: wp.vec4i):
+        # (z, x) of the f-th interior cell outside the core rows [core[0], core[1]) x columns
+        # [core[2], core[3]): first the full rows above and below the core, then the core rows' sides
+        nx = lx - wp.static(2 * M)
+        above = (core[0] - wp.static(M)) * nx
+        below = (lz - wp.static(M) - core[1]) * nx
+        z = int(0)
+        x = int(0)
+        if f < above:
+            z = wp.static(M) + f // nx
+            x = wp.static(M) + f % nx
+        elif f < above + below:
+            z = core[1] + (f - above) // nx
+            x = wp.static(M) + (f - above) % nx
+        else:
+            g = f - above - below
+            sides = core[2] - wp.static(M) + lx - wp.static(M) - core[3]
+            z = core[0] + g // sides
+            x = wp.static(M) + g % sides
+            if x >= core[2]:
+                x = x - core[2] + core[3]
+        return z, x
+
+    @wp.func
+    def column(t: int, lz: int, lx: int, box: wp.vec4i, rows: int):
+        # thread t of a 1D launch over the rows [box[0], box[1]) x columns [box[2], box[3]) of every shot,
+        # `rows` cells along z each: flat field index of its first cell, flat model index, number of cells
+        nx = box[3] - box[2]
+        blocks = (box[1] - box[0] + rows - 1) // rows
+        q = t // nx
+        x = box[2] + t - q * nx
+        s = q // blocks
+        z = box[0] + (q - s * blocks) * rows
+        n = wp.min(rows, box[1] - z)
+        c = z * lx + x
+        return s * lz * lx + c, c, n
+
+    @wp.func
+    def inside(z: int, x: int, b: wp.vec4i) -> bool:
+        return z >= b[0] and z < b[1] and x >= b[2] and x < b[3]
+
+    return dict(frame_cell=frame_cell, column=column, inside=inside)
+
+
+def _cells(ns):
+    """The per-cell updates (reference kernels and the frame)."""
+    M, fs, dtype, arr2, arr3, Axis = ns.M, ns.fs, ns.dtype, ns.arr2, ns.arr3, ns.Axis
+    dx_of_int, dx_of_half, dz_sxz, dz_szz, dvz_normal, dvx_shear = (ns.dx_of_int, ns.dx_of_half, ns.dz_sxz, ns.dz_szz, ns.dvz_normal,
+                                                                    ns.dvx_shear)  # fmt: skip
+    cpml_psi, cpml, advance, normal_rates, surface_modulus = ns.cpml_psi, ns.cpml, ns.advance, ns.normal_rates, ns.surface_modulus
 
     @wp.func
     def velocity_cell(
@@ -515,82 +618,65 @@ def build(order: int, dtype, free_surface: bool):
         stress_cell(vx, vz, sxx, szz, sxz, l2m, lam, mu, muh, p_s_x, p_s_z, p_xz_z, p_xz_x, n_s_x, n_s_z, n_xz_z, n_xz_x,
                     sxx_new, szz_new, sxz_new, az, ax, dt, inv_dx, top, s, zi + wp.static(M), xi + wp.static(M))  # fmt: skip
 
-    # --- fast path: core tiles and frame --------------------------------------------------------------
+    return dict(velocity_cell=velocity_cell, stress_cell=stress_cell, velocity=velocity, stress=stress)
+
+
+# Sources of the tiles' windows and lines (`value`): a field (flat array), or what pass 1 of the hand-written
+# adjoints stores as t_k at a core cell (no CPML, no surface), the adjoint of a raw stencil sum: Scaled, dt m g / dx
+# for an update f += dt m (sum) / dx, g the adjoint of f; Normal, (p dt gx + q dt gz) / dx for the normal stresses'
+# sums (normal_rates with materials p, q; gx, gz the adjoints of sxx, szz). base: flat index of the shot's first cell.
+def make_products(ns, arr):
+    # Scaled and Normal on flat arrays (arr1) or on arrays of vectors (base then in vectors), and their constructors
+    dtype = ns.dtype
+
+    @wp.struct
+    class Scaled:
+        g: arr
+        m: arr
+        base: int
+        dt: dtype
+        inv_dx: dtype
+
+    @wp.struct
+    class Normal:
+        gx: arr
+        gz: arr
+        p: arr
+        q: arr
+        base: int
+        dt: dtype
+        inv_dx: dtype
 
     @wp.func
-    def frame_cell(f: int, lz: int, lx: int, core: wp.vec4i):
-        # (z, x) of the f-th interior cell outside the core rows [core[0], core[1]) x columns
-        # [core[2], core[3]): first the full rows above and below the core, then the core rows' sides
-        nx = lx - wp.static(2 * M)
-        above = (core[0] - wp.static(M)) * nx
-        below = (lz - wp.static(M) - core[1]) * nx
-        z = int(0)
-        x = int(0)
-        if f < above:
-            z = wp.static(M) + f // nx
-            x = wp.static(M) + f % nx
-        elif f < above + below:
-            z = core[1] + (f - above) // nx
-            x = wp.static(M) + (f - above) % nx
-        else:
-            g = f - above - below
-            sides = core[2] - wp.static(M) + lx - wp.static(M) - core[3]
-            z = core[0] + g // sides
-            x = wp.static(M) + g % sides
-            if x >= core[2]:
-                x = x - core[2] + core[3]
-        return z, x
+    def scaled(g: arr, m: arr, base: int, dt: dtype, inv_dx: dtype) -> Scaled:
+        a = Scaled()
+        a.g = g
+        a.m = m
+        a.base = base
+        a.dt = dt
+        a.inv_dx = inv_dx
+        return a
 
-    # Sources of the tiles' windows and lines (`value`): a field (flat array), or what pass 1 of the hand-written
-    # adjoints stores as t_k at a core cell (no CPML, no surface), the adjoint of a raw stencil sum: Scaled, dt m g / dx
-    # for an update f += dt m (sum) / dx, g the adjoint of f; Normal, (p dt gx + q dt gz) / dx for the normal stresses'
-    # sums (normal_rates with materials p, q; gx, gz the adjoints of sxx, szz). base: flat index of the shot's first cell.
+    @wp.func
+    def normal(gx: arr, gz: arr, p: arr, q: arr, base: int, dt: dtype, inv_dx: dtype) -> Normal:
+        a = Normal()
+        a.gx = gx
+        a.gz = gz
+        a.p = p
+        a.q = q
+        a.base = base
+        a.dt = dt
+        a.inv_dx = inv_dx
+        return a
 
-    def make_products(arr):
-        # Scaled and Normal on flat arrays (arr1) or on arrays of vectors (base then in vectors), and their constructors
-        @wp.struct
-        class Scaled:
-            g: arr
-            m: arr
-            base: int
-            dt: dtype
-            inv_dx: dtype
+    return Scaled, Normal, scaled, normal
 
-        @wp.struct
-        class Normal:
-            gx: arr
-            gz: arr
-            p: arr
-            q: arr
-            base: int
-            dt: dtype
-            inv_dx: dtype
 
-        @wp.func
-        def scaled(g: arr, m: arr, base: int, dt: dtype, inv_dx: dtype) -> Scaled:
-            a = Scaled()
-            a.g = g
-            a.m = m
-            a.base = base
-            a.dt = dt
-            a.inv_dx = inv_dx
-            return a
-
-        @wp.func
-        def normal(gx: arr, gz: arr, p: arr, q: arr, base: int, dt: dtype, inv_dx: dtype) -> Normal:
-            a = Normal()
-            a.gx = gx
-            a.gz = gz
-            a.p = p
-            a.q = q
-            a.base = base
-            a.dt = dt
-            a.inv_dx = inv_dx
-            return a
-
-        return Scaled, Normal, scaled, normal
-
-    Scaled, Normal, scaled, normal = make_products(arr1)
+def _values(ns):
+    """`value` of a flat array, Scaled or Normal at a flat index (the fused adjoint tiles' sources), and the constructors of
+    Scaled and Normal."""
+    dtype, arr1, normal_rates = ns.dtype, ns.arr1, ns.normal_rates
+    Scaled, Normal, scaled, normal = make_products(ns, arr1)
 
     @wp.func
     def value(f: arr1, i: int) -> dtype:
@@ -606,328 +692,338 @@ def build(order: int, dtype, free_surface: bool):
         r, _ = normal_rates(a.p[c], a.q[c], a.dt * a.gx[i], a.dt * a.gz[i])
         return r * a.inv_dx
 
-    def make_tiling(rows: int, cols: int, width: int):
-        # What tiles of rows x cols cells share (make_updates, make_adjoints): the place of tile t, and sliding z-windows
-        # w[j, m] (column j, row m) and x-lines r[p] of a source f with their derivative. The loaders read f in blocks of
-        # `width` adjacent cells (get), their indices in blocks: a vector of an array of vectors (arrv; the forward's and
-        # the split adjoint's fields and models), of ScaledV or NormalV (the split adjoint's t_k), or with width 1 any
-        # `value` (flat indices; the fused adjoint's). width divides cols.
-        win = wp.types.matrix(shape=(cols, 2 * M), dtype=dtype)
-        line = wp.types.vector(length=cols + 2 * M - 1, dtype=dtype)
-        vec = wp.types.vector(length=width, dtype=dtype)
-        arrv = wp.array(dtype=vec)
-        alone = -1  # load_line's window row when no window holds the line's values
-        lo, hi = -M // width, (cols + M - 1) // width  # the blocks a line reaches, relative to the tile's first
-        load, put = vector_access(width, dtype)
+    return dict(scaled=scaled, normal=normal, value=value)
 
-        @wp.func
-        def get(f: arrv, i: int) -> vec:
-            return load(f, i)
 
-        @wp.func
-        def get(f: Any, i: int) -> vec:  # noqa: F811 (a Warp overload)
-            r = vec()
-            for j in range(wp.static(width)):
-                r[j] = value(f, i * wp.static(width) + j)
-            return r
-
-        # Scaled and Normal on arrays of vectors (base in vectors): their `value`s a block at a time
-        ScaledV, NormalV, scaled_v, normal_v = make_products(arrv)
-
-        @wp.func
-        def get(a: ScaledV, i: int) -> vec:  # noqa: F811
-            g = load(a.g, i)
-            m = load(a.m, i - a.base)
-            r = vec()
-            for j in range(wp.static(width)):
-                r[j] = a.dt * m[j] * g[j] * a.inv_dx
-            return r
-
-        @wp.func
-        def get(a: NormalV, i: int) -> vec:  # noqa: F811
-            gx = load(a.gx, i)
-            gz = load(a.gz, i)
-            p = load(a.p, i - a.base)
-            q = load(a.q, i - a.base)
-            r = vec()
-            for j in range(wp.static(width)):
-                u, _ = normal_rates(p[j], q[j], a.dt * gx[j], a.dt * gz[j])
-                r[j] = u * a.inv_dx
-            return r
-
-        @wp.func
-        def dline(r: line, j: int) -> dtype:
-            # x-derivative (times dx) at column j of a tile from a line centred between r[j + M - 1] and r[j + M]
-            acc = dtype(0.0)
-            for m in range(wp.static(M)):
-                acc += dtype(wp.static(C[m])) * (r[j + wp.static(M) + m] - r[j + wp.static(M - 1) - m])
-            return acc
-
-        @wp.func
-        def tile(t: int, lz: int, lx: int, core: wp.vec4i):
-            # tile t of the core (x fastest, then rows, then shots): flat field and model indices of its first cell,
-            # its first row and its number of columns (< cols at the core's right edge)
-            nxc = (core[3] - core[2] + wp.static(cols - 1)) // wp.static(cols)
-            blocks = (core[1] - core[0] + wp.static(rows - 1)) // wp.static(rows)
-            q = t // nxc
-            x = core[2] + (t - q * nxc) * wp.static(cols)
-            s = q // blocks
-            z = core[0] + (q - s * blocks) * wp.static(rows)
-            c = z * lx + x
-            return s * lz * lx + c, c, z, wp.min(wp.static(cols), core[3] - x)
-
-        @wp.func
-        def place(t: int, lz: int, lx: int, core: wp.vec4i):
-            # tile t's field and model vector indices, first row, and vectors per row (cols = width, core's columns
-            # from and to multiples of it)
-            i, c, z, _ = tile(t, lz, lx, core)
-            return i // wp.static(width), c // wp.static(width), z, lx // wp.static(width)
-
-        @wp.func
-        def load_window(f: Any, i: int, n: int, first: int) -> win:
-            # f at rows first .. first + 2M - 1 (relative to block i, n blocks per row) of the tile's columns
-            w = win()
-            for m in range(wp.static(2 * M)):
-                for b in range(wp.static(cols // width)):
-                    a = get(f, i + b + (first + m) * n)
-                    for j in range(wp.static(width)):
-                        w[wp.static(b * width) + j, m] = a[j]
-            return w
-
-        @wp.func
-        def slide(w: win, f: Any, i: int, n: int, newest: int) -> win:
-            # the window one row further down: f at row `newest` (relative to i) enters
-            for j in range(wp.static(cols)):
-                for m in range(wp.static(2 * M - 1)):
-                    w[j, m] = w[j, m + 1]
-            for b in range(wp.static(cols // width)):
-                a = get(f, i + b + newest * n)
-                for j in range(wp.static(width)):
-                    w[wp.static(b * width) + j, wp.static(2 * M - 1)] = a[j]
-            return w
-
-        @wp.func
-        def load_line(f: Any, i: int, first: int, w: win, m: int) -> line:
-            # f at columns first .. first + cols + 2M - 2 (relative to the tile's first, block i), read from the blocks
-            # that hold them (the neighbours' too); the tile's own columns r[j - first] are taken from the window's
-            # row m (m = alone: from f)
-            r = line()
-            for q in range(wp.static(hi - lo + 1)):
-                b = q + wp.static(lo)
-                o = b * wp.static(width)  # the block's first column
-                if o + wp.static(width) > first and o < first + wp.static(cols + 2 * M - 1):
-                    if m == wp.static(alone) or o < 0 or o >= wp.static(cols):
-                        a = get(f, i + b)
-                        for j in range(wp.static(width)):
-                            p = o + j - first
-                            if p >= 0 and p < wp.static(cols + 2 * M - 1):
-                                r[p] = a[j]
-                    else:
-                        for j in range(wp.static(width)):
-                            r[o + j - first] = w[o + j, m]
-            return r
-
-        return vec, arrv, alone, get, put, dline, tile, place, load_window, slide, load_line, scaled_v, normal_v
-
-    tiling = functools.lru_cache(maxsize=None)(make_tiling)
-
-    def make_updates(rows: int, cols: int, lean: bool):
-        # The fast path's (velocity, stress) kernels for core tiles of rows x cols cells (see Layout). One 1D launch
-        # (unravelling a multi-dimensional thread index costs 64-bit divisions) covers threads offset + tid: those
-        # below `tiles` update a core tile each, on the flat arrays viewed as vectors of cols values (arrv; fields
-        # S * Lz * Lx / cols, models Lz * Lx / cols; the core's columns start and end at multiples of cols), those
-        # from `frame` on (a block boundary) one frame cell each with the reference's per-cell code. A tile loads and
-        # stores its cells of a row as one vector per array, keeps the z-stencil's values in sliding windows w[j, m]
-        # (column j, row m) and loads each value of a row along x once into a line r[p], sharing it between the
-        # tile's columns; the loop over rows is unrolled. Every sum is formed in the reference's order, so a tile
-        # reproduces the per-cell kernels bit for bit where the compiler contracts no multiply-adds (the CPU).
-        vec, arrv, alone, get, put, dline, _, place, load_window, slide, load_line, _, _ = tiling(rows, cols, cols)
-        nodes = wp.types.vector(length=cols + 1, dtype=dtype)  # lean: a model row at the tile's columns and the next
-
-        @wp.func
-        def load_nodes(f: arrv, c: int) -> nodes:
-            a = get(f, c)
-            r = nodes()
-            for p in range(wp.static(cols)):
-                r[p] = a[p]
-            e = get(f, c + 1)
-            r[wp.static(cols)] = e[0]
-            return r
-
-        @wp.func
-        def reciprocals(u: nodes) -> nodes:
-            r = nodes()
-            for p in range(wp.static(cols + 1)):
-                r[p] = dtype(1.0) / u[p]
-            return r
-
-        @wp.func
-        def velocity_tile(
-            vx: arrv, vz: arrv, sxx: arrv, szz: arrv, sxz: arrv, m1: arrv, m2: arrv, vx_new: arrv, vz_new: arrv,
-            t: int, lz: int, lx: int, core: wp.vec4i, dt: dtype, inv_dx: dtype,
-        ):  # fmt: skip
-            # velocity_cell without CPML and surface; m1, m2 = bx, bz, or (lean) m1 = 1/rho and bx, bz its means
-            i, c, z, n = place(t, lz, lx, core)
-            wa = load_window(sxz, i, n, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (for vx)
-            wb = load_window(szz, i, n, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (for vz)
-            b0 = nodes()  # lean: 1/rho at row z and z + 1, columns x .. x + cols
-            b1 = nodes()
-            if wp.static(lean):
-                b1 = load_nodes(m1, c)
-            for k in range(wp.static(rows)):
-                if z + k < core[1]:
-                    ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 ..
-                    rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M ..
-                    ux = get(vx, i)
-                    uz = get(vz, i)
-                    if wp.static(lean):
-                        b0 = b1
-                        b1 = load_nodes(m1, c + n)
-                    else:
-                        bx = get(m1, c)
-                        bz = get(m2, c)
-                    ox = vec()
-                    oz = vec()
-                    for j in range(wp.static(cols)):
-                        if wp.static(lean):
-                            mx = dtype(0.5) * (b0[j] + b0[j + 1])
-                            mz = dtype(0.5) * (b0[j] + b1[j])
-                        else:
-                            mx = bx[j]
-                            mz = bz[j]
-                        ox[j] = advance(ux[j], dt, mx, dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
-                        oz[j] = advance(uz[j], dt, mz, dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
-                    put(vx_new, i, ox)
-                    put(vz_new, i, oz)
-                    if wp.static(k + 1 < rows):
-                        wa = slide(wa, sxz, i, n, wp.static(M))
-                        wb = slide(wb, szz, i, n, wp.static(M + 1))
-                    i += n
-                    c += n
-
-        @wp.func
-        def stress_tile(
-            vx: arrv, vz: arrv, sxx: arrv, szz: arrv, sxz: arrv, m1: arrv, m2: arrv, m3: arrv,
-            sxx_new: arrv, szz_new: arrv, sxz_new: arrv, t: int, lz: int, lx: int, core: wp.vec4i, dt: dtype, inv_dx: dtype,
-        ):  # fmt: skip
-            # stress_cell without CPML and surface; m1, m2, m3 = l2m, lam, muh, or (lean) m1 = l2m, m2 = mu with
-            # lam = l2m - 2 mu and muh the harmonic mean of mu at the shear node's four neighbours (0 if one is 0)
-            i, c, z, n = place(t, lz, lx, core)
-            wa = load_window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1 (normal stresses)
-            wb = load_window(vx, i, n, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (sxz)
-            u0 = nodes()  # lean: mu and 1/mu at rows z and z + 1, columns x .. x + cols
-            u1 = nodes()
-            q0 = nodes()
-            q1 = nodes()
-            if wp.static(lean):
-                u1 = load_nodes(m2, c)
-                q1 = reciprocals(u1)
-            for k in range(wp.static(rows)):
-                if z + k < core[1]:
-                    ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M ..
-                    rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 ..
-                    axx = get(sxx, i)
-                    azz = get(szz, i)
-                    axz = get(sxz, i)
-                    l2m = get(m1, c)
-                    if wp.static(lean):
-                        u0 = u1
-                        q0 = q1
-                        u1 = load_nodes(m2, c + n)
-                        q1 = reciprocals(u1)
-                    else:
-                        lam = get(m2, c)
-                        muh = get(m3, c)
-                    oxx = vec()
-                    ozz = vec()
-                    oxz = vec()
-                    for j in range(wp.static(cols)):
-                        c1 = l2m[j]
-                        if wp.static(lean):
-                            c2 = c1 - dtype(2.0) * u0[j]
-                            h = dtype(0.0)
-                            if u0[j] > dtype(0.0) and u1[j] > dtype(0.0) and u0[j + 1] > dtype(0.0) and u1[j + 1] > dtype(0.0):
-                                h = dtype(4.0) / (q0[j] + q1[j] + q0[j + 1] + q1[j + 1])
-                        else:
-                            c2 = lam[j]
-                            h = muh[j]
-                        sxx_rate, szz_rate = normal_rates(c1, c2, dline(ra, j) * inv_dx, dwin(wa[j]) * inv_dx)
-                        oxx[j] = axx[j] + dt * sxx_rate
-                        ozz[j] = azz[j] + dt * szz_rate
-                        oxz[j] = advance(axz[j], dt, h, dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
-                    put(sxx_new, i, oxx)
-                    put(szz_new, i, ozz)
-                    put(sxz_new, i, oxz)
-                    if wp.static(k + 1 < rows):
-                        wa = slide(wa, vz, i, n, wp.static(M))
-                        wb = slide(wb, vx, i, n, wp.static(M + 1))
-                    i += n
-                    c += n
-
-        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def velocity_update(
-            vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2,
-            p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
-            n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
-            vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
-            f_vx: arrv, f_vz: arrv, f_sxx: arrv, f_szz: arrv, f_sxz: arrv, m1: arrv, m2: arrv, f_vx_new: arrv, f_vz_new: arrv,
-            tiles: int, frame: int, frame_cells: int, offset: int,
-        ):  # fmt: skip
-            # f_*: the fields as vectors; m1, m2: the core's model arrays (see velocity_tile)
-            t = wp.tid() + offset
-            lz = vx.shape[1]
-            lx = vx.shape[2]
-            if t < tiles:
-                velocity_tile(f_vx, f_vz, f_sxx, f_szz, f_sxz, m1, m2, f_vx_new, f_vz_new, t, lz, lx, core, dt, inv_dx)
-            elif t >= frame:
-                s = (t - frame) // frame_cells
-                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, core)
-                velocity_cell(vx, vz, sxx, szz, sxz, bx, bz, p_vx_x, p_vx_z, p_vz_x, p_vz_z, n_vx_x, n_vx_z, n_vz_x, n_vz_z,
-                              vx_new, vz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
-
-        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def stress_update(
-            vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2,
-            p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
-            n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
-            sxx_new: arr3, szz_new: arr3, sxz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
-            f_vx: arrv, f_vz: arrv, f_sxx: arrv, f_szz: arrv, f_sxz: arrv, m1: arrv, m2: arrv, m3: arrv,
-            f_sxx_new: arrv, f_szz_new: arrv, f_sxz_new: arrv, tiles: int, frame: int, frame_cells: int, offset: int,
-        ):  # fmt: skip
-            t = wp.tid() + offset
-            lz = vx.shape[1]
-            lx = vx.shape[2]
-            if t < tiles:
-                stress_tile(f_vx, f_vz, f_sxx, f_szz, f_sxz, m1, m2, m3, f_sxx_new, f_szz_new, f_sxz_new, t, lz, lx, core, dt, inv_dx)
-            elif t >= frame:
-                s = (t - frame) // frame_cells
-                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, core)
-                stress_cell(vx, vz, sxx, szz, sxz, l2m, lam, mu, muh, p_s_x, p_s_z, p_xz_z, p_xz_x, n_s_x, n_s_z, n_xz_z, n_xz_x,
-                            sxx_new, szz_new, sxz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
-
-        return velocity_update, stress_update
+def make_tiling(ns, rows: int, cols: int, width: int):
+    # What tiles of rows x cols cells share (make_updates, make_adjoints): the place of tile t, and sliding z-windows
+    # w[j, m] (column j, row m) and x-lines r[p] of a source f with their derivative. The loaders read f in blocks of
+    # `width` adjacent cells (get), their indices in blocks: a vector of an array of vectors (arrv; the forward's and
+    # the split adjoint's fields and models), of ScaledV or NormalV (the split adjoint's t_k), or with width 1 any
+    # `value` (flat indices; the fused adjoint's). width divides cols.
+    M, C, dtype, value, normal_rates = ns.M, ns.C, ns.dtype, ns.value, ns.normal_rates
+    win = wp.types.matrix(shape=(cols, 2 * M), dtype=dtype)
+    line = wp.types.vector(length=cols + 2 * M - 1, dtype=dtype)
+    vec = wp.types.vector(length=width, dtype=dtype)
+    arrv = wp.array(dtype=vec)
+    alone = -1  # load_line's window row when no window holds the line's values
+    lo, hi = -M // width, (cols + M - 1) // width  # the blocks a line reaches, relative to the tile's first
+    load, put = vector_access(width, dtype)
 
     @wp.func
-    def column(t: int, lz: int, lx: int, box: wp.vec4i, rows: int):
-        # thread t of a 1D launch over the rows [box[0], box[1]) x columns [box[2], box[3]) of every shot,
-        # `rows` cells along z each: flat field index of its first cell, flat model index, number of cells
-        nx = box[3] - box[2]
-        blocks = (box[1] - box[0] + rows - 1) // rows
-        q = t // nx
-        x = box[2] + t - q * nx
-        s = q // blocks
-        z = box[0] + (q - s * blocks) * rows
-        n = wp.min(rows, box[1] - z)
-        c = z * lx + x
-        return s * lz * lx + c, c, n
+    def get(f: arrv, i: int) -> vec:
+        return load(f, i)
 
-    # --- hand-written adjoints ------------------------------------------------------------------------
-    # In place: one adjoint State goes from level n + 1's to level n's (adj(old field) = adj(new field) + the gathers' terms;
-    # each thread reads an adjoint field's cell before writing it and writes no other thread's). Pass 1 (`*_adjoint`,
-    # thread per interior cell outside `hole` (frame_cell), all shots): the materials' adjoints (added), the CPML memory
-    # variables' (in place), and t_k = adjoint of the k-th raw stencil sum into the scratch arrays (0 on surface rows,
-    # which scatter theirs). Pass 2 (`*_gather`, launched by `*_transpose` or make_adjoints' kernels, which fuse it with
-    # pass 1 inside the hole): adj(inputs) += transposed stencils of t_k, gathered.
+    @wp.func
+    def get(f: Any, i: int) -> vec:  # noqa: F811 (a Warp overload)
+        r = vec()
+        for j in range(wp.static(width)):
+            r[j] = value(f, i * wp.static(width) + j)
+        return r
+
+    # Scaled and Normal on arrays of vectors (base in vectors): their `value`s a block at a time
+    ScaledV, NormalV, scaled_v, normal_v = make_products(ns, arrv)
+
+    @wp.func
+    def get(a: ScaledV, i: int) -> vec:  # noqa: F811
+        g = load(a.g, i)
+        m = load(a.m, i - a.base)
+        r = vec()
+        for j in range(wp.static(width)):
+            r[j] = a.dt * m[j] * g[j] * a.inv_dx
+        return r
+
+    @wp.func
+    def get(a: NormalV, i: int) -> vec:  # noqa: F811
+        gx = load(a.gx, i)
+        gz = load(a.gz, i)
+        p = load(a.p, i - a.base)
+        q = load(a.q, i - a.base)
+        r = vec()
+        for j in range(wp.static(width)):
+            u, _ = normal_rates(p[j], q[j], a.dt * gx[j], a.dt * gz[j])
+            r[j] = u * a.inv_dx
+        return r
+
+    @wp.func
+    def dline(r: line, j: int) -> dtype:
+        # x-derivative (times dx) at column j of a tile from a line centred between r[j + M - 1] and r[j + M]
+        acc = dtype(0.0)
+        for m in range(wp.static(M)):
+            acc += dtype(wp.static(C[m])) * (r[j + wp.static(M) + m] - r[j + wp.static(M - 1) - m])
+        return acc
+
+    @wp.func
+    def tile(t: int, lz: int, lx: int, core: wp.vec4i):
+        # tile t of the core (x fastest, then rows, then shots): flat field and model indices of its first cell,
+        # its first row and its number of columns (< cols at the core's right edge)
+        nxc = (core[3] - core[2] + wp.static(cols - 1)) // wp.static(cols)
+        blocks = (core[1] - core[0] + wp.static(rows - 1)) // wp.static(rows)
+        q = t // nxc
+        x = core[2] + (t - q * nxc) * wp.static(cols)
+        s = q // blocks
+        z = core[0] + (q - s * blocks) * wp.static(rows)
+        c = z * lx + x
+        return s * lz * lx + c, c, z, wp.min(wp.static(cols), core[3] - x)
+
+    @wp.func
+    def place(t: int, lz: int, lx: int, core: wp.vec4i):
+        # tile t's field and model vector indices, first row, and vectors per row (cols = width, core's columns
+        # from and to multiples of it)
+        i, c, z, _ = tile(t, lz, lx, core)
+        return i // wp.static(width), c // wp.static(width), z, lx // wp.static(width)
+
+    @wp.func
+    def load_window(f: Any, i: int, n: int, first: int) -> win:
+        # f at rows first .. first + 2M - 1 (relative to block i, n blocks per row) of the tile's columns
+        w = win()
+        for m in range(wp.static(2 * M)):
+            for b in range(wp.static(cols // width)):
+                a = get(f, i + b + (first + m) * n)
+                for j in range(wp.static(width)):
+                    w[wp.static(b * width) + j, m] = a[j]
+        return w
+
+    @wp.func
+    def slide(w: win, f: Any, i: int, n: int, newest: int) -> win:
+        # the window one row further down: f at row `newest` (relative to i) enters
+        for j in range(wp.static(cols)):
+            for m in range(wp.static(2 * M - 1)):
+                w[j, m] = w[j, m + 1]
+        for b in range(wp.static(cols // width)):
+            a = get(f, i + b + newest * n)
+            for j in range(wp.static(width)):
+                w[wp.static(b * width) + j, wp.static(2 * M - 1)] = a[j]
+        return w
+
+    @wp.func
+    def load_line(f: Any, i: int, first: int, w: win, m: int) -> line:
+        # f at columns first .. first + cols + 2M - 2 (relative to the tile's first, block i), read from the blocks
+        # that hold them (the neighbours' too); the tile's own columns r[j - first] are taken from the window's
+        # row m (m = alone: from f)
+        r = line()
+        for q in range(wp.static(hi - lo + 1)):
+            b = q + wp.static(lo)
+            o = b * wp.static(width)  # the block's first column
+            if o + wp.static(width) > first and o < first + wp.static(cols + 2 * M - 1):
+                if m == wp.static(alone) or o < 0 or o >= wp.static(cols):
+                    a = get(f, i + b)
+                    for j in range(wp.static(width)):
+                        p = o + j - first
+                        if p >= 0 and p < wp.static(cols + 2 * M - 1):
+                            r[p] = a[j]
+                else:
+                    for j in range(wp.static(width)):
+                        r[o + j - first] = w[o + j, m]
+        return r
+
+    return vec, arrv, alone, get, put, dline, tile, place, load_window, slide, load_line, scaled_v, normal_v
+
+
+def _update_tiles(ns, rows: int, cols: int, lean: bool):
+    """make_updates' tiles: velocity_cell and stress_cell without CPML and surface, on a tile of rows x cols cells."""
+    M, dtype, tiling, advance, dwin, normal_rates = ns.M, ns.dtype, ns.tiling, ns.advance, ns.dwin, ns.normal_rates
+    vec, arrv, alone, get, put, dline, _, place, load_window, slide, load_line, _, _ = tiling(rows, cols, cols)
+    nodes = wp.types.vector(length=cols + 1, dtype=dtype)  # lean: a model row at the tile's columns and the next
+
+    @wp.func
+    def load_nodes(f: arrv, c: int) -> nodes:
+        a = get(f, c)
+        r = nodes()
+        for p in range(wp.static(cols)):
+            r[p] = a[p]
+        e = get(f, c + 1)
+        r[wp.static(cols)] = e[0]
+        return r
+
+    @wp.func
+    def reciprocals(u: nodes) -> nodes:
+        r = nodes()
+        for p in range(wp.static(cols + 1)):
+            r[p] = dtype(1.0) / u[p]
+        return r
+
+    @wp.func
+    def velocity_tile(
+        vx: arrv, vz: arrv, sxx: arrv, szz: arrv, sxz: arrv, m1: arrv, m2: arrv, vx_new: arrv, vz_new: arrv,
+        t: int, lz: int, lx: int, core: wp.vec4i, dt: dtype, inv_dx: dtype,
+    ):  # fmt: skip
+        # velocity_cell without CPML and surface; m1, m2 = bx, bz, or (lean) m1 = 1/rho and bx, bz its means
+        i, c, z, n = place(t, lz, lx, core)
+        wa = load_window(sxz, i, n, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (for vx)
+        wb = load_window(szz, i, n, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (for vz)
+        b0 = nodes()  # lean: 1/rho at row z and z + 1, columns x .. x + cols
+        b1 = nodes()
+        if wp.static(lean):
+            b1 = load_nodes(m1, c)
+        for k in range(wp.static(rows)):
+            if z + k < core[1]:
+                ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 ..
+                rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M ..
+                ux = get(vx, i)
+                uz = get(vz, i)
+                if wp.static(lean):
+                    b0 = b1
+                    b1 = load_nodes(m1, c + n)
+                else:
+                    bx = get(m1, c)
+                    bz = get(m2, c)
+                ox = vec()
+                oz = vec()
+                for j in range(wp.static(cols)):
+                    if wp.static(lean):
+                        mx = dtype(0.5) * (b0[j] + b0[j + 1])
+                        mz = dtype(0.5) * (b0[j] + b1[j])
+                    else:
+                        mx = bx[j]
+                        mz = bz[j]
+                    ox[j] = advance(ux[j], dt, mx, dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
+                    oz[j] = advance(uz[j], dt, mz, dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
+                put(vx_new, i, ox)
+                put(vz_new, i, oz)
+                if wp.static(k + 1 < rows):
+                    wa = slide(wa, sxz, i, n, wp.static(M))
+                    wb = slide(wb, szz, i, n, wp.static(M + 1))
+                i += n
+                c += n
+
+    @wp.func
+    def stress_tile(
+        vx: arrv, vz: arrv, sxx: arrv, szz: arrv, sxz: arrv, m1: arrv, m2: arrv, m3: arrv,
+        sxx_new: arrv, szz_new: arrv, sxz_new: arrv, t: int, lz: int, lx: int, core: wp.vec4i, dt: dtype, inv_dx: dtype,
+    ):  # fmt: skip
+        # stress_cell without CPML and surface; m1, m2, m3 = l2m, lam, muh, or (lean) m1 = l2m, m2 = mu with
+        # lam = l2m - 2 mu and muh the harmonic mean of mu at the shear node's four neighbours (0 if one is 0)
+        i, c, z, n = place(t, lz, lx, core)
+        wa = load_window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1 (normal stresses)
+        wb = load_window(vx, i, n, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (sxz)
+        u0 = nodes()  # lean: mu and 1/mu at rows z and z + 1, columns x .. x + cols
+        u1 = nodes()
+        q0 = nodes()
+        q1 = nodes()
+        if wp.static(lean):
+            u1 = load_nodes(m2, c)
+            q1 = reciprocals(u1)
+        for k in range(wp.static(rows)):
+            if z + k < core[1]:
+                ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M ..
+                rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 ..
+                axx = get(sxx, i)
+                azz = get(szz, i)
+                axz = get(sxz, i)
+                l2m = get(m1, c)
+                if wp.static(lean):
+                    u0 = u1
+                    q0 = q1
+                    u1 = load_nodes(m2, c + n)
+                    q1 = reciprocals(u1)
+                else:
+                    lam = get(m2, c)
+                    muh = get(m3, c)
+                oxx = vec()
+                ozz = vec()
+                oxz = vec()
+                for j in range(wp.static(cols)):
+                    c1 = l2m[j]
+                    if wp.static(lean):
+                        c2 = c1 - dtype(2.0) * u0[j]
+                        h = dtype(0.0)
+                        if u0[j] > dtype(0.0) and u1[j] > dtype(0.0) and u0[j + 1] > dtype(0.0) and u1[j + 1] > dtype(0.0):
+                            h = dtype(4.0) / (q0[j] + q1[j] + q0[j + 1] + q1[j + 1])
+                    else:
+                        c2 = lam[j]
+                        h = muh[j]
+                    sxx_rate, szz_rate = normal_rates(c1, c2, dline(ra, j) * inv_dx, dwin(wa[j]) * inv_dx)
+                    oxx[j] = axx[j] + dt * sxx_rate
+                    ozz[j] = azz[j] + dt * szz_rate
+                    oxz[j] = advance(axz[j], dt, h, dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
+                put(sxx_new, i, oxx)
+                put(szz_new, i, ozz)
+                put(sxz_new, i, oxz)
+                if wp.static(k + 1 < rows):
+                    wa = slide(wa, vz, i, n, wp.static(M))
+                    wb = slide(wb, vx, i, n, wp.static(M + 1))
+                i += n
+                c += n
+
+    return velocity_tile, stress_tile
+
+
+def make_updates(ns, rows: int, cols: int, lean: bool):
+    # The fast path's (velocity, stress) kernels for core tiles of rows x cols cells (see Layout). One 1D launch
+    # (unravelling a multi-dimensional thread index costs 64-bit divisions) covers threads offset + tid: those
+    # below `tiles` update a core tile each, on the flat arrays viewed as vectors of cols values (arrv; fields
+    # S * Lz * Lx / cols, models Lz * Lx / cols; the core's columns start and end at multiples of cols), those
+    # from `frame` on (a block boundary) one frame cell each with the reference's per-cell code. A tile loads and
+    # stores its cells of a row as one vector per array, keeps the z-stencil's values in sliding windows w[j, m]
+    # (column j, row m) and loads each value of a row along x once into a line r[p], sharing it between the
+    # tile's columns; the loop over rows is unrolled. Every sum is formed in the reference's order, so a tile
+    # reproduces the per-cell kernels bit for bit where the compiler contracts no multiply-adds (the CPU).
+    dtype, arr2, arr3, Axis = ns.dtype, ns.arr2, ns.arr3, ns.Axis
+    frame_cell, velocity_cell, stress_cell = ns.frame_cell, ns.velocity_cell, ns.stress_cell
+    arrv = ns.tiling(rows, cols, cols)[1]
+    velocity_tile, stress_tile = _update_tiles(ns, rows, cols, lean)
+
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def velocity_update(
+        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2,
+        p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
+        n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
+        vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
+        f_vx: arrv, f_vz: arrv, f_sxx: arrv, f_szz: arrv, f_sxz: arrv, m1: arrv, m2: arrv, f_vx_new: arrv, f_vz_new: arrv,
+        tiles: int, frame: int, frame_cells: int, offset: int,
+    ):  # fmt: skip
+        # f_*: the fields as vectors; m1, m2: the core's model arrays (see velocity_tile)
+        t = wp.tid() + offset
+        lz = vx.shape[1]
+        lx = vx.shape[2]
+        if t < tiles:
+            velocity_tile(f_vx, f_vz, f_sxx, f_szz, f_sxz, m1, m2, f_vx_new, f_vz_new, t, lz, lx, core, dt, inv_dx)
+        elif t >= frame:
+            s = (t - frame) // frame_cells
+            z, x = frame_cell(t - frame - s * frame_cells, lz, lx, core)
+            velocity_cell(vx, vz, sxx, szz, sxz, bx, bz, p_vx_x, p_vx_z, p_vz_x, p_vz_z, n_vx_x, n_vx_z, n_vz_x, n_vz_z,
+                          vx_new, vz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
+
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def stress_update(
+        vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2,
+        p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
+        n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
+        sxx_new: arr3, szz_new: arr3, sxz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, core: wp.vec4i,
+        f_vx: arrv, f_vz: arrv, f_sxx: arrv, f_szz: arrv, f_sxz: arrv, m1: arrv, m2: arrv, m3: arrv,
+        f_sxx_new: arrv, f_szz_new: arrv, f_sxz_new: arrv, tiles: int, frame: int, frame_cells: int, offset: int,
+    ):  # fmt: skip
+        t = wp.tid() + offset
+        lz = vx.shape[1]
+        lx = vx.shape[2]
+        if t < tiles:
+            stress_tile(f_vx, f_vz, f_sxx, f_szz, f_sxz, m1, m2, m3, f_sxx_new, f_szz_new, f_sxz_new, t, lz, lx, core, dt, inv_dx)
+        elif t >= frame:
+            s = (t - frame) // frame_cells
+            z, x = frame_cell(t - frame - s * frame_cells, lz, lx, core)
+            stress_cell(vx, vz, sxx, szz, sxz, l2m, lam, mu, muh, p_s_x, p_s_z, p_xz_z, p_xz_x, n_s_x, n_s_z, n_xz_z, n_xz_x,
+                        sxx_new, szz_new, sxz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
+
+    return velocity_update, stress_update
+
+
+# --- hand-written adjoints ------------------------------------------------------------------------
+# In place: one adjoint State goes from level n + 1's to level n's (adj(old field) = adj(new field) + the gathers' terms;
+# each thread reads an adjoint field's cell before writing it and writes no other thread's). Pass 1 (`*_adjoint`,
+# thread per interior cell outside `hole` (frame_cell), all shots): the materials' adjoints (added), the CPML memory
+# variables' (in place), and t_k = adjoint of the k-th raw stencil sum into the scratch arrays (0 on surface rows,
+# which scatter theirs). Pass 2 (`*_gather`, launched by `*_transpose` or make_adjoints' kernels, which fuse it with
+# pass 1 inside the hole): adj(inputs) += transposed stencils of t_k, gathered.
+def _velocity_adjoints(ns):
+    """The velocity half step's hand-written adjoint: pass 1 and pass 2."""
+    dtype, arr1, arr2, arr3, Axis = ns.dtype, ns.arr1, ns.arr2, ns.arr3, ns.Axis
+    frame_cell, column, surface_row, cpml_value, psi_adjoint, cpml_t = (ns.frame_cell, ns.column, ns.surface_row, ns.cpml_value,
+                                                                        ns.psi_adjoint, ns.cpml_t)  # fmt: skip
+    dx_of_int, dx_of_half, dz_sxz, dz_szz = ns.dx_of_int, ns.dx_of_half, ns.dz_sxz, ns.dz_szz
+    dxt_of_int, dxt_of_half, dzt_sxz, dzt_szz, gather_int, gather_half = (ns.dxt_of_int, ns.dxt_of_half, ns.dzt_sxz, ns.dzt_szz,
+                                                                          ns.gather_int, ns.gather_half)  # fmt: skip
+
 
     @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def velocity_adjoint(
@@ -995,6 +1091,19 @@ def build(order: int, dtype, free_surface: bool):
         for k in range(n):
             velocity_gather(t1, t2, t3, t4, g_sxx, g_szz, g_sxz, i, lx)
             i += lx
+
+    return dict(velocity_adjoint=velocity_adjoint, velocity_gather=velocity_gather, velocity_transpose=velocity_transpose)
+
+
+def _stress_adjoints(ns):
+    """The stress half step's hand-written adjoint: pass 1 and pass 2."""
+    fs, dtype, arr1, arr2, arr3, Axis = ns.fs, ns.dtype, ns.arr1, ns.arr2, ns.arr3, ns.Axis
+    frame_cell, column, surface_row, cpml_value, psi_adjoint, cpml_t = (ns.frame_cell, ns.column, ns.surface_row, ns.cpml_value,
+                                                                        ns.psi_adjoint, ns.cpml_t)  # fmt: skip
+    surface_modulus, normal_rates = ns.surface_modulus, ns.normal_rates
+    dx_of_int, dx_of_half, dvz_normal, dvx_shear = ns.dx_of_int, ns.dx_of_half, ns.dvz_normal, ns.dvx_shear
+    dxt_of_int, dxt_of_half, dvz_normal_t, dvx_shear_t, gather_int, gather_half = (
+        ns.dxt_of_int, ns.dxt_of_half, ns.dvz_normal_t, ns.dvx_shear_t, ns.gather_int, ns.gather_half)  # fmt: skip
 
     @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
     def stress_adjoint(
@@ -1088,9 +1197,12 @@ def build(order: int, dtype, free_surface: bool):
             stress_gather(t1, t2, t3, t4, g_vx, g_vz, i, lx)
             i += lx
 
-    @wp.func
-    def inside(z: int, x: int, b: wp.vec4i) -> bool:
-        return z >= b[0] and z < b[1] and x >= b[2] and x < b[3]
+    return dict(stress_adjoint=stress_adjoint, stress_gather=stress_gather, stress_transpose=stress_transpose)
+
+
+def _shots(ns):
+    """The materials' adjoints of the tiles with several shots: a shot's term (add_shot), and their sum (sum_shots)."""
+    dtype, arr1 = ns.dtype, ns.arr1
 
     @wp.func
     def add_shot(g: Any, t: Any, c: int, i: int, term: Any, shots: int):
@@ -1120,331 +1232,373 @@ def build(order: int, dtype, free_surface: bool):
         if count == 3:
             shot_sum(t3, g3, c, lz * lx, shots)
 
-    def make_adjoints(rows: int, cols: int):
-        # The (velocity, stress) kernels of pass 2 fused with pass 1 inside the hole (Elastic.adjoint_update), one 1D
-        # launch each, laid out as make_updates': threads below `tiles` take a tile of rows x cols cells of `box` (the
-        # cells whose gathers read t_k of core cells alone) of one shot; those from `frame` (a block boundary) gather one
-        # cell outside `box` (frame_cells per shot) from the scratch. A tile gathers t_k of core cells from sliding
-        # windows and lines of their raw products (Scaled, Normal) and, inside `inner` (the hole of pass 1, which wrote
-        # t_k of the ring box - inner that the frame's gathers read), does pass 1's work too (add_shot). Every sum in the
-        # per-cell kernels' order (a transposed stencil is its derivative negated, exactly): bit for bit on the CPU.
-        _, _, alone, _, _, dline, tile, _, load_window, slide, load_line, _, _ = tiling(rows, cols, 1)
+    return dict(add_shot=add_shot, sum_shots=sum_shots)
 
-        @wp.func
-        def velocity_tile(
-            sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx: arr1, g_vz: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
-            g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1, t: int, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
-        ):  # fmt: skip
-            i, c, z, ncol = tile(t, lz, lx, box)
-            x = c - z * lx
-            ta = scaled(g_vx, bx, i - c, dt, inv_dx)  # t1 = t2 of velocity_adjoint
-            tb = scaled(g_vz, bz, i - c, dt, inv_dx)  # t3 = t4
-            wa = load_window(sxz, i, lx, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
-            wb = load_window(szz, i, lx, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (d4)
-            w2 = load_window(ta, i, lx, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
-            w4 = load_window(tb, i, lx, wp.static(-M))  # t4 at rows z - M .. z + M - 1
+
+def make_adjoints(ns, rows: int, cols: int):
+    # The (velocity, stress) kernels of pass 2 fused with pass 1 inside the hole (Elastic.adjoint_update), one 1D
+    # launch each, laid out as make_updates': threads below `tiles` take a tile of rows x cols cells of `box` (the
+    # cells whose gathers read t_k of core cells alone) of one shot; those from `frame` (a block boundary) gather one
+    # cell outside `box` (frame_cells per shot) from the scratch. A tile gathers t_k of core cells from sliding
+    # windows and lines of their raw products (Scaled, Normal) and, inside `inner` (the hole of pass 1, which wrote
+    # t_k of the ring box - inner that the frame's gathers read), does pass 1's work too (add_shot). Every sum in the
+    # per-cell kernels' order (a transposed stencil is its derivative negated, exactly): bit for bit on the CPU.
+    M, dtype, arr1, tiling, dwin, scaled, normal = ns.M, ns.dtype, ns.arr1, ns.tiling, ns.dwin, ns.scaled, ns.normal
+    frame_cell, inside, add_shot, velocity_gather, stress_gather = (ns.frame_cell, ns.inside, ns.add_shot, ns.velocity_gather,
+                                                                    ns.stress_gather)  # fmt: skip
+    _, _, alone, _, _, dline, tile, _, load_window, slide, load_line, _, _ = tiling(rows, cols, 1)
+
+    @wp.func
+    def velocity_tile(
+        sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx: arr1, g_vz: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
+        g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1, t: int, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+    ):  # fmt: skip
+        i, c, z, ncol = tile(t, lz, lx, box)
+        x = c - z * lx
+        ta = scaled(g_vx, bx, i - c, dt, inv_dx)  # t1 = t2 of velocity_adjoint
+        tb = scaled(g_vz, bz, i - c, dt, inv_dx)  # t3 = t4
+        wa = load_window(sxz, i, lx, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
+        wb = load_window(szz, i, lx, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (d4)
+        w2 = load_window(ta, i, lx, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
+        w4 = load_window(tb, i, lx, wp.static(-M))  # t4 at rows z - M .. z + M - 1
+        for k in range(wp.static(rows)):
+            if z + k < box[1]:
+                ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 .. (d1)
+                rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M .. (d3)
+                r1 = load_line(ta, i, wp.static(-M), w2, wp.static(M - 1))  # t1 at x - M ..
+                r3 = load_line(tb, i, wp.static(1 - M), w4, wp.static(M))  # t3 at x - M + 1 ..
+                for j in range(wp.static(cols)):
+                    if j < ncol:
+                        g_sxx[i + j] = g_sxx[i + j] - dline(r1, j)
+                        g_sxz[i + j] = g_sxz[i + j] - dwin(w2[j]) - dline(r3, j)
+                        g_szz[i + j] = g_szz[i + j] - dwin(w4[j])
+                        if inside(z + k, x + j, inner):
+                            ga = g_vx[i + j]
+                            gb = g_vz[i + j]
+                            add_shot(g_bx, t1, c + j, i + j, dt * ga * (dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx), shots)
+                            add_shot(g_bz, t2, c + j, i + j, dt * gb * (dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx), shots)
+                if wp.static(k + 1 < rows):
+                    wa = slide(wa, sxz, i, lx, wp.static(M))
+                    wb = slide(wb, szz, i, lx, wp.static(M + 1))
+                    w2 = slide(w2, ta, i, lx, wp.static(M + 1))
+                    w4 = slide(w4, tb, i, lx, wp.static(M))
+                i += lx
+                c += lx
+
+    @wp.func
+    def stress_tile(
+        vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1,
+        g_l2m: arr1, g_lam: arr1, g_muh: arr1, t1: arr1, t2: arr1, t3: arr1, t: int, shots: int, lz: int, lx: int, box: wp.vec4i,
+        inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+    ):  # fmt: skip
+        i, c, z, ncol = tile(t, lz, lx, box)
+        x = c - z * lx
+        tx = normal(g_sxx, g_szz, l2m, lam, i - c, dt, inv_dx)  # t1 of stress_adjoint
+        tz = normal(g_sxx, g_szz, lam, l2m, i - c, dt, inv_dx)  # t2
+        ts = scaled(g_sxz, muh, i - c, dt, inv_dx)  # t3 = t4
+        wa = load_window(vz, i, lx, wp.static(-M))  # vz at rows z - M .. z + M - 1 (dvz)
+        wb = load_window(vx, i, lx, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (e1)
+        w2 = load_window(tz, i, lx, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
+        w3 = load_window(ts, i, lx, wp.static(-M))  # t3 at rows z - M .. z + M - 1
+        for k in range(wp.static(rows)):
+            if z + k < box[1]:
+                ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M .. (dvx)
+                rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 .. (e2)
+                r1 = load_line(tx, i, wp.static(1 - M), w2, wp.static(alone))  # t1 at x - M + 1 ..
+                r4 = load_line(ts, i, wp.static(-M), w3, wp.static(M))  # t4 at x - M ..
+                for j in range(wp.static(cols)):
+                    if j < ncol:
+                        g_vx[i + j] = g_vx[i + j] - dline(r1, j) - dwin(w3[j])
+                        g_vz[i + j] = g_vz[i + j] - dwin(w2[j]) - dline(r4, j)
+                        if inside(z + k, x + j, inner):
+                            gxx = g_sxx[i + j]
+                            gzz = g_szz[i + j]
+                            gxz = g_sxz[i + j]
+                            dvx = dline(ra, j) * inv_dx
+                            dvz = dwin(wa[j]) * inv_dx
+                            hxx = dt * gxx
+                            hzz = dt * gzz
+                            add_shot(g_l2m, t1, c + j, i + j, hxx * dvx + hzz * dvz, shots)
+                            add_shot(g_lam, t2, c + j, i + j, hxx * dvz + hzz * dvx, shots)
+                            add_shot(g_muh, t3, c + j, i + j, dt * gxz * (dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx), shots)
+                if wp.static(k + 1 < rows):
+                    wa = slide(wa, vz, i, lx, wp.static(M))
+                    wb = slide(wb, vx, i, lx, wp.static(M + 1))
+                    w2 = slide(w2, tz, i, lx, wp.static(M + 1))
+                    w3 = slide(w3, ts, i, lx, wp.static(M))
+                i += lx
+                c += lx
+
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def velocity_fused(
+        sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx: arr1, g_vz: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
+        g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1, t3: arr1, t4: arr1,
+        lz: int, lx: int, shots: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int,
+        frame_cells: int,
+    ):  # fmt: skip
+        t = wp.tid()
+        if t < tiles:
+            velocity_tile(sxx, szz, sxz, bx, bz, g_vx, g_vz, g_sxx, g_szz, g_sxz, g_bx, g_bz, t1, t2, t, shots, lz, lx, box, inner,
+                          dt, inv_dx)  # fmt: skip
+        elif t >= frame:
+            s = (t - frame) // frame_cells
+            z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
+            velocity_gather(t1, t2, t3, t4, g_sxx, g_szz, g_sxz, (s * lz + z) * lx + x, lx)
+
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def stress_fused(
+        vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1,
+        g_l2m: arr1, g_lam: arr1, g_muh: arr1, t1: arr1, t2: arr1, t3: arr1, t4: arr1, lz: int, lx: int, shots: int, box: wp.vec4i,
+        inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
+    ):  # fmt: skip
+        t = wp.tid()
+        if t < tiles:
+            stress_tile(vx, vz, l2m, lam, muh, g_sxx, g_szz, g_sxz, g_vx, g_vz, g_l2m, g_lam, g_muh, t1, t2, t3, t, shots, lz, lx, box,
+                        inner, dt, inv_dx)  # fmt: skip
+        elif t >= frame:
+            s = (t - frame) // frame_cells
+            z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
+            stress_gather(t1, t2, t3, t4, g_vx, g_vz, (s * lz + z) * lx + x, lx)
+
+    return velocity_fused, stress_fused
+
+
+def _split_gathers(ns, rows: int, width: int):
+    """make_split_adjoints' gathers: make_adjoints' tiles' gathers on vectors."""
+    M, dtype, tiling, dwin = ns.M, ns.dtype, ns.tiling, ns.dwin
+    vec, arrv, alone, get, put, dline, _, place, load_window, slide, load_line, scaled_v, normal_v = tiling(rows, width, width)
+
+    @wp.func
+    def velocity_gathers_tile(
+        bx: arrv, bz: arrv, g_vx: arrv, g_vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
+        t: int, lz: int, lx: int, box: wp.vec4i, dt: dtype, inv_dx: dtype,
+    ):  # fmt: skip
+        i, c, z, n = place(t, lz, lx, box)
+        ta = scaled_v(g_vx, bx, i - c, dt, inv_dx)  # t1 = t2 of velocity_adjoint
+        tb = scaled_v(g_vz, bz, i - c, dt, inv_dx)  # t3 = t4
+        w2 = load_window(ta, i, n, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
+        w4 = load_window(tb, i, n, wp.static(-M))  # t4 at rows z - M .. z + M - 1
+        for k in range(wp.static(rows)):
+            if z + k < box[1]:
+                r1 = load_line(ta, i, wp.static(-M), w2, wp.static(M - 1))  # t1 at x - M ..
+                r3 = load_line(tb, i, wp.static(1 - M), w4, wp.static(M))  # t3 at x - M + 1 ..
+                a = get(g_sxx, i)
+                b = get(g_sxz, i)
+                d = get(g_szz, i)
+                oa = vec()
+                ob = vec()
+                od = vec()
+                for j in range(wp.static(width)):
+                    oa[j] = a[j] - dline(r1, j)
+                    ob[j] = b[j] - dwin(w2[j]) - dline(r3, j)
+                    od[j] = d[j] - dwin(w4[j])
+                put(g_sxx, i, oa)
+                put(g_sxz, i, ob)
+                put(g_szz, i, od)
+                if wp.static(k + 1 < rows):
+                    w2 = slide(w2, ta, i, n, wp.static(M + 1))
+                    w4 = slide(w4, tb, i, n, wp.static(M))
+                i += n
+
+    @wp.func
+    def stress_gathers_tile(
+        l2m: arrv, lam: arrv, muh: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_vx: arrv, g_vz: arrv,
+        t: int, lz: int, lx: int, box: wp.vec4i, dt: dtype, inv_dx: dtype,
+    ):  # fmt: skip
+        i, c, z, n = place(t, lz, lx, box)
+        tx = normal_v(g_sxx, g_szz, l2m, lam, i - c, dt, inv_dx)  # t1 of stress_adjoint
+        tz = normal_v(g_sxx, g_szz, lam, l2m, i - c, dt, inv_dx)  # t2
+        ts = scaled_v(g_sxz, muh, i - c, dt, inv_dx)  # t3 = t4
+        w2 = load_window(tz, i, n, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
+        w3 = load_window(ts, i, n, wp.static(-M))  # t3 at rows z - M .. z + M - 1
+        for k in range(wp.static(rows)):
+            if z + k < box[1]:
+                r1 = load_line(tx, i, wp.static(1 - M), w2, wp.static(alone))  # t1 at x - M + 1 ..
+                r4 = load_line(ts, i, wp.static(-M), w3, wp.static(M))  # t4 at x - M ..
+                a = get(g_vx, i)
+                b = get(g_vz, i)
+                oa = vec()
+                ob = vec()
+                for j in range(wp.static(width)):
+                    oa[j] = a[j] - dline(r1, j) - dwin(w3[j])
+                    ob[j] = b[j] - dwin(w2[j]) - dline(r4, j)
+                put(g_vx, i, oa)
+                put(g_vz, i, ob)
+                if wp.static(k + 1 < rows):
+                    w2 = slide(w2, tz, i, n, wp.static(M + 1))
+                    w3 = slide(w3, ts, i, n, wp.static(M))
+                i += n
+
+    return velocity_gathers_tile, stress_gathers_tile
+
+
+def _split_sums(ns, rows: int, width: int):
+    """make_split_adjoints' sums: make_adjoints' tiles' pass 1 work on vectors, at their cells inside `inner`."""
+    M, dtype, tiling, dwin = ns.M, ns.dtype, ns.tiling, ns.dwin
+    vec, arrv, alone, get, put, dline, _, place, load_window, slide, load_line, _, _ = tiling(rows, width, width)
+
+    @wp.func
+    def shot_old(g: arrv, c: int, shots: int) -> vec:
+        # what add_shot_v adds to: g's vector at c with one shot
+        if shots == 1:
+            return get(g, c)
+        return vec()
+
+    @wp.func
+    def add_shot_v(g: arrv, t: arrv, c: int, i: int, old: vec, term: vec, shots: int):
+        # add_shot on vectors (one access each), g's old value loaded beforehand (shot_old: loads before stores)
+        if shots == 1:
+            put(g, c, old + term)
+        else:
+            put(t, i, term)
+
+    @wp.func
+    def within(c: int, z: int, lx: int, inner: wp.vec4i) -> bool:
+        # whether the columns of the tile at model vector index c, row z lie in inner
+        x = c * wp.static(width) - z * lx
+        return x >= inner[2] and x < inner[3]
+
+    @wp.func
+    def velocity_sums_tile(
+        sxx: arrv, szz: arrv, sxz: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv, t1: arrv, t2: arrv, t: int, shots: int, lz: int,
+        lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+    ):  # fmt: skip
+        i, c, z, n = place(t, lz, lx, box)
+        if within(c, z, lx, inner):
+            wa = load_window(sxz, i, n, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
+            wb = load_window(szz, i, n, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (d4)
             for k in range(wp.static(rows)):
-                if z + k < box[1]:
-                    ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 .. (d1)
-                    rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M .. (d3)
-                    r1 = load_line(ta, i, wp.static(-M), w2, wp.static(M - 1))  # t1 at x - M ..
-                    r3 = load_line(tb, i, wp.static(1 - M), w4, wp.static(M))  # t3 at x - M + 1 ..
-                    for j in range(wp.static(cols)):
-                        if j < ncol:
-                            g_sxx[i + j] = g_sxx[i + j] - dline(r1, j)
-                            g_sxz[i + j] = g_sxz[i + j] - dwin(w2[j]) - dline(r3, j)
-                            g_szz[i + j] = g_szz[i + j] - dwin(w4[j])
-                            if inside(z + k, x + j, inner):
-                                ga = g_vx[i + j]
-                                gb = g_vz[i + j]
-                                add_shot(g_bx, t1, c + j, i + j, dt * ga * (dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx), shots)
-                                add_shot(g_bz, t2, c + j, i + j, dt * gb * (dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx), shots)
+                if z + k < inner[1]:
+                    if z + k >= inner[0]:
+                        ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 .. (d1)
+                        rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M .. (d3)
+                        ga = get(g_vx, i)
+                        gb = get(g_vz, i)
+                        oa = shot_old(g_bx, c, shots)
+                        ob = shot_old(g_bz, c, shots)
+                        ea = vec()
+                        eb = vec()
+                        for j in range(wp.static(width)):
+                            ea[j] = dt * ga[j] * (dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
+                            eb[j] = dt * gb[j] * (dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
+                        add_shot_v(g_bx, t1, c, i, oa, ea, shots)
+                        add_shot_v(g_bz, t2, c, i, ob, eb, shots)
                     if wp.static(k + 1 < rows):
-                        wa = slide(wa, sxz, i, lx, wp.static(M))
-                        wb = slide(wb, szz, i, lx, wp.static(M + 1))
-                        w2 = slide(w2, ta, i, lx, wp.static(M + 1))
-                        w4 = slide(w4, tb, i, lx, wp.static(M))
-                    i += lx
-                    c += lx
-
-        @wp.func
-        def stress_tile(
-            vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1,
-            g_l2m: arr1, g_lam: arr1, g_muh: arr1, t1: arr1, t2: arr1, t3: arr1, t: int, shots: int, lz: int, lx: int, box: wp.vec4i,
-            inner: wp.vec4i, dt: dtype, inv_dx: dtype,
-        ):  # fmt: skip
-            i, c, z, ncol = tile(t, lz, lx, box)
-            x = c - z * lx
-            tx = normal(g_sxx, g_szz, l2m, lam, i - c, dt, inv_dx)  # t1 of stress_adjoint
-            tz = normal(g_sxx, g_szz, lam, l2m, i - c, dt, inv_dx)  # t2
-            ts = scaled(g_sxz, muh, i - c, dt, inv_dx)  # t3 = t4
-            wa = load_window(vz, i, lx, wp.static(-M))  # vz at rows z - M .. z + M - 1 (dvz)
-            wb = load_window(vx, i, lx, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (e1)
-            w2 = load_window(tz, i, lx, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
-            w3 = load_window(ts, i, lx, wp.static(-M))  # t3 at rows z - M .. z + M - 1
-            for k in range(wp.static(rows)):
-                if z + k < box[1]:
-                    ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M .. (dvx)
-                    rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 .. (e2)
-                    r1 = load_line(tx, i, wp.static(1 - M), w2, wp.static(alone))  # t1 at x - M + 1 ..
-                    r4 = load_line(ts, i, wp.static(-M), w3, wp.static(M))  # t4 at x - M ..
-                    for j in range(wp.static(cols)):
-                        if j < ncol:
-                            g_vx[i + j] = g_vx[i + j] - dline(r1, j) - dwin(w3[j])
-                            g_vz[i + j] = g_vz[i + j] - dwin(w2[j]) - dline(r4, j)
-                            if inside(z + k, x + j, inner):
-                                gxx = g_sxx[i + j]
-                                gzz = g_szz[i + j]
-                                gxz = g_sxz[i + j]
-                                dvx = dline(ra, j) * inv_dx
-                                dvz = dwin(wa[j]) * inv_dx
-                                hxx = dt * gxx
-                                hzz = dt * gzz
-                                add_shot(g_l2m, t1, c + j, i + j, hxx * dvx + hzz * dvz, shots)
-                                add_shot(g_lam, t2, c + j, i + j, hxx * dvz + hzz * dvx, shots)
-                                add_shot(g_muh, t3, c + j, i + j, dt * gxz * (dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx), shots)
-                    if wp.static(k + 1 < rows):
-                        wa = slide(wa, vz, i, lx, wp.static(M))
-                        wb = slide(wb, vx, i, lx, wp.static(M + 1))
-                        w2 = slide(w2, tz, i, lx, wp.static(M + 1))
-                        w3 = slide(w3, ts, i, lx, wp.static(M))
-                    i += lx
-                    c += lx
-
-        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def velocity_fused(
-            sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx: arr1, g_vz: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
-            g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1, t3: arr1, t4: arr1,
-            lz: int, lx: int, shots: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int,
-            frame_cells: int,
-        ):  # fmt: skip
-            t = wp.tid()
-            if t < tiles:
-                velocity_tile(sxx, szz, sxz, bx, bz, g_vx, g_vz, g_sxx, g_szz, g_sxz, g_bx, g_bz, t1, t2, t, shots, lz, lx, box, inner,
-                              dt, inv_dx)  # fmt: skip
-            elif t >= frame:
-                s = (t - frame) // frame_cells
-                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
-                velocity_gather(t1, t2, t3, t4, g_sxx, g_szz, g_sxz, (s * lz + z) * lx + x, lx)
-
-        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def stress_fused(
-            vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1,
-            g_l2m: arr1, g_lam: arr1, g_muh: arr1, t1: arr1, t2: arr1, t3: arr1, t4: arr1, lz: int, lx: int, shots: int, box: wp.vec4i,
-            inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
-        ):  # fmt: skip
-            t = wp.tid()
-            if t < tiles:
-                stress_tile(vx, vz, l2m, lam, muh, g_sxx, g_szz, g_sxz, g_vx, g_vz, g_l2m, g_lam, g_muh, t1, t2, t3, t, shots, lz, lx, box,
-                            inner, dt, inv_dx)  # fmt: skip
-            elif t >= frame:
-                s = (t - frame) // frame_cells
-                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
-                stress_gather(t1, t2, t3, t4, g_vx, g_vz, (s * lz + z) * lx + x, lx)
-
-        return velocity_fused, stress_fused
-
-    def make_split_adjoints(rows: int, width: int):
-        # The adjoint box's two passes with fewer live values than make_adjoints' (AdjointLayout.split), on the flat arrays
-        # viewed as vectors of `width` values (arrv), each tile row one vector (the boxes' columns from and to multiples of
-        # it): `*_gathers_tile` do make_adjoints' tiles' gathers (box: their `box`), `*_sums_tile` the tiles' pass 1 work
-        # at their cells inside `inner`, one after the other (no value passes between them), a thread a tile of `box`. The
-        # same sums as make_adjoints', in the same order.
-        vec, arrv, alone, get, put, dline, _, place, load_window, slide, load_line, scaled_v, normal_v = tiling(rows, width, width)
-
-        @wp.func
-        def velocity_gathers_tile(
-            bx: arrv, bz: arrv, g_vx: arrv, g_vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv,
-            t: int, lz: int, lx: int, box: wp.vec4i, dt: dtype, inv_dx: dtype,
-        ):  # fmt: skip
-            i, c, z, n = place(t, lz, lx, box)
-            ta = scaled_v(g_vx, bx, i - c, dt, inv_dx)  # t1 = t2 of velocity_adjoint
-            tb = scaled_v(g_vz, bz, i - c, dt, inv_dx)  # t3 = t4
-            w2 = load_window(ta, i, n, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
-            w4 = load_window(tb, i, n, wp.static(-M))  # t4 at rows z - M .. z + M - 1
-            for k in range(wp.static(rows)):
-                if z + k < box[1]:
-                    r1 = load_line(ta, i, wp.static(-M), w2, wp.static(M - 1))  # t1 at x - M ..
-                    r3 = load_line(tb, i, wp.static(1 - M), w4, wp.static(M))  # t3 at x - M + 1 ..
-                    a = get(g_sxx, i)
-                    b = get(g_sxz, i)
-                    d = get(g_szz, i)
-                    oa = vec()
-                    ob = vec()
-                    od = vec()
-                    for j in range(wp.static(width)):
-                        oa[j] = a[j] - dline(r1, j)
-                        ob[j] = b[j] - dwin(w2[j]) - dline(r3, j)
-                        od[j] = d[j] - dwin(w4[j])
-                    put(g_sxx, i, oa)
-                    put(g_sxz, i, ob)
-                    put(g_szz, i, od)
-                    if wp.static(k + 1 < rows):
-                        w2 = slide(w2, ta, i, n, wp.static(M + 1))
-                        w4 = slide(w4, tb, i, n, wp.static(M))
+                        wa = slide(wa, sxz, i, n, wp.static(M))
+                        wb = slide(wb, szz, i, n, wp.static(M + 1))
                     i += n
+                    c += n
 
-        @wp.func
-        def shot_old(g: arrv, c: int, shots: int) -> vec:
-            # what add_shot_v adds to: g's vector at c with one shot
-            if shots == 1:
-                return get(g, c)
-            return vec()
-
-        @wp.func
-        def add_shot_v(g: arrv, t: arrv, c: int, i: int, old: vec, term: vec, shots: int):
-            # add_shot on vectors (one access each), g's old value loaded beforehand (shot_old: loads before stores)
-            if shots == 1:
-                put(g, c, old + term)
-            else:
-                put(t, i, term)
-
-        @wp.func
-        def within(c: int, z: int, lx: int, inner: wp.vec4i) -> bool:
-            # whether the columns of the tile at model vector index c, row z lie in inner
-            x = c * wp.static(width) - z * lx
-            return x >= inner[2] and x < inner[3]
-
-        @wp.func
-        def velocity_sums_tile(
-            sxx: arrv, szz: arrv, sxz: arrv, g_vx: arrv, g_vz: arrv, g_bx: arrv, g_bz: arrv, t1: arrv, t2: arrv, t: int, shots: int, lz: int,
-            lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
-        ):  # fmt: skip
-            i, c, z, n = place(t, lz, lx, box)
-            if within(c, z, lx, inner):
-                wa = load_window(sxz, i, n, wp.static(-M))  # sxz at rows z - M .. z + M - 1 (d2)
-                wb = load_window(szz, i, n, wp.static(1 - M))  # szz at rows z - M + 1 .. z + M (d4)
-                for k in range(wp.static(rows)):
-                    if z + k < inner[1]:
-                        if z + k >= inner[0]:
-                            ra = load_line(sxx, i, wp.static(1 - M), wa, wp.static(alone))  # sxx at x - M + 1 .. (d1)
-                            rb = load_line(sxz, i, wp.static(-M), wa, wp.static(M))  # sxz at x - M .. (d3)
-                            ga = get(g_vx, i)
-                            gb = get(g_vz, i)
-                            oa = shot_old(g_bx, c, shots)
-                            ob = shot_old(g_bz, c, shots)
-                            ea = vec()
-                            eb = vec()
-                            for j in range(wp.static(width)):
-                                ea[j] = dt * ga[j] * (dline(ra, j) * inv_dx + dwin(wa[j]) * inv_dx)
-                                eb[j] = dt * gb[j] * (dline(rb, j) * inv_dx + dwin(wb[j]) * inv_dx)
-                            add_shot_v(g_bx, t1, c, i, oa, ea, shots)
-                            add_shot_v(g_bz, t2, c, i, ob, eb, shots)
-                        if wp.static(k + 1 < rows):
-                            wa = slide(wa, sxz, i, n, wp.static(M))
-                            wb = slide(wb, szz, i, n, wp.static(M + 1))
-                        i += n
-                        c += n
-
-        @wp.func
-        def stress_gathers_tile(
-            l2m: arrv, lam: arrv, muh: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_vx: arrv, g_vz: arrv,
-            t: int, lz: int, lx: int, box: wp.vec4i, dt: dtype, inv_dx: dtype,
-        ):  # fmt: skip
-            i, c, z, n = place(t, lz, lx, box)
-            tx = normal_v(g_sxx, g_szz, l2m, lam, i - c, dt, inv_dx)  # t1 of stress_adjoint
-            tz = normal_v(g_sxx, g_szz, lam, l2m, i - c, dt, inv_dx)  # t2
-            ts = scaled_v(g_sxz, muh, i - c, dt, inv_dx)  # t3 = t4
-            w2 = load_window(tz, i, n, wp.static(1 - M))  # t2 at rows z - M + 1 .. z + M
-            w3 = load_window(ts, i, n, wp.static(-M))  # t3 at rows z - M .. z + M - 1
+    @wp.func
+    def stress_sums_tile(
+        vx: arrv, vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_l2m: arrv, g_lam: arrv, g_muh: arrv, t1: arrv, t2: arrv,
+        t3: arrv, t: int, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
+    ):  # fmt: skip
+        i, c, z, n = place(t, lz, lx, box)
+        if within(c, z, lx, inner):
+            wa = load_window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1 (dvz)
+            wb = load_window(vx, i, n, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (e1)
             for k in range(wp.static(rows)):
-                if z + k < box[1]:
-                    r1 = load_line(tx, i, wp.static(1 - M), w2, wp.static(alone))  # t1 at x - M + 1 ..
-                    r4 = load_line(ts, i, wp.static(-M), w3, wp.static(M))  # t4 at x - M ..
-                    a = get(g_vx, i)
-                    b = get(g_vz, i)
-                    oa = vec()
-                    ob = vec()
-                    for j in range(wp.static(width)):
-                        oa[j] = a[j] - dline(r1, j) - dwin(w3[j])
-                        ob[j] = b[j] - dwin(w2[j]) - dline(r4, j)
-                    put(g_vx, i, oa)
-                    put(g_vz, i, ob)
+                if z + k < inner[1]:
+                    if z + k >= inner[0]:
+                        ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M .. (dvx)
+                        rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 .. (e2)
+                        gxx = get(g_sxx, i)
+                        gzz = get(g_szz, i)
+                        gxz = get(g_sxz, i)
+                        o1 = shot_old(g_l2m, c, shots)
+                        o2 = shot_old(g_lam, c, shots)
+                        o3 = shot_old(g_muh, c, shots)
+                        e1 = vec()
+                        e2 = vec()
+                        e3 = vec()
+                        for j in range(wp.static(width)):
+                            dvx = dline(ra, j) * inv_dx
+                            dvz = dwin(wa[j]) * inv_dx
+                            hxx = dt * gxx[j]
+                            hzz = dt * gzz[j]
+                            e1[j] = hxx * dvx + hzz * dvz
+                            e2[j] = hxx * dvz + hzz * dvx
+                            e3[j] = dt * gxz[j] * (dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
+                        add_shot_v(g_l2m, t1, c, i, o1, e1, shots)
+                        add_shot_v(g_lam, t2, c, i, o2, e2, shots)
+                        add_shot_v(g_muh, t3, c, i, o3, e3, shots)
                     if wp.static(k + 1 < rows):
-                        w2 = slide(w2, tz, i, n, wp.static(M + 1))
-                        w3 = slide(w3, ts, i, n, wp.static(M))
+                        wa = slide(wa, vz, i, n, wp.static(M))
+                        wb = slide(wb, vx, i, n, wp.static(M + 1))
                     i += n
+                    c += n
 
-        @wp.func
-        def stress_sums_tile(
-            vx: arrv, vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_l2m: arrv, g_lam: arrv, g_muh: arrv, t1: arrv, t2: arrv,
-            t3: arrv, t: int, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype,
-        ):  # fmt: skip
-            i, c, z, n = place(t, lz, lx, box)
-            if within(c, z, lx, inner):
-                wa = load_window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1 (dvz)
-                wb = load_window(vx, i, n, wp.static(1 - M))  # vx at rows z - M + 1 .. z + M (e1)
-                for k in range(wp.static(rows)):
-                    if z + k < inner[1]:
-                        if z + k >= inner[0]:
-                            ra = load_line(vx, i, wp.static(-M), wb, wp.static(M - 1))  # vx at x - M .. (dvx)
-                            rb = load_line(vz, i, wp.static(1 - M), wa, wp.static(M))  # vz at x - M + 1 .. (e2)
-                            gxx = get(g_sxx, i)
-                            gzz = get(g_szz, i)
-                            gxz = get(g_sxz, i)
-                            o1 = shot_old(g_l2m, c, shots)
-                            o2 = shot_old(g_lam, c, shots)
-                            o3 = shot_old(g_muh, c, shots)
-                            e1 = vec()
-                            e2 = vec()
-                            e3 = vec()
-                            for j in range(wp.static(width)):
-                                dvx = dline(ra, j) * inv_dx
-                                dvz = dwin(wa[j]) * inv_dx
-                                hxx = dt * gxx[j]
-                                hzz = dt * gzz[j]
-                                e1[j] = hxx * dvx + hzz * dvz
-                                e2[j] = hxx * dvz + hzz * dvx
-                                e3[j] = dt * gxz[j] * (dwin(wb[j]) * inv_dx + dline(rb, j) * inv_dx)
-                            add_shot_v(g_l2m, t1, c, i, o1, e1, shots)
-                            add_shot_v(g_lam, t2, c, i, o2, e2, shots)
-                            add_shot_v(g_muh, t3, c, i, o3, e3, shots)
-                        if wp.static(k + 1 < rows):
-                            wa = slide(wa, vz, i, n, wp.static(M))
-                            wb = slide(wb, vx, i, n, wp.static(M + 1))
-                        i += n
-                        c += n
+    return velocity_sums_tile, stress_sums_tile
 
-        # what: 1 the gathers (tiles t < tiles, and the frame's threads t >= frame), 2 the sums' tiles, 3 both. The two read
-        # the same adjoint fields at a tile's cells and write different arrays; together they read them once from memory.
-        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def velocity_split(
-            bx: arrv, bz: arrv, g_vx: arrv, g_vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, sxx: arrv, szz: arrv, sxz: arrv,
-            g_bx: arrv, g_bz: arrv, s1: arrv, s2: arrv, t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1,
-            shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
-            what: int,
-        ):  # fmt: skip
-            # s1, s2: the scratch t1, t2 as vectors (the sums' terms with several shots); f_*: g_sxx, g_szz, g_sxz as flat arrays
-            t = wp.tid()
-            if t < tiles:  # (the sums first: their last loads then wait on no store of the gathers')
-                if what != 1:
-                    velocity_sums_tile(sxx, szz, sxz, g_vx, g_vz, g_bx, g_bz, s1, s2, t, shots, lz, lx, box, inner, dt, inv_dx)
-                if what != 2:
-                    velocity_gathers_tile(bx, bz, g_vx, g_vz, g_sxx, g_szz, g_sxz, t, lz, lx, box, dt, inv_dx)
-            elif t >= frame:
-                s = (t - frame) // frame_cells
-                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
-                velocity_gather(t1, t2, t3, t4, f_sxx, f_szz, f_sxz, (s * lz + z) * lx + x, lx)
 
-        @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
-        def stress_split(
-            l2m: arrv, lam: arrv, muh: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_vx: arrv, g_vz: arrv, vx: arrv, vz: arrv,
-            g_l2m: arrv, g_lam: arrv, g_muh: arrv, s1: arrv, s2: arrv, s3: arrv, t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_vx: arr1,
-            f_vz: arr1, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int,
-            frame_cells: int, what: int,
-        ):  # fmt: skip
-            t = wp.tid()
-            if t < tiles:
-                if what != 1:
-                    stress_sums_tile(vx, vz, g_sxx, g_szz, g_sxz, g_l2m, g_lam, g_muh, s1, s2, s3, t, shots, lz, lx, box, inner, dt, inv_dx)
-                if what != 2:
-                    stress_gathers_tile(l2m, lam, muh, g_sxx, g_szz, g_sxz, g_vx, g_vz, t, lz, lx, box, dt, inv_dx)
-            elif t >= frame:
-                s = (t - frame) // frame_cells
-                z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
-                stress_gather(t1, t2, t3, t4, f_vx, f_vz, (s * lz + z) * lx + x, lx)
+def make_split_adjoints(ns, rows: int, width: int):
+    # The adjoint box's two passes with fewer live values than make_adjoints' (AdjointLayout.split), on the flat arrays
+    # viewed as vectors of `width` values (arrv), each tile row one vector (the boxes' columns from and to multiples of
+    # it): `*_gathers_tile` do make_adjoints' tiles' gathers (box: their `box`), `*_sums_tile` the tiles' pass 1 work
+    # at their cells inside `inner`, one after the other (no value passes between them), a thread a tile of `box`. The
+    # same sums as make_adjoints', in the same order.
+    dtype, arr1, frame_cell, velocity_gather, stress_gather = ns.dtype, ns.arr1, ns.frame_cell, ns.velocity_gather, ns.stress_gather
+    arrv = ns.tiling(rows, width, width)[1]
+    velocity_gathers_tile, stress_gathers_tile = _split_gathers(ns, rows, width)
+    velocity_sums_tile, stress_sums_tile = _split_sums(ns, rows, width)
 
-        return velocity_split, stress_split
+    # what: 1 the gathers (tiles t < tiles, and the frame's threads t >= frame), 2 the sums' tiles, 3 both. The two read
+    # the same adjoint fields at a tile's cells and write different arrays; together they read them once from memory.
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def velocity_split(
+        bx: arrv, bz: arrv, g_vx: arrv, g_vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, sxx: arrv, szz: arrv, sxz: arrv,
+        g_bx: arrv, g_bz: arrv, s1: arrv, s2: arrv, t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1,
+        shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int, frame_cells: int,
+        what: int,
+    ):  # fmt: skip
+        # s1, s2: the scratch t1, t2 as vectors (the sums' terms with several shots); f_*: g_sxx, g_szz, g_sxz as flat arrays
+        t = wp.tid()
+        if t < tiles:  # (the sums first: their last loads then wait on no store of the gathers')
+            if what != 1:
+                velocity_sums_tile(sxx, szz, sxz, g_vx, g_vz, g_bx, g_bz, s1, s2, t, shots, lz, lx, box, inner, dt, inv_dx)
+            if what != 2:
+                velocity_gathers_tile(bx, bz, g_vx, g_vz, g_sxx, g_szz, g_sxz, t, lz, lx, box, dt, inv_dx)
+        elif t >= frame:
+            s = (t - frame) // frame_cells
+            z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
+            velocity_gather(t1, t2, t3, t4, f_sxx, f_szz, f_sxz, (s * lz + z) * lx + x, lx)
+
+    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    def stress_split(
+        l2m: arrv, lam: arrv, muh: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_vx: arrv, g_vz: arrv, vx: arrv, vz: arrv,
+        g_l2m: arrv, g_lam: arrv, g_muh: arrv, s1: arrv, s2: arrv, s3: arrv, t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_vx: arr1,
+        f_vz: arr1, shots: int, lz: int, lx: int, box: wp.vec4i, inner: wp.vec4i, dt: dtype, inv_dx: dtype, tiles: int, frame: int,
+        frame_cells: int, what: int,
+    ):  # fmt: skip
+        t = wp.tid()
+        if t < tiles:
+            if what != 1:
+                stress_sums_tile(vx, vz, g_sxx, g_szz, g_sxz, g_l2m, g_lam, g_muh, s1, s2, s3, t, shots, lz, lx, box, inner, dt, inv_dx)
+            if what != 2:
+                stress_gathers_tile(l2m, lam, muh, g_sxx, g_szz, g_sxz, g_vx, g_vz, t, lz, lx, box, dt, inv_dx)
+        elif t >= frame:
+            s = (t - frame) // frame_cells
+            z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
+            stress_gather(t1, t2, t3, t4, f_vx, f_vz, (s * lz + z) * lx + x, lx)
+
+    return velocity_split, stress_split
+
+
+def _layouts(ns):
+    """The tiled kernels' builders, by layout (each built on its first use): tiling, and Kernels' updates, adjoints and
+    split_adjoints."""
+
+    def cached(make):
+        return functools.lru_cache(maxsize=None)(functools.partial(make, ns))
+
+    return dict(tiling=cached(make_tiling), updates=cached(make_updates), adjoints=cached(make_adjoints),
+                split_adjoints=cached(make_split_adjoints))  # fmt: skip
+
+
+def _materials(ns):
+    """The models' kernels: MATERIALS from the padded vp, vs, rho (materials), padding (pad_model), adding (add_into)."""
+    M, dtype, arr2 = ns.M, ns.dtype, ns.arr2
 
     @wp.kernel(module="unique")
     def materials(vp: arr2, vs: arr2, rho: arr2, bx: arr2, bz: arr2, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, b: arr2):
@@ -1471,38 +1625,55 @@ def build(order: int, dtype, free_surface: bool):
             h = dtype(4.0) / (dtype(1.0) / m1 + dtype(1.0) / m2 + dtype(1.0) / m3 + dtype(1.0) / m4)
         muh[z, x] = h
 
-    # --- sources and receivers ------------------------------------------------------------------------
+    @wp.kernel(module="unique", enable_backward=False)
+    def add_into(g: arr2, b: arr2):
+        # g += b (a model-shaped adjoint kept apart, added at the end)
+        z, x = wp.tid()
+        g[z, x] = g[z, x] + b[z, x]
 
+    @wp.kernel(module="unique")
+    def pad_model(v: arr2, vpad: arr2, origin: wp.vec2i):
+        # padded model from the physical one, extended by edge replication into PML and halo
+        z, x = wp.tid()
+        vpad[z, x] = v[wp.clamp(z - origin[0], 0, v.shape[0] - 1), wp.clamp(x - origin[1], 0, v.shape[1] - 1)]
+
+    return dict(materials=materials, add_into=add_into, pad_model=pad_model)
+
+
+def make_point(ns, hicks, oz: float, ox: float, odd: bool):
+    # q-th operator node of a field whose index (i, k) sits at (i + oz, k + ox): padded index, weight
+    HR, W, fs, dtype, arr3 = ns.HR, ns.W, ns.fs, ns.dtype, ns.arr3
+    fold = 1 if oz > 0.0 else 0
+
+    @wp.func
+    def point(loc: arr3, s: int, n: int, q: int, origin: wp.vec2i, inv_dx: dtype, top: int):
+        zc = loc[s, n, 0] * inv_dx + dtype(origin[0]) - dtype(wp.static(oz))
+        xc = loc[s, n, 1] * inv_dx + dtype(origin[1]) - dtype(wp.static(ox))
+        iz = int(wp.floor(zc)) - wp.static(HR - 1) + q // wp.static(W)
+        ix = int(wp.floor(xc)) - wp.static(HR - 1) + q % wp.static(W)
+        w = hicks(dtype(iz) - zc) * hicks(dtype(ix) - xc)
+        if wp.static(fs):
+            if wp.static(odd and fold == 0):
+                if iz == top:
+                    w = dtype(0.0)
+            if iz + wp.static(fold) <= top - wp.static(1 - fold):
+                iz = 2 * top - wp.static(fold) - iz
+                if wp.static(odd):
+                    w = -w
+        return wp.vec2i(iz, ix), w
+
+    return point
+
+
+def _sources(ns):
+    """The sources' injection, at their locations or through fixed operators, and the fixed operators (weights)."""
+    dtype, arr2, arr3, arr4, iarr1 = ns.dtype, ns.arr2, ns.arr3, ns.arr4, ns.iarr1
     hicks = hicks_weight(dtype)
-
-    def make_point(oz: float, ox: float, odd: bool):
-        # q-th operator node of a field whose index (i, k) sits at (i + oz, k + ox): padded index, weight
-        fold = 1 if oz > 0.0 else 0
-
-        @wp.func
-        def point(loc: arr3, s: int, n: int, q: int, origin: wp.vec2i, inv_dx: dtype, top: int):
-            zc = loc[s, n, 0] * inv_dx + dtype(origin[0]) - dtype(wp.static(oz))
-            xc = loc[s, n, 1] * inv_dx + dtype(origin[1]) - dtype(wp.static(ox))
-            iz = int(wp.floor(zc)) - wp.static(HR - 1) + q // wp.static(W)
-            ix = int(wp.floor(xc)) - wp.static(HR - 1) + q % wp.static(W)
-            w = hicks(dtype(iz) - zc) * hicks(dtype(ix) - xc)
-            if wp.static(fs):
-                if wp.static(odd and fold == 0):
-                    if iz == top:
-                        w = dtype(0.0)
-                if iz + wp.static(fold) <= top - wp.static(1 - fold):
-                    iz = 2 * top - wp.static(fold) - iz
-                    if wp.static(odd):
-                        w = -w
-            return wp.vec2i(iz, ix), w
-
-        return point
-
-    pt_vx = make_point(0.0, 0.5, False)
-    pt_vz = make_point(0.5, 0.0, False)
-    pt_sxx = make_point(0.0, 0.0, False)
-    pt_szz = make_point(0.0, 0.0, True)
-    pt_sxz = make_point(0.5, 0.5, True)
+    pt_vx = make_point(ns, hicks, 0.0, 0.5, False)
+    pt_vz = make_point(ns, hicks, 0.5, 0.0, False)
+    pt_sxx = make_point(ns, hicks, 0.0, 0.0, False)
+    pt_szz = make_point(ns, hicks, 0.0, 0.0, True)
+    pt_sxz = make_point(ns, hicks, 0.5, 0.5, True)
 
     @wp.func
     def add_force(vx: arr3, vz: arr3, bx: arr2, bz: arr2, a: dtype, fz: dtype, fx: dtype, s: int, i: wp.vec2i, w: dtype, j: wp.vec2i,
@@ -1590,6 +1761,14 @@ def build(order: int, dtype, free_surface: bool):
         idx[4, s, r, q] = i
         w[4, s, r, q] = wq
 
+    return dict(inject_force=inject_force, inject_force_op=inject_force_op, inject_moment=inject_moment,
+                inject_moment_op=inject_moment_op, weights=weights)  # fmt: skip
+
+
+def _receivers(ns):
+    """Recording through the receivers' fixed operator (record), and its adjoint (record_adjoint)."""
+    dtype, arr3, arr4, iarr1 = ns.dtype, ns.arr3, ns.arr4, ns.iarr1
+
     @wp.kernel(module="unique")
     def record(
         vx: arr3, vz: arr3, sxx: arr3, szz: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3,
@@ -1642,27 +1821,7 @@ def build(order: int, dtype, free_surface: bool):
             i = idx[3, s, r, q]
             wp.atomic_add(g_szz, s, i[0], i[1], dtype(-0.5) * wq * a)
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def add_into(g: arr2, b: arr2):
-        # g += b (a model-shaped adjoint kept apart, added at the end)
-        z, x = wp.tid()
-        g[z, x] = g[z, x] + b[z, x]
-
-    @wp.kernel(module="unique")
-    def pad_model(v: arr2, vpad: arr2, origin: wp.vec2i):
-        # padded model from the physical one, extended by edge replication into PML and halo
-        z, x = wp.tid()
-        vpad[z, x] = v[wp.clamp(z - origin[0], 0, v.shape[0] - 1), wp.clamp(x - origin[1], 0, v.shape[1] - 1)]
-
-    return Kernels(
-        Axis=Axis, materials=materials, velocity=velocity, stress=stress, updates=functools.lru_cache(maxsize=None)(make_updates),
-        velocity_adjoint=velocity_adjoint, velocity_transpose=velocity_transpose, stress_adjoint=stress_adjoint,
-        stress_transpose=stress_transpose, adjoints=functools.lru_cache(maxsize=None)(make_adjoints),
-        split_adjoints=functools.lru_cache(maxsize=None)(make_split_adjoints), sum_shots=sum_shots,
-        inject_force=inject_force, inject_moment=inject_moment, inject_force_op=inject_force_op, inject_moment_op=inject_moment_op,
-        weights=weights, record=record, record_adjoint=record_adjoint, add_into=add_into, pad_model=pad_model, halo=M,
-        operator_points=NPTS,
-    )  # fmt: skip
+    return dict(record=record, record_adjoint=record_adjoint)
 
 
 @functools.lru_cache(maxsize=None)

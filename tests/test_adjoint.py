@@ -1,0 +1,296 @@
+"""Adjoint tests of every physics, written once (as Devito runs one adjoint test over all its seismic examples).
+
+For each physics (CASES: acoustic 2D and 3D, elastic 2D with a point force, elastic 2D with a free surface and a
+moment-tensor source), in float64 on the test device:
+
+- test_adjoint_dot_product: <J dm, dd> = <dm, J^T dd>, J the derivative of the receiver data along a perturbation
+  (acoustic: the Born modelling for the velocity; data linear in the source wavelet and components: the forward
+  run; elastic vp, vs, rho: central finite differences of the forward run), J^T dd the gradient of <d(m), dd>;
+- test_taylor: |L(m + h dm) - L(m)| falls as h and |L(m + h dm) - L(m) - h <g, dm>| as h^2 over h = 1e-1..1e-4,
+  L = 1/2 ||d(m) - d_obs||^2 (the "l2" misfit), for every parameter of the gradient, g through the checkpointed
+  sweep, L(m + h dm) from the forward run (on the CPU bit for bit the sweep's loss);
+- test_checkpointed_equals_all_steps_and_warp: the checkpointed gradient (several segments) equals the gradient with
+  every step kept (one segment) and Warp's generated adjoints (adjoint="warp") to float64 rounding.
+
+A physics is an adapter (Case): its model and source parameters at the point m, geometry and misfits, and a few
+callables; the tests read nothing else. The CPML reference speed and frequency are pinned so that the PML does not
+move when the model is perturbed (the gradient treats it as fixed). Other gradient tests (other misfits,
+parameterisations, float32, orders 2 and 8, the GPU's kernels) stay in test_gradient.py and test_elastic.py.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
+
+import adseismic.solve.acoustic as A
+import adseismic.solve.elastic as E
+from adseismic.wavelets import ricker
+
+from .conftest import DEVICE
+
+DX, DT = 10.0, 1e-3
+STEPS = np.array([1e-1, 1e-2, 1e-3, 1e-4])  # three decades
+
+
+@dataclass
+class Case:
+    """One physics for the adjoint tests.
+
+    params: parameter name -> array at the model point m (models and source parameters), the keyword arguments of
+    the callables' `changes`; kinds: the parameters the gradients are taken for (wrt), each perturbed by the Taylor
+    test; dot_kinds: those the dot-product test perturbs; nt: time steps.
+    gradient(misfit, wrt, segment_length=None, adjoint="hand", **changes) -> result with .loss, .n_segments and an
+    attribute per kind (misfit: l2 below, or what projection returns);
+    l2: the misfit 1/2 ||d(m) - d_obs||^2 as gradient takes it; loss(**changes): its value from the forward run;
+    random_data(rng) -> dd, data of the receivers' shape; projection(dd): the misfit <d(m), dd> (its gradient is
+    J^T dd); inner(a, b): <a, b> of two data;
+    tangent(kind, rng) -> (dm, J dm, relative tolerance of the dot-product test, with its justification there);
+    direction(kind, rng) -> a random direction (unscaled) of the kind's shape; sizes: kind -> the Taylor test's
+    perturbation size (the parameter's units).
+    """
+
+    params: dict
+    kinds: tuple
+    dot_kinds: tuple
+    nt: int
+    gradient: Callable
+    l2: object
+    loss: Callable
+    random_data: Callable
+    projection: Callable
+    inner: Callable
+    tangent: Callable
+    direction: Callable
+    sizes: dict
+
+
+# --- acoustic -------------------------------------------------------------------------------------------------
+
+ACOUSTIC_KW = dict(precision="float64", pml_velocity=2600.0, pml_frequency=15.0, device=DEVICE)
+
+
+def acoustic_case(ndim: int) -> Case:
+    rng = np.random.default_rng(0)
+    if ndim == 2:  # test_gradient.problem()
+        nt, pml = 250, 8
+        v = gaussian_filter(2000 + 400 * rng.random((30, 40)), 2)
+        v_true = v.copy()
+        v_true[12:18, 15:25] += 120.0
+        s = ricker(15.0, nt, DT)[None, None]
+        src = np.array([[[55.3, 101.7]]])
+        rec = np.array([[[20.0, x] for x in np.linspace(10.0, 380.0, 8)]])
+        s_true = ricker(15.0, nt, DT, delay=0.104)[None, None]
+        location_direction = np.array([[[3.0, -2.0]]])
+    else:  # a two-layer cube, source and receivers off the grid's planes (test_gradient's former 3D Taylor test)
+        nt, pml = 120, 6
+        v = np.full((14, 14, 14), 2000.0)
+        v[7:] = 2300.0
+        v_true = v * 1.02
+        s = s_true = ricker(20.0, nt, DT)[None, None]
+        src = np.array([[[40.0, 61.0, 62.5]]])
+        rec = np.array([[[20.0, 20.0, 110.0], [30.0, 110.0, 30.0], [100.0, 70.0, 70.0]]])
+        location_direction = np.array([[[2.0, -1.0, 1.5]]])
+    kw = dict(ACOUSTIC_KW, pml_width=pml)
+    obs = A.forward(v_true, DX, DT, s_true, src, rec, **kw).receiver_amplitudes
+    params = dict(velocity=v, source_amplitudes=s, source_locations=src)
+
+    def args(changes):
+        a = dict(params, **changes)
+        return a["velocity"], DX, DT, a["source_amplitudes"], a["source_locations"], rec
+
+    def gradient(misfit, wrt, segment_length=None, adjoint="hand", **changes):
+        return A.gradient(*args(changes), obs, misfit=misfit, wrt=wrt, segment_length=segment_length, adjoint=adjoint, **kw)
+
+    def tangent(kind, rng):
+        if kind == "velocity":
+            # The Born operator (tangent-linear model, propagated explicitly) is J, the reverse sweep seeded with
+            # dd is J^T. Measured mismatch: 5e-15 (2D), 2e-14 (3D).
+            dv = direction(kind, rng)
+            dv *= 40.0 / np.abs(dv).max()
+            return dv, A.born(v, dv, DX, DT, s, src, rec, **kw), 1e-10
+        # the data are linear in the source wavelet: the forward run is J, exact to rounding (target 1e-10, as the
+        # elastic source's; measured 6e-15 (2D), 3e-15 (3D))
+        ds = rng.standard_normal(s.shape)
+        return ds, A.forward(*args({kind: ds}), **kw).receiver_amplitudes, 1e-10
+
+    def direction(kind, rng):
+        if kind == "velocity":
+            return gaussian_filter(rng.standard_normal(v.shape), 2)
+        if kind == "source_amplitudes":
+            return gaussian_filter(rng.standard_normal(s.shape), (0, 0, 3))
+        return location_direction.copy()
+
+    def loss(**changes):  # misfit "l2": 1/2 sum (d - o)^2 dt
+        r = (A.forward(*args(changes), **kw).receiver_amplitudes - obs).ravel()
+        return 0.5 * float(r @ r) * DT
+
+    return Case(params=params, kinds=A.WRT, dot_kinds=("velocity", "source_amplitudes"), nt=nt, gradient=gradient,
+                l2="l2", loss=loss,
+                random_data=lambda rng: rng.standard_normal(obs.shape),
+                projection=lambda dd: lambda syn: (float(np.sum(syn * dd)), dd),
+                inner=lambda a, b: float(np.sum(a * b)), tangent=tangent, direction=direction,
+                sizes=dict(velocity=40.0, source_amplitudes=0.05, source_locations=3.0))  # fmt: skip
+
+
+# --- elastic --------------------------------------------------------------------------------------------------
+
+P_SCALE = 1e-6  # pressure (Pa) scaled to be commensurate with velocities (m/s) in the misfit
+
+
+def elastic_case(free_surface: bool, source_type: str) -> Case:
+    # test_elastic.grad_problem
+    nt = 200
+    rng = np.random.default_rng(0)
+    shape = (24, 30)
+    vp = gaussian_filter(2400 + 300 * rng.random(shape), 2)
+    vs = gaussian_filter(1200 + 200 * rng.random(shape), 2)
+    rho = gaussian_filter(2000 + 300 * rng.random(shape), 2)
+    s = ricker(15.0, nt, DT)[None, None]
+    src = np.array([[[75.3, 141.7]]])
+    rec = np.array([[[5.0 if free_surface else 30.0, x] for x in np.linspace(20.0, 270.0, 6)]])
+    comp = np.array([[[0.7, -0.4]]]) if source_type == "force" else np.array([[[1.0, 0.5, -0.3]]])
+    kw = dict(precision="float64", pml_velocity=2800.0, pml_frequency=15.0, pml_width=6, free_surface=free_surface,
+              source_type=source_type, device=DEVICE)  # fmt: skip
+    o = E.forward_elastic(vp * 1.03, vs * 0.97, rho, DX, DT, s, src, rec, source_components=comp, **kw)
+    obs = {"vx": o.vx, "vz": o.vz, "pressure": o.pressure * P_SCALE}
+    params = dict(vp=vp, vs=vs, rho=rho, source_amplitudes=s, source_components=comp, source_locations=src)
+
+    def args(changes):
+        a = dict(params, **changes)
+        return (a["vp"], a["vs"], a["rho"], DX, DT, a["source_amplitudes"], a["source_locations"], rec), a["source_components"]
+
+    def gradient(misfit, wrt, segment_length=None, adjoint="hand", **changes):
+        a, components = args(changes)
+        return E.gradient_elastic(*a, misfit=misfit, wrt=wrt, source_components=components, segment_length=segment_length,
+                                  adjoint=adjoint, **kw)  # fmt: skip
+
+    def data(**changes):
+        a, components = args(changes)
+        r = E.forward_elastic(*a, source_components=components, **kw)
+        return {"vx": r.vx, "vz": r.vz, "pressure": r.pressure}
+
+    def l2(syn):
+        total, adj = 0.0, {}
+        for c in E.COMPONENTS:
+            scale = P_SCALE if c == "pressure" else 1.0
+            r = syn[c] * scale - obs[c]
+            total += 0.5 * float(np.sum(r * r))
+            adj[c] = r * scale
+        return total, adj
+
+    def inner(a, b):
+        return float(sum(np.sum(a[c] * b[c]) for c in E.COMPONENTS))
+
+    def tangent(kind, rng):
+        # The data are linear in the source wavelet and in the source components, so the forward run is the
+        # exact linear operator J: <J ds, d> = <ds, J^T d> to rounding (target 1e-10 in float64). For vp, vs,
+        # rho the adjoint is checked against central finite differences of the forward run along a smooth dm of
+        # 1e-4 relative size: the mismatch is the O(h^2) truncation (measured to fall as h^2 from 5e-5 at 1e-2
+        # to 1e-10 at 1e-5; at 1e-4: 7e-10 .. 1.5e-7). Target 1e-6; the exact (linear) checks measure
+        # 1e-16 .. 1e-14.
+        if kind in ("source_amplitudes", "source_components"):
+            ds = rng.standard_normal(params[kind].shape)
+            return ds, data(**{kind: ds}), 1e-10
+        dm = gaussian_filter(rng.standard_normal(params[kind].shape), 2)
+        dm *= 1e-4 * params[kind].mean() / np.abs(dm).max()
+        plus, minus = data(**{kind: params[kind] + dm}), data(**{kind: params[kind] - dm})
+        return dm, {c: (plus[c] - minus[c]) / 2.0 for c in E.COMPONENTS}, 1e-6
+
+    def direction(kind, rng):
+        d = rng.standard_normal(params[kind].shape)
+        return gaussian_filter(d, 2) if kind in ("vp", "vs", "rho") else d
+
+    return Case(params=params, kinds=E.WRT, nt=nt, gradient=gradient, l2=l2, loss=lambda **changes: l2(data(**changes))[0],
+                dot_kinds=("source_amplitudes", "source_components", "vp", "vs", "rho"),
+                random_data=lambda rng: {c: rng.standard_normal(obs[c].shape) for c in E.COMPONENTS},
+                projection=lambda dd: lambda syn: (inner(syn, dd), dd), inner=inner, tangent=tangent, direction=direction,
+                sizes={"vp": 50.0, "vs": 50.0, "rho": 50.0, "source_amplitudes": 0.05, "source_components": 0.05,
+                       "source_locations": 3.0})  # fmt: skip
+
+
+CASES = {
+    "acoustic-2d": functools.partial(acoustic_case, 2),
+    "acoustic-3d": functools.partial(acoustic_case, 3),
+    "elastic-2d-force": functools.partial(elastic_case, False, "force"),
+    "elastic-2d-free-surface-moment": functools.partial(elastic_case, True, "moment"),
+}
+
+
+@functools.lru_cache(maxsize=None)
+def case(physics: str) -> Case:
+    return CASES[physics]()
+
+
+@functools.lru_cache(maxsize=None)
+def checkpointed_gradient(physics: str):
+    """The l2 misfit's gradient for every kind through the checkpointed sweep (the memory minimum's segments), shared
+    by the Taylor test and the checkpoint test."""
+    c = case(physics)
+    return c.gradient(c.l2, c.kinds)
+
+
+# --- the tests ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("physics", CASES)
+def test_adjoint_dot_product(physics):
+    # <J dm, dd> = <dm, J^T dd>: J^T dd is the gradient of the misfit <d(m), dd> (the reverse sweep seeded with
+    # dd). Tolerances and their justification: Case.tangent.
+    c = case(physics)
+    rng = np.random.default_rng(2)
+    dd = c.random_data(rng)
+    adj = c.gradient(c.projection(dd), c.kinds)
+    for kind in c.dot_kinds:
+        dm, j_dm, tol = c.tangent(kind, rng)
+        lhs, rhs = c.inner(j_dm, dd), float(np.sum(dm * getattr(adj, kind)))
+        assert abs(lhs - rhs) <= tol * abs(lhs), kind
+
+
+@pytest.mark.parametrize("physics", CASES)
+def test_taylor(physics):
+    # First-order remainder slope 1 and second-order slope 2 (within 0.1) over h = 1e-1..1e-4 for every
+    # parameter, through the checkpointed sweep (10-17 segments). The direction is a smooth random one of a size that
+    # suits the parameter plus half along the gradient, so the first-order term dominates the first-order remainder
+    # over all the steps. Measured: 0.994-1.056 / 1.999-2.001 (acoustic; 1.056: the 3D source position),
+    # 1.002-1.038 / 1.999-2.001 (elastic).
+    c = case(physics)
+    g = checkpointed_gradient(physics)
+    assert g.n_segments > 4
+    rng = np.random.default_rng(1)
+    fit = lambda r: np.polyfit(np.log(STEPS), np.log(r), 1)[0]  # noqa: E731
+    for kind in c.kinds:
+        grad = getattr(g, kind)
+        d = c.direction(kind, rng)
+        d = d / np.abs(d).max() + grad / np.abs(grad).max()
+        d = c.sizes[kind] * d / np.abs(d).max()
+        j = np.array([c.loss(**{kind: c.params[kind] + h * d}) for h in STEPS])
+        r1, r2 = np.abs(j - g.loss), np.abs(j - g.loss - STEPS * np.sum(grad * d))
+        assert abs(fit(r1) - 1.0) <= 0.1, kind
+        assert abs(fit(r2) - 2.0) <= 0.1, kind
+
+
+@pytest.mark.parametrize("physics", CASES)
+def test_checkpointed_equals_all_steps_and_warp(physics):
+    # The checkpointed sweep (several segments: recomputation from checkpoints, the adjoint state carried across
+    # segments) against every step kept in one segment, and the hand-written adjoints (which replace Warp's
+    # generated ones for speed) against Warp's generated adjoints under wp.Tape: the same loss and gradients for
+    # every parameter (float64: equal to rounding; measured <= 1e-15 relative (checkpoints; bit for bit on the CPU)
+    # and <= 1e-14 (hand vs Warp: 6e-15 at most)).
+    c = case(physics)
+    ckpt = checkpointed_gradient(physics)
+    every = c.gradient(c.l2, c.kinds, segment_length=c.nt)
+    warp = c.gradient(c.l2, c.kinds, adjoint="warp")
+    assert every.n_segments == 1 and ckpt.n_segments > 4 and warp.n_segments > 4
+    for other in (ckpt, warp):
+        assert abs(other.loss - every.loss) <= 1e-12 * every.loss
+    for k in c.kinds:
+        a, b, w = getattr(every, k), getattr(ckpt, k), getattr(warp, k)
+        assert np.abs(a).max() > 0, k
+        assert np.linalg.norm(a - b) <= 1e-12 * np.linalg.norm(a), k
+        assert np.abs(w - b).max() <= 1e-12 * np.abs(w).max(), k
