@@ -25,9 +25,16 @@ from scipy.ndimage import map_coordinates
 
 from adseismic.data.model import Model
 from adseismic.kernels.acoustic import DESCRIPTION as ACOUSTIC
-from adseismic.kernels.numerics import cfl_limit, dispersion_error, ppw_for_error, rayleigh_speed, staggered_cfl_limit, staggered_dispersion_error
-from adseismic.solve.common import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH, check_courant
+from adseismic.kernels.numerics import (
+    cfl_limit,
+    dispersion_error,
+    ppw_for_error,
+    rayleigh_speed,
+    staggered_cfl_limit,
+    staggered_dispersion_error,
+)
 from adseismic.solve.acoustic import ForwardResult, forward
+from adseismic.solve.common import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH, check_courant
 from adseismic.wavelets import duration, make_wavelet, spectral_fmax
 
 # Padded-grid cell updates per second used for the time estimate (forward): the rates measured in

@@ -10,10 +10,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from adseismic.solve import acoustic as G  # noqa: E402
 from adseismic.analytic import acoustic_2d, acoustic_3d  # noqa: E402
-from adseismic.solve.misfits import MISFITS  # noqa: E402
+from adseismic.solve import acoustic as G  # noqa: E402
 from adseismic.solve.acoustic import forward  # noqa: E402
+from adseismic.solve.misfits import MISFITS  # noqa: E402
 from adseismic.wavelets import ricker  # noqa: E402
 
 C, F = 2000.0, 15.0

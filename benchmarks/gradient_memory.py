@@ -27,8 +27,7 @@ def scene(nt):
 
 
 def run(mode, nt, device):
-    from adseismic.solve.acoustic import gradient
-    from adseismic.solve.acoustic import forward
+    from adseismic.solve.acoustic import forward, gradient
 
     v, dx, dt, s, src, rec = scene(nt)
     kw = dict(device=device, pml_width=20)

@@ -11,8 +11,7 @@ import time
 import numpy as np
 import warp as wp
 
-from adseismic.solve.acoustic import gradient
-from adseismic.solve.acoustic import forward
+from adseismic.solve.acoustic import forward, gradient
 from adseismic.wavelets import ricker
 
 SCENES = {  # name: (n, shots, nt)

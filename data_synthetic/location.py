@@ -13,7 +13,6 @@ import pathlib
 import sys
 
 import numpy as np
-
 from adseismic.data_synthetic.generators import layered
 
 REFERENCE = {"latitude": 46.0, "longitude": 7.0, "datum": 0.0, "azimuth": 90.0}
@@ -27,12 +26,12 @@ def write_location_demo(directory, seed: int = 1):
     """Simulate the example event and write event.mseed + event.xml into ``directory``."""
     from obspy import UTCDateTime
 
-    from adseismic.location.locate import source_wavelet
-    from adseismic.solve.acoustic import forward
     from adseismic.data.geometry import Reference
     from adseismic.data.preprocess import preprocess
     from adseismic.data.traces import StationTraces
     from adseismic.data.write import write_station_traces
+    from adseismic.location.locate import source_wavelet
+    from adseismic.solve.acoustic import forward
 
     fine = layered([121, 221], 10.0, MODEL["velocities"], MODEL["interfaces"])
     rec = np.array([[10.0, x] for x in np.linspace(100.0, 2100.0, 12)])

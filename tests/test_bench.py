@@ -5,10 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from adseismic import bench
-from adseismic import cli
-from adseismic.bench import speed_accuracy
-from adseismic.bench import SCENES, BenchRow
+from adseismic import bench, cli
+from adseismic.bench import SCENES, BenchRow, speed_accuracy
 
 
 @pytest.fixture(scope="module")

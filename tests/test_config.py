@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from adseismic.config import (ConfigError, ForwardConfig, SimulationConfig, load_config,
-                              parse_config)
+from adseismic.config import ConfigError, ForwardConfig, SimulationConfig, load_config, parse_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"

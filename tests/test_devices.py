@@ -4,9 +4,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from adseismic.solve.acoustic import gradient
+from adseismic.solve.acoustic import forward, gradient
 from adseismic.solve.common import init_warp
-from adseismic.solve.acoustic import forward
 from adseismic.wavelets import ricker
 
 init_warp()

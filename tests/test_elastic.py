@@ -11,24 +11,24 @@ regression in the scheme, free surface, CPML or source operator moves them by fa
 
 import functools
 
+import adseismic.kernels.elastic as K
 import numpy as np
 import pytest
-from scipy.ndimage import gaussian_filter
-
-import adseismic.solve.elastic as E
-from adseismic.solve import sweep
-from adseismic.solve.loop import run_levels
-import adseismic.kernels.elastic as K
-from adseismic.analytic import elastic_2d_force, elastic_2d_force_spectrum, lamb_2d
 from adseismic.kernels.numerics import (
     dispersion_error,
     rayleigh_speed,
     staggered_cfl_limit,
     staggered_dispersion_error,
 )
-from adseismic.solve.common import PropagationError
-from adseismic.solve.acoustic import forward as acoustic_forward
+from scipy.ndimage import gaussian_filter
+
+import adseismic.solve.elastic as E
+from adseismic.analytic import elastic_2d_force, elastic_2d_force_spectrum, lamb_2d
 from adseismic.scene import RAYLEIGH_PPW, plan_elastic_grid
+from adseismic.solve import sweep
+from adseismic.solve.acoustic import forward as acoustic_forward
+from adseismic.solve.common import PropagationError
+from adseismic.solve.loop import run_levels
 from adseismic.wavelets import ricker
 
 from .conftest import DEVICE

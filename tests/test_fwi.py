@@ -2,8 +2,8 @@
 uninterrupted run, bad input refused before anything is written, band-pass and wavelet estimation."""
 
 import json
-import re
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -152,12 +152,12 @@ def test_bad_inversion_settings_write_nothing(tmp_path, capsys, inversion, messa
 def test_observed_miniseed_with_stationxml_matches_our_hdf5(tmp_path):
     # the same synthetic shots through both readers: our data.h5, and one MiniSEED + StationXML file
     # per shot with the receivers' latitude/longitude (projected back about the reference point)
+    from adseismic.config import parse_fwi_config
     from adseismic.data.geometry import Reference
+    from adseismic.data.store import read_forward
     from adseismic.data.traces import StationTraces
     from adseismic.data.write import write_station_traces
-    from adseismic.config import parse_fwi_config
     from adseismic.inversion.fwi import prepare_fwi
-    from adseismic.data.store import read_forward
 
     fwd = {k: TINY[k] for k in ("model", "wavelet", "simulation", "geometry")}
     assert main(["forward", str(write(tmp_path, fwd, "fwd.yaml")), "-o", str(tmp_path / "obs"), "-q"]) == 0

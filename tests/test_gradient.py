@@ -13,11 +13,11 @@ import pytest
 import warp as wp
 from scipy.ndimage import gaussian_filter
 
+from adseismic.inversion.parameterization import MLP, LogVelocity, Slowness, SmoothBasis
 from adseismic.solve import acoustic as G
-from adseismic.solve.misfits import MISFITS
-from adseismic.inversion.parameterization import MLP, LogVelocity, SmoothBasis, Slowness
 from adseismic.solve.acoustic import forward, setup
 from adseismic.solve.loop import run_levels
+from adseismic.solve.misfits import MISFITS
 from adseismic.wavelets import ricker
 
 from .conftest import DEVICE

@@ -5,9 +5,9 @@ import functools
 
 import numpy as np
 import pytest
+from adseismic.data_synthetic.generators import constant, layered
 from scipy.stats import chi2
 
-from adseismic.data_synthetic.generators import constant, layered
 from adseismic.location.locate import _peak_time, locate, source_wavelet
 from adseismic.solve.acoustic import forward
 
@@ -91,8 +91,8 @@ def test_3d_event_within_one_cell():
 def test_quakeml_of_a_location_reads_back(tmp_path):
     from obspy import UTCDateTime, read_events
 
-    from adseismic.location.quakeml import read_quakeml_origin, write_quakeml
     from adseismic.data.geometry import Reference, project
+    from adseismic.location.quakeml import read_quakeml_origin, write_quakeml
 
     r = noise_free()
     ref = Reference(46.0, 7.0, azimuth=90.0)

@@ -12,7 +12,7 @@ from adseismic.cli import main
 from adseismic.location.locate import locate
 
 from .conftest import DEVICE
-from .test_locate import DT, NT, TRUTH, T0, scene
+from .test_locate import DT, NT, T0, TRUTH, scene
 
 REF = {"latitude": 46.0, "longitude": 7.0, "datum": 0.0, "azimuth": 90.0}
 MODEL = {"kind": "layered", "shape": [61, 111], "spacing": 20.0, "velocities": [1800.0, 2400.0, 3000.0], "interfaces": [300.0, 800.0]}
@@ -59,8 +59,8 @@ def config(directory, mseed, xml=None, **sections):
 def test_miniseed_stationxml_round_trip_gives_the_in_memory_location(tmp_path, capsys):
     from obspy import UTCDateTime, read_events
 
-    from adseismic.location.quakeml import read_quakeml_origin
     from adseismic.data.geometry import Reference, project
+    from adseismic.location.quakeml import read_quakeml_origin
 
     mseed, xml = write_event(tmp_path)
     out = tmp_path / "run"

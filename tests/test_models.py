@@ -3,8 +3,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from adseismic.data_synthetic import constant, gaussian_anomaly, layered, write_example_files
+
 from adseismic.data.model import Model, ModelError
 from adseismic.data.models import load_model
 

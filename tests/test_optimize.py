@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from adseismic.inversion.optimize import (Journal, JournalMismatch, METHODS, equal_cost_comparison, hash_x,
-                                minimize, projected_gradient_norm)
+from adseismic.inversion.optimize import METHODS, Journal, JournalMismatch, equal_cost_comparison, hash_x, minimize, projected_gradient_norm
 
 # ---- test problems -----------------------------------------------------------------------------
 

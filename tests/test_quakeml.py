@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from adseismic.location import quakeml as Q
 from adseismic.data import geometry as G
+from adseismic.location import quakeml as Q
 
 obspy = pytest.importorskip("obspy")
 scipy_stats = pytest.importorskip("scipy.stats")

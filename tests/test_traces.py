@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from adseismic.data.model import Model
 from adseismic.data.geometry import Reference, check_inside, check_samples, project, unproject
+from adseismic.data.model import Model
 from adseismic.data.preprocess import preprocess
 from adseismic.data.read import read_shot_gathers, read_station_traces
 from adseismic.data.traces import ShotGathers, StationTraces, TraceError

@@ -59,8 +59,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from adseismic.runs import EXIT_ERROR, EXIT_OK, CommandError, RunLog, version
 from adseismic.data.atomic import write_text_atomic
+from adseismic.runs import EXIT_ERROR, EXIT_OK, CommandError, RunLog, version
 
 log = logging.getLogger("adseismic.bench")
 
@@ -219,8 +219,7 @@ def run_elastic(mode: str, a: SceneArrays, device: str, order: int, memory_budge
 
 def run_acoustic(mode: str, a: SceneArrays, device: str, order: int, memory_budget, observed=None, segment_length=None):
     """propagate.forward or gradient.gradient (wrt velocity, L2 misfit against ``observed``)."""
-    from adseismic.solve.acoustic import gradient
-    from adseismic.solve.acoustic import forward
+    from adseismic.solve.acoustic import forward, gradient
 
     args = (a.model["velocity"], DX, DT, a.amplitudes, a.sources, a.receivers)
     kw = dict(order=order, pml_width=PML, device=device)

@@ -103,8 +103,8 @@ def measure(device: str, order: int, precision: str, dx: float, dt: float, repea
     import warp as wp
 
     from adseismic.kernels.numerics import cfl_limit
-    from adseismic.solve.common import resolve_device
     from adseismic.solve.acoustic import forward
+    from adseismic.solve.common import resolve_device
 
     device = resolve_device(device)
     v, w, src, rec = inputs(dx, dt)

@@ -16,8 +16,8 @@ Each subcommand is a (register, run) pair in :data:`COMMANDS`; adding one (``fwi
 from __future__ import annotations
 
 import argparse
-import json
 import datetime
+import json
 import pathlib
 import sys
 import time
@@ -26,8 +26,8 @@ import numpy as np
 
 from adseismic.config import ConfigError, ForwardConfig, load_config
 from adseismic.data.atomic import write_text_atomic
-from adseismic.runs import EXIT_INPUT, EXIT_OK, EXIT_UNSTABLE, CommandError, RunLog, log, version
 from adseismic.data.model import ModelError
+from adseismic.runs import EXIT_INPUT, EXIT_OK, EXIT_UNSTABLE, CommandError, RunLog, log, version
 
 SNAPSHOT_LIMIT_BYTES = 8 * 2**30  # refuse snapshot settings that would hold more than this
 
@@ -106,10 +106,10 @@ def _register_forward(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_forward(args) -> int:
-    from adseismic.data import store as io
     from adseismic import plotting
-    from adseismic.solve.common import PropagationError, resolve_device
+    from adseismic.data import store as io
     from adseismic.scene import build_scene, run_forward
+    from adseismic.solve.common import PropagationError, resolve_device
 
     # --- everything that can be refused is checked before OUTDIR is touched
     config = load_config(args.config)

@@ -10,8 +10,7 @@ Loading or parsing a config imports no workflow (nothing of adseismic.inversion,
 .solve, .cli or .bench); only the data layer (adseismic.data.models) for the velocity models.
 """
 from adseismic.config.common import ConfigError
-from adseismic.config.forward import (ForwardConfig, GeometryConfig, OutputConfig, SimulationConfig, WaveletConfig,
-                                      load_config, parse_config)
+from adseismic.config.forward import ForwardConfig, GeometryConfig, OutputConfig, SimulationConfig, WaveletConfig, load_config, parse_config
 from adseismic.config.fwi import FWIConfig, InversionConfig, load_fwi_config, parse_fwi_config
 from adseismic.config.locate import LocateConfig, load_locate_config, parse_locate_config
 

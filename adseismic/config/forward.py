@@ -22,8 +22,18 @@ from pathlib import Path
 
 import numpy as np
 
-from adseismic.config.common import (ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number,
-                                     _optional, _positive, _read_yaml)
+from adseismic.config.common import (
+    ConfigError,
+    _boolean,
+    _check_keys,
+    _choice,
+    _integer,
+    _mapping,
+    _number,
+    _optional,
+    _positive,
+    _read_yaml,
+)
 from adseismic.data.models import Model, ModelError, load_model
 
 __all__ = [

@@ -10,8 +10,7 @@ import pathlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from adseismic.config.common import (ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number,
-                                     _positive, _read_yaml)
+from adseismic.config.common import ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number, _positive, _read_yaml
 from adseismic.config.forward import ForwardConfig, parse_config
 from adseismic.data.models import Model, ModelError, load_model
 

@@ -13,8 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adseismic.config.common import (ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number,
-                                     _positive, _read_yaml)
+from adseismic.config.common import ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number, _positive, _read_yaml
 from adseismic.config.forward import AXES, SimulationConfig, _check_inside, _load_model, _parse_simulation, _point
 from adseismic.data.models import Model
 

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-
 AXES = {2: "zx", 3: "zyx"}  # model axis order by dimension
 
 

@@ -254,11 +254,25 @@ def read_station_traces(paths, *, inventory=None, reference=None, ndim=2, local_
     grid). noise_window: (start, end) seconds relative to the common start time (or UTCDateTimes)
     -> noise_std, the standard deviation of each trace there (e.g. the pre-event window).
     """
+    if ndim not in (2, 3):
+        raise TraceError(f"ndim: {ndim!r} is not 2 or 3")
+    stream = _merged_stream(paths, component, fill_gaps, starttime, endtime)
+    names = [tr.id for tr in stream]
+    data, delta, t_start, nt = _common_window(stream, align)
+    positions, ref = _positions(stream, inventory, reference, ndim, local_coordinates)
+    check_samples(data, names)
+    noise = _noise_std(data, noise_window, t_start, delta, nt)
+    log.info("read %d traces x %d samples, dt %g s, from %s", len(names), nt, delta, t_start)
+    return StationTraces(data=data, dt=delta, starttime=t_start, positions=np.array(positions, float),
+                         names=names, noise_std=noise, reference=ref)
+
+
+def _merged_stream(paths, component, fill_gaps, starttime, endtime):
+    """The ObsPy Stream of the files at paths: one component, gaps merged (or refused), one trace per channel,
+    sorted by id, cut to [starttime, endtime]."""
     import obspy
     from obspy import UTCDateTime
 
-    if ndim not in (2, 3):
-        raise TraceError(f"ndim: {ndim!r} is not 2 or 3")
     path_list = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     if not path_list:
         raise TraceError("paths: no files given")
@@ -302,6 +316,12 @@ def read_station_traces(paths, *, inventory=None, reference=None, ndim=2, local_
         stream.trim(None if starttime is None else UTCDateTime(starttime),
                     None if endtime is None else UTCDateTime(endtime))
         log.info("cut to %s .. %s", starttime, endtime)
+    return stream
+
+
+def _common_window(stream, align):
+    """(data (n_traces, nt) float64, dt s, start UTCDateTime, nt) of the traces on one sample grid and their common
+    time window."""
     # --- one sampling interval
     delta = float(stream[0].stats.delta)
     for tr in stream:
@@ -340,7 +360,14 @@ def read_station_traces(paths, *, inventory=None, reference=None, ndim=2, local_
         rows.append(np.asarray(tr.data[k0:k0 + nt], dtype=np.float64))
         if k0 or len(tr.data) != nt:
             log.info("%s: cut to the common window (%d of %d samples)", tr.id, nt, len(tr.data))
-    data = np.stack(rows)
+    return np.stack(rows), delta, t_start, nt
+
+
+def _positions(stream, inventory, reference, ndim, local_coordinates):
+    """(positions (n_traces, ndim) metres in model axis order, the Reference used or None) of the traces: local
+    coordinates, then the inventory, SAC headers and stats.coordinates projected about reference."""
+    import obspy
+
     # --- coordinates
     inv = None
     if inventory is not None:
@@ -399,8 +426,13 @@ def read_station_traces(paths, *, inventory=None, reference=None, ndim=2, local_
         log.info("projected %d stations about (%.6f, %.6f), datum %g m%s", len(geo),
                  ref.latitude, ref.longitude, ref.datum,
                  f", 2D line azimuth {ref.azimuth:g} deg" if ndim == 2 else "")
-    names = list(ids)
-    check_samples(data, names)
+    return positions, ref
+
+
+def _noise_std(data, noise_window, t_start, delta, nt):
+    """The standard deviation of each trace in noise_window ((start, end) s after t_start, or UTCDateTimes), or None."""
+    from obspy import UTCDateTime
+
     noise = None
     if noise_window is not None:
         try:
@@ -416,6 +448,4 @@ def read_station_traces(paths, *, inventory=None, reference=None, ndim=2, local_
                              f"two samples inside it (before the first arrival)")
         noise = data[:, i0:i1 + 1].std(axis=1)
         log.info("noise std from %g..%g s (%d samples)", i0 * delta, i1 * delta, i1 - i0 + 1)
-    log.info("read %d traces x %d samples, dt %g s, from %s", len(names), nt, delta, t_start)
-    return StationTraces(data=data, dt=delta, starttime=t_start, positions=np.array(positions, float),
-                         names=names, noise_std=noise, reference=ref)
+    return noise

@@ -27,13 +27,13 @@ import h5py
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from adseismic.inversion import conditioning
-from adseismic.solve.acoustic import gradient
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
-from adseismic.solve.misfits import misfit as named_misfit
+from adseismic.inversion import conditioning
 from adseismic.inversion.optimize import minimize
-from adseismic.solve.acoustic import forward
 from adseismic.scene import build_scene, plan_scene
+from adseismic.solve.acoustic import forward, gradient
+from adseismic.solve.batch import shot_slices
+from adseismic.solve.misfits import misfit as named_misfit
 
 log = logging.getLogger(__name__)
 V_REF = 1000.0  # m/s: the optimiser works on v / V_REF, O(1) numbers
@@ -254,7 +254,7 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
     region_mask = conditioning.mask(shape, p.dx, p.origin, inv.water_depth, fwd.geometry.sources, inv.source_radius)
     depth = (p.origin[0] + p.dx * np.arange(shape[0])).reshape((-1,) + (1,) * (len(shape) - 1)) * np.ones(shape) + p.dx
     history = _History(rundir / "history.h5", p.dx, p.origin)
-    batch = inv.shots_per_batch or len(scene.source_amplitudes)
+    batches = shot_slices(len(scene.source_amplitudes), inv.shots_per_batch)
     budget = None if inv.memory_budget_gb is None else inv.memory_budget_gb * 1e9
     kw = dict(order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, pml_velocity=bounds[1],
               free_surface=p.free_surface, device=p.device, precision=p.precision, memory_budget=budget)  # fmt: skip
@@ -280,8 +280,7 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
         def objective(xv, amp=amp, obs_b=obs_b, scale=scale, scale_path=scale_path):
             v = xv.reshape(shape) * V_REF
             loss, grad, illum = 0.0, np.zeros(shape), np.zeros(shape) if inv.preconditioning == "pseudo_hessian" else None
-            for s0 in range(0, len(amp), batch):
-                sl = slice(s0, s0 + batch)
+            for sl in batches:
                 w_sl, o_sl = weights[sl], weights[sl] * obs_b[sl]
 
                 def weighted(syn, w_sl=w_sl, o_sl=o_sl):  # misfit of the muted, windowed data
@@ -290,7 +289,7 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
 
                 r = gradient(v, p.dx, p.dt, amp[sl], scene.source_locations[sl], scene.receiver_locations[sl],
                              misfit=weighted, illumination=illum is not None, **kw)  # fmt: skip
-                if s0 == 0:
+                if sl.start == 0:
                     last["residual"] = weights[0] * (obs_b[0] - r.synthetic[0])
                 loss += r.loss
                 grad += r.velocity

@@ -35,12 +35,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import hilbert
 
-from adseismic.solve.acoustic import gradient
 from adseismic.data.model import Model
 from adseismic.inversion.optimize import minimize
-from adseismic.solve.common import dominant_frequency
-from adseismic.solve.acoustic import forward
 from adseismic.scene import straight_ray_times
+from adseismic.solve.acoustic import forward, gradient
+from adseismic.solve.batch import shot_slices
+from adseismic.solve.common import dominant_frequency
 
 log = logging.getLogger(__name__)
 N_PHYS = 3  # T, f, A after the position
@@ -492,8 +492,8 @@ def misfit_map(model: Model, receivers, observed, dt, result: LocationResult, *,
     prob = _Problem(model, receivers, obs.shape[1], dt, kw)
     out = np.full(n * n, np.nan)
     idx = np.nonzero(inside)[0]
-    for b in range(0, len(idx), 64):  # batches of shots, one simulation each
-        k = idx[b : b + 64]
+    for sl in shot_slices(len(idx), 64):  # trial positions as the shots of one simulation a batch
+        k = idx[sl]
         d = prob.data_many(pts[k], result.stf)
         out[k] = 0.5 * np.sum(((d - obs[None]) / result.noise_std[None, :, None]) ** 2, axis=(1, 2))
     return {"z": z, "x": x, "misfit": out.reshape(n, n)}

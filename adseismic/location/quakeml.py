@@ -294,8 +294,17 @@ def write_quakeml(path, *, position, origin_time, covariance, reference, ndim: i
     See the module docstring for every convention.
     """
     from obspy import UTCDateTime
-    from obspy.core.event import (Catalog, Comment, ConfidenceEllipsoid, CreationInfo, Event,
-                                  Origin, OriginUncertainty, QuantityError, ResourceIdentifier)
+    from obspy.core.event import (
+        Catalog,
+        Comment,
+        ConfidenceEllipsoid,
+        CreationInfo,
+        Event,
+        Origin,
+        OriginUncertainty,
+        QuantityError,
+        ResourceIdentifier,
+    )
 
     if ndim not in (2, 3) or isinstance(ndim, bool):
         raise ValueError(f"ndim: {ndim!r} is not 2 or 3")

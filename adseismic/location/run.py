@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from adseismic.config import ForwardConfig, GeometryConfig, LocateConfig, OutputConfig, WaveletConfig
-from adseismic.inversion.fwi import band_pass
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
+from adseismic.inversion.fwi import band_pass
 from adseismic.location.locate import LocationResult, back_projection, locate, misfit_map, noise_from_window
-from adseismic.solve.common import dominant_frequency
 from adseismic.scene import plan_scene, straight_ray_times
+from adseismic.solve.common import dominant_frequency
 
 log = logging.getLogger(__name__)
 CONFIDENCE = 0.68
@@ -188,8 +188,8 @@ def locate_event(prep: PreparedEvent, callback=None) -> LocationResult:
 def summary(prep: PreparedEvent, res: LocationResult) -> dict:
     """The location in numbers: local and geographic position, UTC origin time, 1-sigma errors,
     68% ellipse, fit, cost; the error against the truth when the config gives one."""
-    from adseismic.location.quakeml import confidence_scale, ellipse_2d, ellipsoid
     from adseismic.data.geometry import unproject
+    from adseismic.location.quakeml import confidence_scale, ellipse_2d, ellipsoid
 
     ndim = prep.model.ndim
     axes = "zyx" if ndim == 3 else "zx"
@@ -228,8 +228,8 @@ def summary(prep: PreparedEvent, res: LocationResult) -> dict:
 
 def write_outputs(outdir: Path, prep: PreparedEvent, res: LocationResult, mmap: dict, study: dict | None = None) -> list:
     """Write the run's files (module docstring); summary.json last. Returns the paths."""
-    from adseismic.plotting import plot_location, plot_station_traces
     from adseismic.location.quakeml import confidence_scale, write_quakeml
+    from adseismic.plotting import plot_location, plot_station_traces
 
     outdir = Path(outdir)
     ndim = prep.model.ndim

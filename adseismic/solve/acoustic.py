@@ -25,13 +25,21 @@ import warp as wp
 from tqdm.auto import tqdm
 
 from adseismic.accel.reductions import value_range
-from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.kernels.acoustic import DESCRIPTION, Acoustic, State
 from adseismic.kernels.common import operator_shape
 from adseismic.kernels.numerics import check_order
 from adseismic.solve import loop, sweep
-from adseismic.solve.common import (BlowupGuard, check_courant, check_geometry, padded_samples, pml_settings, precision_dtype,
-                                    resolve_device, source_end)
+from adseismic.solve.common import (
+    BlowupGuard,
+    check_courant,
+    check_geometry,
+    padded_samples,
+    pml_settings,
+    precision_dtype,
+    resolve_device,
+    source_end,
+)
+from adseismic.solve.misfits import misfit as named_misfit
 
 WRT = ("velocity", "source_amplitudes", "source_locations")
 

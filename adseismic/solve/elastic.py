@@ -33,12 +33,20 @@ from tqdm.auto import tqdm
 
 from adseismic.accel import graphs
 from adseismic.accel.reductions import l2_residual_kernel, value_ranges
-from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.kernels.elastic import DESCRIPTION, MATERIALS, PSI, Elastic, shear_ratio
 from adseismic.kernels.numerics import check_order
 from adseismic.solve import loop, sweep
-from adseismic.solve.common import (BlowupGuard, check_courant, check_geometry, padded_samples, pml_settings, precision_dtype,
-                                    resolve_device, source_end)
+from adseismic.solve.common import (
+    BlowupGuard,
+    check_courant,
+    check_geometry,
+    padded_samples,
+    pml_settings,
+    precision_dtype,
+    resolve_device,
+    source_end,
+)
+from adseismic.solve.misfits import misfit as named_misfit
 
 SOURCE_TYPES = {"force": 2, "moment": 3, "explosive": 3}
 COMPONENTS = ("vx", "vz", "pressure")
