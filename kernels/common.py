@@ -1,11 +1,16 @@
 """What the physics share: the off-grid source/receiver weight (Kaiser-windowed sinc, Hicks 2002),
-vector loads and stores of contiguous fields, tile boxes, and the launch of Warp's generated adjoints.
+vector loads and stores of contiguous fields, tile boxes, the launch of Warp's generated adjoints, and the
+decorator of their kernels (unique_kernel: a kernel's name carries the values its code is generated from).
 
 Physics folders (kernels/<name>/) import from here and from kernels.numerics; nothing here schedules work.
 """
 
 import functools
+import hashlib
 import math
+import numbers
+import re
+import types
 from dataclasses import dataclass
 from typing import Callable
 
@@ -60,6 +65,87 @@ def hicks_weight(dtype):
         return sinc * total * dtype(wp.static(WINDOW_NORM))
 
     return hicks
+
+
+def code_key(f) -> str:
+    """16 hex digits of the plain values (numbers, strings, None, and tuples, lists, sets and dicts of them) that the
+    Python function f, and every Warp func and Python function it reaches through its closure and globals, read from
+    their closures and globals: what their wp.static() expressions can be evaluated from.
+
+    Warp 1.19 leaves some of these values out of a module's hash, so a warm kernel cache (WARP_CACHE_PATH) would
+    serve a kernel compiled for other values, and a second kernel of the same source in the same process would be
+    taken for the first one (issue 29): a wp.static() that reads a loop variable (dtype(wp.static(A[m + 1])) in
+    `for m in range(...)`) is evaluated only when the code is generated, and the values of a Warp func called by a
+    kernel of module="unique" are then not hashed at all (the kernel's module is hashed before the func is built);
+    and float constants are hashed as float32, so float64 kernels whose constants differ beyond float32's precision
+    share a hash. Floats enter here by repr (exact), numbers with their type."""
+    memo = {}
+
+    def plain(v):
+        # canonical text of plain data, else None (Warp types, structs, arrays and modules: hashed by Warp or unused)
+        if v is None or isinstance(v, (bool, str, bytes)):
+            return repr(v)
+        if isinstance(v, numbers.Number):
+            return f"{type(v).__name__}:{v!r}"
+        if isinstance(v, (tuple, list)):
+            items = [plain(x) for x in v]
+            return None if None in items else f"{type(v).__name__}({', '.join(items)})"
+        if isinstance(v, (set, frozenset)):
+            items = [plain(x) for x in v]
+            return None if None in items else f"set({', '.join(sorted(items))})"
+        if isinstance(v, dict):
+            items = [f"{plain(k)}: {plain(x)}" for k, x in v.items() if plain(k) is not None and plain(x) is not None]
+            return None if len(items) < len(v) else f"dict({', '.join(sorted(items))})"
+        return None
+
+    def names(code):
+        # global names read by code and by the code objects (comprehensions, lambdas) nested in it
+        yield from code.co_names
+        for c in code.co_consts:
+            if isinstance(c, types.CodeType):
+                yield from names(c)
+
+    def key(fn) -> str:
+        # digest of fn's name, its plain values and, by name, the keys of the functions it reaches (a Merkle tree:
+        # which func reads which values); a function met again on its own call path is named only
+        if fn in memo:
+            return memo[fn] or f"recursive:{fn.__qualname__}"
+        memo[fn] = None
+        scope = {n: fn.__globals__[n] for n in names(fn.__code__) if n in fn.__globals__}
+        for n, cell in zip(fn.__code__.co_freevars, fn.__closure__ or ()):
+            try:
+                scope[n] = cell.cell_contents
+            except ValueError:  # not assigned yet
+                scope[n] = "<unassigned>"
+        lines = [fn.__qualname__]
+        for n, v in sorted(scope.items()):
+            if isinstance(v, wp.Function):
+                funcs = [g.func for g in (v, *v.user_overloads.values(), *v.user_templates.values())]
+                text = f"func({', '.join(key(g) for g in funcs if isinstance(g, types.FunctionType))})"
+            elif isinstance(v, types.FunctionType):
+                text = f"python({key(v)})"
+            else:
+                text = plain(v)
+            if text is not None:
+                lines.append(f"{n}={text}")
+        memo[fn] = hashlib.sha256("\n".join(lines).encode()).hexdigest()
+        return memo[fn]
+
+    return key(f)[:16]
+
+
+def unique_kernel(f=None, **options):
+    """@unique_kernel or @unique_kernel(**options): wp.kernel(module="unique", **options) whose name (Warp's default,
+    the qualified name, and "_" + code_key(f)) carries the values its code is generated from. Warp hashes a kernel's
+    name into its module's hash and names the module by both, so kernels generated from other values (a stencil's
+    weights, a tile layout, the operator's constants) are other modules, compiled afresh and cached apart. The
+    generated arithmetic is unchanged: only the kernel's and module's symbols differ."""
+
+    def wrap(f):
+        name = re.sub("[^0-9a-zA-Z_]+", "", f.__qualname__.replace(".", "__"))
+        return wp.kernel(f, name=f"{name}_{code_key(f)}", module="unique", **options)
+
+    return wrap if f is None else wrap(f)
 
 
 def adjoint_launch(kernel, dim, inputs, adjoints: dict, device):

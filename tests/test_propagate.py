@@ -160,7 +160,7 @@ def test_unstable_dt_is_refused_with_the_limit():
 def test_blowup_is_detected_with_step(monkeypatch):
     # Bypass the CFL refusal to run 5% above the exact limit: the guard must stop the run
     # (it grows ~1e3x within ~70 steps) instead of returning garbage.
-    monkeypatch.setattr(propagate, "check_courant", lambda *args: None)
+    monkeypatch.setattr(propagate.common, "check_courant", lambda *args: None)
     dt = 1.05 * cfl_limit(4, 2) * 10.0 / C
     with pytest.raises(PropagationError, match=r"blew up at step \d+"):
         forward(np.full((41, 41), C), 10.0, dt, ricker(F, 2000, dt)[None, None], np.array([[[200.0, 200.0]]]),

@@ -28,17 +28,7 @@ from adseismic.accel.reductions import value_range
 from adseismic.kernels.acoustic import DESCRIPTION, Acoustic, State
 from adseismic.kernels.common import operator_shape
 from adseismic.kernels.numerics import check_order
-from adseismic.solve import loop, sweep
-from adseismic.solve.common import (
-    BlowupGuard,
-    check_courant,
-    check_geometry,
-    padded_samples,
-    pml_settings,
-    precision_dtype,
-    resolve_device,
-    source_end,
-)
+from adseismic.solve import common, loop, sweep
 from adseismic.solve.misfits import misfit as named_misfit
 
 WRT = ("velocity", "source_amplitudes", "source_locations")
@@ -81,8 +71,8 @@ def check_inputs(shape, value_range, dx, dt, source_amplitudes, source_locations
     vmin, vmax, bad = value_range
     if bad is not None:
         raise ValueError(f"velocity has non-finite or non-positive values (first at index {bad}, min {vmin:.6g} m/s); fix the model")
-    check_geometry(shape, dx, source_amplitudes, source_locations, receiver_locations, "z, x" if ndim == 2 else "z, y, x")
-    check_courant(DESCRIPTION, order, ndim, vmax, dx, dt)
+    common.check_geometry(shape, dx, source_amplitudes, source_locations, receiver_locations, "z, x" if ndim == 2 else "z, y, x")
+    common.check_courant(DESCRIPTION, order, ndim, vmax, dx, dt)
     return ndim, vmax
 
 
@@ -209,10 +199,10 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
     """Validate the inputs and move them to the device; requires_grad names the arrays to differentiate
     ("velocity", "source_amplitudes", "source_locations"). velocity: NumPy or Warp array (nz, [ny,] nx)."""
     amp = np.asarray(source_amplitudes, dtype=float)
-    dtype, device = precision_dtype(precision), resolve_device(device)
+    dtype, device = common.precision_dtype(precision), common.resolve_device(device)
     vel, shape, vrange = upload_velocity(velocity, dtype, device, requires_grad="velocity" in requires_grad)
     ndim, vmax = check_inputs(shape, vrange, dx, dt, amp, source_locations, receiver_locations, order)
-    pml = pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
+    pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
     prop = make_propagator(shape, dx, dt, amp.shape[0], order, pml, free_surface, device, dtype)
 
     def put(x, name):
@@ -248,7 +238,7 @@ def forward(velocity, dx, dt, source_amplitudes, source_locations, receiver_loca
                pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
                free_surface=free_surface, device=device, precision=precision)  # fmt: skip
     prop = su.prop
-    guard = BlowupGuard(prop, DESCRIPTION, su.fields, source_end(source_amplitudes), check_every)
+    guard = common.BlowupGuard(prop, DESCRIPTION, su.fields, common.source_end(source_amplitudes), check_every)
     snaps, snap_t = [], []
     o, ny = prop.origin, (prop.shape[1] if su.ndim == 3 else 1)
     phys = (slice(None), slice(o[0], o[0] + prop.shape[0]), slice(o[1], o[1] + ny), slice(o[2], o[2] + prop.shape[-1]))
@@ -422,7 +412,7 @@ def _hand_sweep(su, vpad, seg: int, n_seg: int, loss_fn, energy, bar):
     sw.forward_sweep(bar)
     synthetic = lv.data.numpy()[:, :, :nt].astype(float)
     loss, adj = loss_fn(synthetic)
-    lv.residual.assign(padded_samples(np.asarray(adj), seg * n_seg, prop.dtype))
+    lv.residual.assign(common.padded_samples(np.asarray(adj), seg * n_seg, prop.dtype))
     sw.backward_sweep(bar)
     lv.collect(su, vpad, energy)
     return synthetic, loss, lv.amplitudes.grad
@@ -498,7 +488,7 @@ class Levels:
         prop = mine.prop
         for a, b in zip(mine.inputs(), su.inputs()):
             wp.copy(a, b)
-        self.amplitudes.assign(padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], prop.dtype))
+        self.amplitudes.assign(common.padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], prop.dtype))
         wp.copy(self.vpad, vpad)
         wp.launch(prop.k.squared, dim=prop.padded, inputs=[self.vpad, prop.dt2, self.w], device=prop.device)
         zero = [self.data, *self.g, *self.lam, *(a for r in (self.adj_psi, self.adj_zeta) for p in r for a in p), self.vpad.grad]

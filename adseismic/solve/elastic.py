@@ -35,17 +35,7 @@ from adseismic.accel import graphs
 from adseismic.accel.reductions import l2_residual_kernel, value_ranges
 from adseismic.kernels.elastic import DESCRIPTION, MATERIALS, PSI, Elastic, shear_ratio
 from adseismic.kernels.numerics import check_order
-from adseismic.solve import loop, sweep
-from adseismic.solve.common import (
-    BlowupGuard,
-    check_courant,
-    check_geometry,
-    padded_samples,
-    pml_settings,
-    precision_dtype,
-    resolve_device,
-    source_end,
-)
+from adseismic.solve import common, loop, sweep
 from adseismic.solve.misfits import misfit as named_misfit
 
 SOURCE_TYPES = {"force": 2, "moment": 3, "explosive": 3}
@@ -143,7 +133,7 @@ def check_elastic_inputs(shape, vmax, dx, dt, source_amplitudes, source_location
     if source_type not in SOURCE_TYPES:
         raise ValueError(f"source_type {source_type!r} is not one of {sorted(SOURCE_TYPES)}")
     amp = np.asarray(source_amplitudes)
-    check_geometry(shape, dx, amp, source_locations, receiver_locations, "z, x")
+    common.check_geometry(shape, dx, amp, source_locations, receiver_locations, "z, x")
     nc = SOURCE_TYPES[source_type]
     if source_type == "explosive":
         comp = np.broadcast_to(np.array([1.0, 1.0, 0.0]), (*amp.shape[:2], 3))
@@ -155,7 +145,7 @@ def check_elastic_inputs(shape, vmax, dx, dt, source_amplitudes, source_location
         comp = np.asarray(source_components, dtype=float)
         if comp.shape != (*amp.shape[:2], nc):
             raise ValueError(f"source_components must be (n_shots, n_src, {nc}) for source_type {source_type!r}; got {comp.shape}")
-    check_courant(DESCRIPTION, order, 2, vmax, dx, dt)
+    common.check_courant(DESCRIPTION, order, 2, vmax, dx, dt)
     return np.ascontiguousarray(comp)
 
 
@@ -243,11 +233,11 @@ def setup_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, rece
     """Validate the inputs and move them to the device (vp, vs, rho: NumPy or Warp arrays, see upload_models);
     requires_grad names the arrays (WRT) to differentiate."""
     amp = np.asarray(source_amplitudes, dtype=float)
-    dtype = precision_dtype(precision)
-    device = resolve_device(device)
+    dtype = common.precision_dtype(precision)
+    device = common.resolve_device(device)
     models, vmax = upload_models(vp, vs, rho, dtype, device, requires_grad)
     comp = check_elastic_inputs(models[0].shape, vmax, dx, dt, amp, source_locations, receiver_locations, order, source_type, source_components)
-    pml = pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
+    pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
     prop = Elastic(models[0].shape, dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
 
     def put(x, name):
@@ -277,7 +267,7 @@ def forward_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
                        source_components=source_components, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
                        pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
                        precision=precision)  # fmt: skip
-    guard = BlowupGuard(su.prop, DESCRIPTION, su.fields, source_end(source_amplitudes, lag=2, rate=True), check_every, "v")
+    guard = common.BlowupGuard(su.prop, DESCRIPTION, su.fields, common.source_end(source_amplitudes, lag=2, rate=True), check_every, "v")
     data, kept = loop.run(su, guard, progress)
     return ElasticResult(*(loop.traces(d, su.nt, isinstance(vp, wp.array), kept) for d in data), dt=float(dt))
 
@@ -429,7 +419,7 @@ def _hand_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar, observed_l
         loss, adj = loss_fn({c: d if isinstance(d, np.ndarray) else d.numpy() for c, d in synthetic.items()})
         for c, r in zip(COMPONENTS, lv.residual):
             if c in adj:
-                r.assign(padded_samples(np.asarray(adj[c], dtype=float), seg * n_seg, prop.dtype))
+                r.assign(common.padded_samples(np.asarray(adj[c], dtype=float), seg * n_seg, prop.dtype))
     else:
         total = _l2_on_device(lv.data, lv.residual, observed_l2, su.nt, prop.dt)
     sw.backward_sweep(bar)
@@ -528,7 +518,7 @@ class Levels:
         for a, b in [*zip(self.su.inputs(self.sources), su.inputs(su.sources_of(self.amplitudes, fixed=True))), *zip(self.mat, mat)]:
             if a.ptr != b.ptr:  # (self.su is su on a sweep's first call)
                 wp.copy(a, b)
-        self.amplitudes.assign(padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], su.prop.dtype))
+        self.amplitudes.assign(common.padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], su.prop.dtype))
         for a in (*self.levels[0].arrays(), *self.data, *self.residual, *self.adj.arrays(), *self.adj_mat,
                   *self.adj_sources, *self.source_buoyancy):  # fmt: skip
             a.zero_()

@@ -36,7 +36,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, block_rows, hicks_weight, vector_access
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, block_rows, hicks_weight, unique_kernel, vector_access
 from adseismic.kernels.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 
 # 2D GPU core steps: rows (along z) x adjacent columns per thread (one vector), threads per block
@@ -221,14 +221,14 @@ def _cpml(ns):
         # one thread per strip cell (GPU, and Warp's generated adjoint)
         cell = psi_cells[axis]
 
-        @wp.kernel(module="unique", grid_stride=False)
+        @unique_kernel(grid_stride=False)
         def psi_kernel(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype):
             s, i, j, k = wp.tid()
             cell(u, psi_old, psi_new, ax, inv_dx, s, i, j, k)
 
         # CPU: one thread per strip line (s, first + i, j), looping over its last axis on the flat arrays (as
         # psi_cell; strip: the strip's shape (Z, Y, X), grid: the padded one), vectorised but along x
-        @wp.kernel(module="unique")
+        @unique_kernel
         def psi_rows(u: arr1, psi_old: arr1, psi_new: arr1, ax: Axis, inv_dx: dtype, strip: wp.vec3i, grid: wp.vec3i, first: int):
             s, i, j = wp.tid()
             i += first
@@ -358,7 +358,7 @@ def _reference_step(ns):
         update(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
                az, ay, ax, dt2, inv_dx, top, s, z, y, x, d2z(u, s, z, y, x, top), d2x(u, s, z, y, x, top), u[s, z, y, x])  # fmt: skip
 
-    @wp.kernel(module="unique", grid_stride=False)
+    @unique_kernel(grid_stride=False)
     def step(
         u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
         psi_z: arr4, psi_y: arr4, psi_x: arr4,
@@ -412,7 +412,7 @@ def _cpu_rows(ns):
                     w[m] = w[m + 1]
                 w[wp.static(2 * R)] = u[s, z, y, x + wp.static(R + 1)]
 
-    @wp.kernel(module="unique", grid_stride=False)
+    @unique_kernel(grid_stride=False)
     def step_rows(
         u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
         psi_z: arr4, psi_y: arr4, psi_x: arr4,
@@ -456,7 +456,7 @@ def _cpu_rows(ns):
             u_next[wp.max(i, 0) + k] = advance(uc, flat(u_prev, i, k), flat(v, c, k), dt2, (dzz + dxx) * inv_dx2)
             k += 1
 
-    @wp.kernel(module="unique", grid_stride=False)
+    @unique_kernel(grid_stride=False)
     def step_core_rows(u: arr1, u_prev: arr1, u_next: arr1, v: arr1, lz: int, lx: int, core: wp.vec4i, first: int, rows: int,
                        in_place: int, dt2: dtype, inv_dx: dtype):  # fmt: skip
         # 2D CPU step of the core columns [core[2], core[3]) of rows first..first + rows - 1 (padded, core rows)
@@ -508,7 +508,7 @@ def _gpu_step(ns):
         i = r // a.shape[3]
         return wp.vec3i(s, i, r - i * a.shape[3])
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def pre_step(
         u: arr4, psi_z: arr4, psi_z_new: arr4, psi_x: arr4, psi_x_new: arr4, az: Axis, ax: Axis, inv_dx: dtype,
         z_cells: int, x_cells: int, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1,
@@ -650,7 +650,7 @@ def _step_core(ns, rows: int, V: int):
     dtype, arr3, arr4, Axis, frame_cell, cell = ns.dtype, ns.arr3, ns.arr4, ns.Axis, ns.frame_cell, ns.cell
     core_tile, arrv = _core_tile(ns, rows, V)
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def step_core(
         u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
         psi_z: arr4, psi_y: arr4, psi_x: arr4,
@@ -711,7 +711,7 @@ def _psi_adjoint(ns):
             else:
                 deriv_t(adj_u, s, i, j, p, f)
 
-        @wp.kernel(module="unique", grid_stride=False)
+        @unique_kernel(grid_stride=False)
         def psi_adjoint(adj_u: arr4, adj_psi_old: arr4, adj_psi_new: arr4, adj_zeta_new: arr4, ax: Axis, inv_dx: dtype):
             s, i, j, k = wp.tid()
             psi_adjoint_cell(adj_u, adj_psi_old, adj_psi_new, adj_zeta_new, ax, inv_dx, s, i, j, k)
@@ -721,7 +721,7 @@ def _psi_adjoint(ns):
     psi_adjoints = [make_psi_adjoint(a) for a in range(3)]
     psi_adjoint_z, psi_adjoint_x = psi_adjoints[0][0], psi_adjoints[2][0]
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def post_adjoint(
         adj: arr4, adj_psi_z: arr4, adj_psi_z_new: arr4, adj_zeta_z_new: arr4, adj_psi_x: arr4, adj_psi_x_new: arr4, adj_zeta_x_new: arr4,
         az: Axis, ax: Axis, inv_dx: dtype, z_cells: int, x_cells: int,
@@ -896,7 +896,7 @@ def _adjoint_step(ns):
             g_out[s, z, y, x] = g[s, z, y, x] + lc * total
         adj_out[s, z, y, x] = acc
 
-    @wp.kernel(module="unique", grid_stride=False)
+    @unique_kernel(grid_stride=False)
     def adjoint_step(
         u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
         lam: arr4, adj: arr4, g: arr4, adj_out: arr4, g_out: arr4,
@@ -986,7 +986,7 @@ def _adjoint_core(ns, rows: int, V: int):
                 i += n
                 c += n
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def adjoint_core(
         u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
         lam: arr4, adj: arr4, g: arr4, adj_out: arr4, g_out: arr4,
@@ -1048,7 +1048,7 @@ def _points(ns):
                 w = -w
         return wp.vec3i(iz, iy, ix), w
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def inject(
         u_next: arr4, v: arr3, amp: arr3, loc: arr3, n: int, clock: iarr1,
         origin: wp.vec3i, scale: dtype, inv_dx: dtype, top: int,
@@ -1062,7 +1062,7 @@ def _points(ns):
         vv = v[idx[0], idx[1], idx[2]]
         wp.atomic_add(u_next, s, idx[0], idx[1], idx[2], scale * vv * vv * w * amp[s, src, n + clock[0]])
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def record(u: arr4, data: arr3, loc: arr3, n: int, clock: iarr1, origin: wp.vec3i, inv_dx: dtype, top: int):
         s, rec, q = wp.tid()
         idx, w = point(loc, s, rec, q, origin, inv_dx, top)
@@ -1070,14 +1070,14 @@ def _points(ns):
 
     # Precomputed operator (positions that are not differentiated, e.g. receivers): the node index and
     # weight of every stencil point, computed once per run instead of at every time step.
-    @wp.kernel(module="unique")
+    @unique_kernel
     def weights(loc: arr3, origin: wp.vec3i, inv_dx: dtype, top: int, idx: wp.array3d(dtype=wp.vec3i), w: arr3):
         s, n, q = wp.tid()
         i, wq = point(loc, s, n, q, origin, inv_dx, top)
         idx[s, n, q] = i
         w[s, n, q] = wq
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @unique_kernel(enable_backward=False)
     def compact(idx: wp.array3d(dtype=wp.vec3i), w: arr3, most: iarr1):
         # moves the points of operator (s, n) with a non-zero weight to its front, in order, zeroing the rest's
         # weights; most[0] = the largest count
@@ -1093,7 +1093,7 @@ def _points(ns):
             w[s, n, q] = dtype(0.0)
         wp.atomic_max(most, 0, c)
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def inject_fixed(u_next: arr4, v: arr3, amp: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1, scale: dtype):
         s, src, q = wp.tid()
         wq = w[s, src, q]
@@ -1106,7 +1106,7 @@ def _points(ns):
         # thread (s, rec, g) adds the points g * per ... (g + 1) * per - 1, summed in order (unrolled, so that
         # Warp differentiates it), with one atomic: per = 1 on a GPU, all points on the CPU (record_summed:
         # one thread per receiver, threads costing more there than the sum)
-        @wp.kernel(module="unique")
+        @unique_kernel
         def record_fixed(u: arr4, data: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1):
             s, rec, g = wp.tid()
             acc = dtype(0.0)
@@ -1129,7 +1129,7 @@ def _model_ops(ns):
     the model gradient."""
     dtype, R, three, arr3, arr4, iarr1 = ns.dtype, ns.R, ns.three, ns.arr3, ns.arr4, ns.iarr1
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def pad_model(v: arr3, vpad: arr3, origin: wp.vec3i):
         # Padded model from the physical one, extended by edge replication into PML and halo.
         z, y, x = wp.tid()
@@ -1138,7 +1138,7 @@ def _model_ops(ns):
         ix = wp.clamp(x - origin[2], 0, v.shape[2] - 1)
         vpad[z, y, x] = v[iz, iy, ix]
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def scatter(du_next: arr4, u_next: arr4, u: arr4, u_prev: arr4, v: arr3, dv: arr3):
         # Born secondary source: d(u[n+1])/dv . dv = 2 dv / v (u[n+1] - 2 u[n] + u[n-1]), since every
         # increment of the scheme (update and injection) is proportional to v^2 at its node.
@@ -1151,7 +1151,7 @@ def _model_ops(ns):
         inc = u_next[s, z, y, x] - dtype(2.0) * u[s, z, y, x] + u_prev[s, z, y, x]
         du_next[s, z, y, x] = du_next[s, z, y, x] + dtype(2.0) * dv[z, y, x] / v[z, y, x] * inc
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def energy(u: arr4, e: arr3, n: int, clock: iarr1, levels: int):
         # e += sum over shots of u^2 (illumination, for the pseudo-Hessian preconditioner) at level
         # n + clock[0] if it is below `levels`
@@ -1160,14 +1160,14 @@ def _model_ops(ns):
             val = u[s, z, y, x]
             wp.atomic_add(e, z, y, x, val * val)
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def squared(v: arr3, dt2: dtype, w: arr3):
         # w = v^2 dt^2, the factor of the Laplacian in the update (read by adjoint_core)
         z, y, x = wp.tid()
         vv = v[z, y, x]
         w[z, y, x] = vv * vv * dt2
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def model_gradient(v: arr3, g: arr4, dt2: dtype, grad: arr3):
         # grad += 2 v dt^2 sum over shots of g (g: the sums of adjoint_cell)
         z, y, x = wp.tid()

@@ -67,7 +67,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 import warp as wp
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, hicks_weight, vector_access
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, hicks_weight, unique_kernel, vector_access
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 
 
@@ -595,7 +595,7 @@ def _cells(ns):
             szz_new[s, z, x] = fzz + dt * szz_rate
         sxz_new[s, z, x] = advance(fxz, dt, c4, e1 + e2)
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def velocity(
         vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2,
         p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
@@ -606,7 +606,7 @@ def _cells(ns):
         velocity_cell(vx, vz, sxx, szz, sxz, bx, bz, p_vx_x, p_vx_z, p_vz_x, p_vz_z, n_vx_x, n_vx_z, n_vz_x, n_vz_z,
                       vx_new, vz_new, az, ax, dt, inv_dx, top, s, zi + wp.static(M), xi + wp.static(M))  # fmt: skip
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def stress(
         vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2,
         p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
@@ -963,7 +963,7 @@ def make_updates(ns, rows: int, cols: int, lean: bool):
     arrv = ns.tiling(rows, cols, cols)[1]
     velocity_tile, stress_tile = _update_tiles(ns, rows, cols, lean)
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def velocity_update(
         vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2,
         p_vx_x: arr3, p_vx_z: arr3, p_vz_x: arr3, p_vz_z: arr3,
@@ -984,7 +984,7 @@ def make_updates(ns, rows: int, cols: int, lean: bool):
             velocity_cell(vx, vz, sxx, szz, sxz, bx, bz, p_vx_x, p_vx_z, p_vz_x, p_vz_z, n_vx_x, n_vx_z, n_vz_x, n_vz_z,
                           vx_new, vz_new, az, ax, dt, inv_dx, top, s, z, x)  # fmt: skip
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def stress_update(
         vx: arr3, vz: arr3, sxx: arr3, szz: arr3, sxz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2,
         p_s_x: arr3, p_s_z: arr3, p_xz_z: arr3, p_xz_x: arr3,
@@ -1024,7 +1024,7 @@ def _velocity_adjoints(ns):
                                                                           ns.gather_int, ns.gather_half)  # fmt: skip
 
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def velocity_adjoint(
         sxx: arr3, szz: arr3, sxz: arr3, bx: arr2, bz: arr2, n_vx_x: arr3, n_vx_z: arr3, n_vz_x: arr3, n_vz_z: arr3,
         g_vx: arr3, g_vz: arr3, g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_bx: arr2, g_bz: arr2, gp_vx_x: arr3, gp_vx_z: arr3,
@@ -1083,7 +1083,7 @@ def _velocity_adjoints(ns):
         g_sxz[i] = g_sxz[i] + gather_half(t2, i, lx) + gather_half(t3, i, 1)
         g_szz[i] = g_szz[i] + gather_int(t4, i, lx)
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def velocity_transpose(t1: arr1, t2: arr1, t3: arr1, t4: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
                            lz: int, lx: int, box: wp.vec4i, rows: int):  # fmt: skip
         i, c, n = column(wp.tid(), lz, lx, box, rows)
@@ -1104,7 +1104,7 @@ def _stress_adjoints(ns):
     dxt_of_int, dxt_of_half, dvz_normal_t, dvx_shear_t, gather_int, gather_half = (
         ns.dxt_of_int, ns.dxt_of_half, ns.dvz_normal_t, ns.dvx_shear_t, ns.gather_int, ns.gather_half)  # fmt: skip
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def stress_adjoint(
         vx: arr3, vz: arr3, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, n_s_x: arr3, n_s_z: arr3, n_xz_z: arr3, n_xz_x: arr3,
         g_sxx: arr3, g_szz: arr3, g_sxz: arr3, g_vx: arr3, g_vz: arr3, g_l2m: arr2, g_lam: arr2, g_mu: arr2, g_muh: arr2,
@@ -1188,7 +1188,7 @@ def _stress_adjoints(ns):
         g_vx[i] = g_vx[i] + gather_half(t1, i, 1) + gather_int(t3, i, lx)
         g_vz[i] = g_vz[i] + gather_half(t2, i, lx) + gather_int(t4, i, 1)
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def stress_transpose(t1: arr1, t2: arr1, t3: arr1, t4: arr1, g_vx: arr1, g_vz: arr1,
                          lz: int, lx: int, box: wp.vec4i, rows: int):  # fmt: skip
         i, c, n = column(wp.tid(), lz, lx, box, rows)
@@ -1219,7 +1219,7 @@ def _shots(ns):
             acc += t[s * cells + c]
         g[c] = g[c] + acc
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def sum_shots(t1: arr1, t2: arr1, t3: arr1, g1: arr1, g2: arr1, g3: arr1, count: int, shots: int, lz: int, lx: int, inner: wp.vec4i):
         # g_k += the sum over the shots of t_k, k < count (2 or 3), at the cells of `inner`, in pass 1's order
         q = wp.tid()
@@ -1328,7 +1328,7 @@ def make_adjoints(ns, rows: int, cols: int):
                 i += lx
                 c += lx
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def velocity_fused(
         sxx: arr1, szz: arr1, sxz: arr1, bx: arr1, bz: arr1, g_vx: arr1, g_vz: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1,
         g_bx: arr1, g_bz: arr1, t1: arr1, t2: arr1, t3: arr1, t4: arr1,
@@ -1344,7 +1344,7 @@ def make_adjoints(ns, rows: int, cols: int):
             z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
             velocity_gather(t1, t2, t3, t4, g_sxx, g_szz, g_sxz, (s * lz + z) * lx + x, lx)
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def stress_fused(
         vx: arr1, vz: arr1, l2m: arr1, lam: arr1, muh: arr1, g_sxx: arr1, g_szz: arr1, g_sxz: arr1, g_vx: arr1, g_vz: arr1,
         g_l2m: arr1, g_lam: arr1, g_muh: arr1, t1: arr1, t2: arr1, t3: arr1, t4: arr1, lz: int, lx: int, shots: int, box: wp.vec4i,
@@ -1544,7 +1544,7 @@ def make_split_adjoints(ns, rows: int, width: int):
 
     # what: 1 the gathers (tiles t < tiles, and the frame's threads t >= frame), 2 the sums' tiles, 3 both. The two read
     # the same adjoint fields at a tile's cells and write different arrays; together they read them once from memory.
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def velocity_split(
         bx: arrv, bz: arrv, g_vx: arrv, g_vz: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, sxx: arrv, szz: arrv, sxz: arrv,
         g_bx: arrv, g_bz: arrv, s1: arrv, s2: arrv, t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_sxx: arr1, f_szz: arr1, f_sxz: arr1,
@@ -1563,7 +1563,7 @@ def make_split_adjoints(ns, rows: int, width: int):
             z, x = frame_cell(t - frame - s * frame_cells, lz, lx, box)
             velocity_gather(t1, t2, t3, t4, f_sxx, f_szz, f_sxz, (s * lz + z) * lx + x, lx)
 
-    @wp.kernel(module="unique", grid_stride=False, enable_backward=False)
+    @unique_kernel(grid_stride=False, enable_backward=False)
     def stress_split(
         l2m: arrv, lam: arrv, muh: arrv, g_sxx: arrv, g_szz: arrv, g_sxz: arrv, g_vx: arrv, g_vz: arrv, vx: arrv, vz: arrv,
         g_l2m: arrv, g_lam: arrv, g_muh: arrv, s1: arrv, s2: arrv, s3: arrv, t1: arr1, t2: arr1, t3: arr1, t4: arr1, f_vx: arr1,
@@ -1599,7 +1599,7 @@ def _materials(ns):
     """The models' kernels: MATERIALS from the padded vp, vs, rho (materials), padding (pad_model), adding (add_into)."""
     M, dtype, arr2 = ns.M, ns.dtype, ns.arr2
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def materials(vp: arr2, vs: arr2, rho: arr2, bx: arr2, bz: arr2, l2m: arr2, lam: arr2, mu: arr2, muh: arr2, b: arr2):
         # MATERIALS at the interior nodes: buoyancy at vx and vz nodes, lambda + 2 mu, lambda, mu at the
         # normal-stress nodes, the harmonic mean of the 4 neighbouring mu at the shear nodes, and 1/rho at the
@@ -1624,13 +1624,13 @@ def _materials(ns):
             h = dtype(4.0) / (dtype(1.0) / m1 + dtype(1.0) / m2 + dtype(1.0) / m3 + dtype(1.0) / m4)
         muh[z, x] = h
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @unique_kernel(enable_backward=False)
     def add_into(g: arr2, b: arr2):
         # g += b (a model-shaped adjoint kept apart, added at the end)
         z, x = wp.tid()
         g[z, x] = g[z, x] + b[z, x]
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def pad_model(v: arr2, vpad: arr2, origin: wp.vec2i):
         # padded model from the physical one, extended by edge replication into PML and halo
         z, x = wp.tid()
@@ -1688,7 +1688,7 @@ def _sources(ns):
         if w != dtype(0.0):
             wp.atomic_add(f, s, i[0], i[1], a * w * m)
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def inject_force(
         vx: arr3, vz: arr3, bx: arr2, bz: arr2, amp: arr3, comp: arr3, loc: arr3, n: int, clock: iarr1,
         origin: wp.vec2i, scale: dtype, inv_dx: dtype, top: int,
@@ -1702,7 +1702,7 @@ def _sources(ns):
         j, u = pt_vz(loc, s, src, q, origin, inv_dx, top)
         add_force(vx, vz, bx, bz, a, comp[s, src, 0], comp[s, src, 1], s, i, w, j, u)
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def inject_force_op(
         vx: arr3, vz: arr3, bx: arr2, bz: arr2, amp: arr3, comp: arr3, idx: wp.array4d(dtype=wp.vec2i), wts: arr4, n: int, clock: iarr1,
         scale: dtype,
@@ -1713,7 +1713,7 @@ def _sources(ns):
         add_force(vx, vz, bx, bz, a, comp[s, src, 0], comp[s, src, 1], s, idx[0, s, src, q], wts[0, s, src, q], idx[1, s, src, q],
                   wts[1, s, src, q])  # fmt: skip
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def inject_moment(
         sxx: arr3, szz: arr3, sxz: arr3, amp: arr3, comp: arr3, loc: arr3, n: int, clock: iarr1,
         origin: wp.vec2i, scale: dtype, inv_dx: dtype, top: int,
@@ -1728,7 +1728,7 @@ def _sources(ns):
         i, w = pt_sxz(loc, s, src, q, origin, inv_dx, top)
         add_moment(sxz, s, i, w, a, comp[s, src, 2])
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def inject_moment_op(
         sxx: arr3, szz: arr3, sxz: arr3, amp: arr3, comp: arr3, idx: wp.array4d(dtype=wp.vec2i), wts: arr4, n: int, clock: iarr1,
         scale: dtype,
@@ -1739,7 +1739,7 @@ def _sources(ns):
         add_moment(szz, s, idx[3, s, src, q], wts[3, s, src, q], a, comp[s, src, 1])
         add_moment(sxz, s, idx[4, s, src, q], wts[4, s, src, q], a, comp[s, src, 2])
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def weights(loc: arr3, origin: wp.vec2i, inv_dx: dtype, top: int, idx: wp.array4d(dtype=wp.vec2i), w: arr4):
         # fixed operators, computed once per run: node and weight of point q of location r for vx, vz, sxx, szz, sxz
         # (first index)
@@ -1768,7 +1768,7 @@ def _receivers(ns):
     """Recording through the receivers' fixed operator (record), and its adjoint (record_adjoint)."""
     dtype, arr3, arr4, iarr1 = ns.dtype, ns.arr3, ns.arr4, ns.iarr1
 
-    @wp.kernel(module="unique")
+    @unique_kernel
     def record(
         vx: arr3, vz: arr3, sxx: arr3, szz: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3,
         idx: wp.array4d(dtype=wp.vec2i), w: arr4, n: int, clock: iarr1,
@@ -1792,7 +1792,7 @@ def _receivers(ns):
             i = idx[3, s, r, q]
             wp.atomic_add(d_p, s, r, t, dtype(-0.5) * wq * szz[s, i[0], i[1]])
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @unique_kernel(enable_backward=False)
     def record_adjoint(
         g_vx: arr3, g_vz: arr3, g_sxx: arr3, g_szz: arr3, r_vx: arr3, r_vz: arr3, r_p: arr3,
         idx: wp.array4d(dtype=wp.vec2i), w: arr4, n: int, clock: iarr1,
@@ -1827,7 +1827,7 @@ def _receivers(ns):
 def shear_ratio(dtype):
     """Kernel r = vs / vp on flat arrays (the on-device check of vs <= vp / sqrt(2))."""
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @unique_kernel(enable_backward=False)
     def ratio(vp: wp.array(dtype=dtype), vs: wp.array(dtype=dtype), r: wp.array(dtype=dtype)):
         i = wp.tid()
         r[i] = vs[i] / vp[i]
