@@ -75,10 +75,12 @@ def code_key(f) -> str:
     Warp 1.19 leaves some of these values out of a module's hash, so a warm kernel cache (WARP_CACHE_PATH) would
     serve a kernel compiled for other values, and a second kernel of the same source in the same process would be
     taken for the first one (issue 29): a wp.static() that reads a loop variable (dtype(wp.static(A[m + 1])) in
-    `for m in range(...)`) is evaluated only when the code is generated, and the values of a Warp func called by a
-    kernel of module="unique" are then not hashed at all (the kernel's module is hashed before the func is built);
-    and float constants are hashed as float32, so float64 kernels whose constants differ beyond float32's precision
-    share a hash. Floats enter here by repr (exact), numbers with their type."""
+    `for m in range(...)`) is evaluated only when the code is generated, and a kernel of module="unique" is hashed
+    and named when it is declared, before the Warp funcs it calls are generated, so such values read in a func are
+    not hashed; and float constants are hashed as float32, so float64 kernels whose constants differ by less than
+    float32's resolution share a hash. Here floats enter by repr (exact), numbers with their type. A value only
+    reachable through an attribute of an object (ns.A, numerics.SECOND_DERIVATIVE) is not seen: read it into a
+    local or closure name first, as the builders do."""
     memo = {}
 
     def plain(v):

@@ -1,8 +1,9 @@
 """A kernel is identified by everything its code is generated from (issue 29).
 
-Warp reads a stencil weight through wp.static(A[m + 1]) in `for m in range(...)` only when it generates the code, and
-left such values out of the module's hash: a second build with other weights, in the same process or in another one
-sharing the kernel cache (WARP_CACHE_PATH), was given the kernel compiled for the first weights. Here the acoustic
+Warp evaluates wp.static(A[m + 1]) in `for m in range(...)` only when it generates the code, but hashes and names a
+kernel of module="unique" when it is declared, before the Warp funcs it calls are generated: a weight read so in a func
+was left out of the module's hash, and a second build with other weights, in the same process or in another one sharing
+the kernel cache (WARP_CACHE_PATH), was given the kernel compiled for the first weights. Here the acoustic
 helper is built twice, once with numerics' second-derivative weights of order 8 and once with one weight changed by 1%
 (the same builder, a patched table), and one step of a unit impulse must give each table's own stencil, in one process
 and in two processes sharing one cache directory.

@@ -8,7 +8,8 @@ from adseismic.data_synthetic import constant, gaussian_anomaly, layered, write_
 from adseismic.data.model import Model, ModelError
 from adseismic.data.models import load_model
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[1] / "data" / "marmousi2"  # the clone holds Marmousi2
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"  # the overthrust model lives only beside the clone
 
 
 # ------------------------------------------------------------------------------- generators
@@ -106,10 +107,7 @@ def test_resample_smooths_when_coarsening():
 # ------------------------------------------------------------------------------- real data
 
 def test_marmousi_raw_kms():
-    path = DATA / "marmousi2_resampled_1601x401_7.5m_kms.f32"
-    if not path.exists():
-        pytest.skip(f"{path} absent")
-    m = load_model({"kind": "raw", "path": path.name, "shape": [1601, 401], "axes": "xz",
+    m = load_model({"kind": "raw", "path": "marmousi2_resampled_1601x401_7.5m_kms.f32", "shape": [1601, 401], "axes": "xz",
                     "units": "km/s", "spacing": 7.5}, DATA)
     assert m.shape == (401, 1601) and m.spacing == (7.5, 7.5)
     assert m.vmin == pytest.approx(1028, abs=0.5) and m.vmax == pytest.approx(4700, abs=0.5)
@@ -118,12 +116,12 @@ def test_marmousi_raw_kms():
 
 
 def test_overthrust_hdf5_squared_slowness():
-    path = DATA / "overthrust_model.h5"
+    path = SHARED / "overthrust_model.h5"
     if not path.exists():
-        pytest.skip(f"{path} absent")
+        pytest.skip(f"{path} absent (not part of the clone)")
     # Julia wrote n = [nx, nz] = [401, 121] column-major, so h5py sees (121, 401) = (z, x).
     m = load_model({"kind": "hdf5", "path": path.name, "dataset": "m", "spacing_dataset": "d",
-                    "units": "s2/km2", "axes": "zx"}, DATA)
+                    "units": "s2/km2", "axes": "zx"}, SHARED)
     assert m.shape == (121, 401) and m.spacing == (25.0, 25.0)
     assert m.vmin == pytest.approx(1500, abs=0.1) and m.vmax == pytest.approx(5500, abs=0.1)
     np.testing.assert_allclose(m.values[0], 1500.0, rtol=1e-6)  # water at the surface
