@@ -36,7 +36,17 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, block_rows, hicks_weight, unique_kernel, vector_access
+from adseismic.kernels.common import (
+    HICKS_RADIUS,
+    Kernels,
+    adjoint_launch,
+    aligned,
+    as_vectors,
+    block_rows,
+    hicks_weight,
+    unique_kernel,
+    vector_access,
+)
 from adseismic.kernels.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 
 # 2D GPU core steps: rows (along z) x adjacent columns per thread (one vector), threads per block
