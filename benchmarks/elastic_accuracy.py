@@ -7,9 +7,9 @@ import argparse
 import time
 
 import numpy as np
-from adseismic.kernels.numerics import rayleigh_speed, staggered_cfl_limit
 
 from adseismic.analytic import elastic_2d_force, lamb_2d
+from adseismic.kernels.numerics import rayleigh_speed, staggered_cfl_limit
 from adseismic.solve.acoustic import forward as acoustic_forward
 from adseismic.solve.elastic import forward_elastic
 from adseismic.wavelets import ricker

@@ -22,11 +22,11 @@ import traceback
 
 import numpy as np
 import warp as wp
-from adseismic.kernels.elastic import ADJOINT_LAYOUTS, CORE_LAYOUT, LAYOUTS
 
 import adseismic.solve.elastic as E
 from adseismic import bench
 from adseismic.accel.reductions import field_stats
+from adseismic.kernels.elastic import ADJOINT_LAYOUTS, CORE_LAYOUT, LAYOUTS
 from adseismic.solve.loop import run_levels
 
 ORDER = 4

@@ -20,12 +20,12 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from adseismic.kernels.acoustic import DESCRIPTION  # noqa: E402
 from speed import SCENES, scene  # noqa: E402
 
 import adseismic.solve.acoustic as P  # noqa: E402
 from adseismic.accel.graphs import graph_plan, replay  # noqa: E402
 from adseismic.accel.reductions import field_stats  # noqa: E402
+from adseismic.kernels.acoustic import DESCRIPTION  # noqa: E402
 from adseismic.solve.common import BlowupGuard, source_end  # noqa: E402
 from adseismic.solve.loop import capture, run_levels  # noqa: E402
 

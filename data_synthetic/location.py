@@ -13,6 +13,7 @@ import pathlib
 import sys
 
 import numpy as np
+
 from adseismic.data_synthetic.generators import layered
 
 REFERENCE = {"latitude": 46.0, "longitude": 7.0, "datum": 0.0, "azimuth": 90.0}

@@ -7,10 +7,10 @@ import h5py
 import numpy as np
 import pytest
 import yaml
-from adseismic.kernels.numerics import cfl_limit
 
 from adseismic import cli
 from adseismic.data.store import read_forward, write_forward
+from adseismic.kernels.numerics import cfl_limit
 
 ROOT = Path(__file__).resolve().parents[1]
 

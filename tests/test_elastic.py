@@ -13,19 +13,19 @@ solutions are the scheme's, the same on every platform, so the amplitude tests a
 
 import functools
 
-import adseismic.kernels.elastic as K
 import numpy as np
 import pytest
+from scipy.ndimage import gaussian_filter
+
+import adseismic.kernels.elastic as K
+import adseismic.solve.elastic as E
+from adseismic.analytic import elastic_2d_force, elastic_2d_force_spectrum, lamb_2d
 from adseismic.kernels.numerics import (
     dispersion_error,
     rayleigh_speed,
     staggered_cfl_limit,
     staggered_dispersion_error,
 )
-from scipy.ndimage import gaussian_filter
-
-import adseismic.solve.elastic as E
-from adseismic.analytic import elastic_2d_force, elastic_2d_force_spectrum, lamb_2d
 from adseismic.scene import RAYLEIGH_PPW, plan_elastic_grid
 from adseismic.solve import sweep
 from adseismic.solve.acoustic import forward as acoustic_forward

@@ -18,6 +18,7 @@ import sys
 import numpy as np
 import pytest
 import warp as wp
+
 from adseismic.kernels.acoustic import propagator
 from adseismic.kernels.elastic import propagator as elastic
 from adseismic.kernels.numerics import SECOND_DERIVATIVE, STAGGERED_DERIVATIVE

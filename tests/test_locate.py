@@ -5,9 +5,9 @@ import functools
 
 import numpy as np
 import pytest
-from adseismic.data_synthetic.generators import constant, layered
 from scipy.stats import chi2
 
+from adseismic.data_synthetic.generators import constant, layered
 from adseismic.location.locate import _peak_time, locate, source_wavelet
 from adseismic.solve.acoustic import forward
 

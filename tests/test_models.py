@@ -3,10 +3,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from adseismic.data_synthetic import constant, gaussian_anomaly, layered, write_example_files
 
 from adseismic.data.model import Model, ModelError
 from adseismic.data.models import load_model
+from adseismic.data_synthetic import constant, gaussian_anomaly, layered, write_example_files
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "marmousi2"  # the clone holds Marmousi2
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"  # the overthrust model lives only beside the clone

@@ -9,11 +9,11 @@ import functools
 
 import numpy as np
 import pytest
-from adseismic.kernels.numerics import cfl_limit
 
 import adseismic.solve.acoustic as propagate
 from adseismic.accel import graphs
 from adseismic.analytic import acoustic_2d, acoustic_3d
+from adseismic.kernels.numerics import cfl_limit
 from adseismic.solve.common import PropagationError
 from adseismic.solve.loop import run_levels
 from adseismic.wavelets import ricker

@@ -3,10 +3,10 @@ domain, refusals and warnings; and a planned homogeneous scene against the analy
 
 import numpy as np
 import pytest
-from adseismic.kernels.numerics import cfl_limit, dispersion_error
 
 from adseismic.analytic import acoustic_2d
 from adseismic.config import parse_config
+from adseismic.kernels.numerics import cfl_limit, dispersion_error
 from adseismic.scene import build_scene, plan_scene, run_forward
 from adseismic.wavelets import duration, ricker
 

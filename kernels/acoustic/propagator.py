@@ -36,6 +36,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
+
 from adseismic.kernels.common import (
     HICKS_RADIUS,
     Kernels,

@@ -67,6 +67,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 import warp as wp
+
 from adseismic.kernels.common import HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, hicks_weight, unique_kernel, vector_access
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 
