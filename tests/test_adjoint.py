@@ -37,6 +37,7 @@ from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.wavelets import ricker
 
 from .conftest import DEVICE
+from .problems import P_SCALE, elastic_problem
 
 DX, DT = 10.0, 1e-3
 STEPS = np.array([1e-1, 1e-2, 1e-3, 1e-4])  # three decades
@@ -148,27 +149,12 @@ def acoustic_case(ndim: int) -> Case:
 
 # --- elastic --------------------------------------------------------------------------------------------------
 
-P_SCALE = 1e-6  # pressure (Pa) scaled to be commensurate with velocities (m/s) in the misfit
 
 
 def elastic_case(free_surface: bool, source_type: str) -> Case:
-    # test_elastic.grad_problem
-    nt = 200
-    rng = np.random.default_rng(0)
-    shape = (24, 30)
-    vp = gaussian_filter(2400 + 300 * rng.random(shape), 2)
-    vs = gaussian_filter(1200 + 200 * rng.random(shape), 2)
-    rho = gaussian_filter(2000 + 300 * rng.random(shape), 2)
-    s = ricker(15.0, nt, DT)[None, None]
-    src = np.array([[[75.3, 141.7]]])
-    rec = np.array([[[5.0 if free_surface else 30.0, x] for x in np.linspace(20.0, 270.0, 6)]])
-    comp = np.array([[[0.7, -0.4]]]) if source_type == "force" else np.array([[[1.0, 0.5, -0.3]]])
-    kw = dict(precision="float64", pml_velocity=2800.0, pml_frequency=15.0, pml_width=6, free_surface=free_surface,
-              source_type=source_type, device=DEVICE)  # fmt: skip
-    o = E.forward_elastic(vp * 1.03, vs * 0.97, rho, DX, DT, s, src, rec, source_components=comp, **kw)
+    params, rec, o, kw = elastic_problem(free_surface, source_type)
     obs = {"vx": o.vx, "vz": o.vz, "pressure": o.pressure * P_SCALE}
     named_obs = {"vx": o.vx, "vz": o.vz, "pressure": o.pressure}  # for the named misfits: the components in their units
-    params = dict(vp=vp, vs=vs, rho=rho, source_amplitudes=s, source_components=comp, source_locations=src)
 
     def args(changes):
         a = dict(params, **changes)
@@ -215,7 +201,7 @@ def elastic_case(free_surface: bool, source_type: str) -> Case:
         d = rng.standard_normal(params[kind].shape)
         return gaussian_filter(d, 2) if kind in ("vp", "vs", "rho") else d
 
-    return Case(params=params, kinds=E.WRT, nt=nt, gradient=gradient, l2=l2, loss=lambda **changes: l2(data(**changes))[0],
+    return Case(params=params, kinds=E.WRT, nt=params["source_amplitudes"].shape[2], gradient=gradient, l2=l2, loss=lambda **changes: l2(data(**changes))[0],
                 dot_kinds=("source_amplitudes", "source_components", "vp", "vs", "rho"),
                 random_data=lambda rng: {c: rng.standard_normal(obs[c].shape) for c in E.COMPONENTS},
                 projection=lambda dd: lambda syn: (inner(syn, dd), dd), inner=inner, tangent=tangent, direction=direction,

@@ -36,6 +36,7 @@ from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.wavelets import ricker
 
 from .conftest import DEVICE
+from .problems import DT, DX, NT, P_SCALE, elastic_problem
 
 forward = functools.partial(E.forward_elastic, device=DEVICE)
 
@@ -295,27 +296,12 @@ def test_elastic_planner(vs_min, free_surface, slowest):
 
 # --- gradients -----------------------------------------------------------------------------------------
 
-DX, DT, NT = 10.0, 1e-3, 200
-P_SCALE = 1e-6  # pressure (Pa) scaled to be commensurate with velocities (m/s) in the misfit
 
 
-@functools.lru_cache(maxsize=None)
 def grad_problem(free_surface, source_type):
-    rng = np.random.default_rng(0)
-    shape = (24, 30)
-    vp = gaussian_filter(2400 + 300 * rng.random(shape), 2)
-    vs = gaussian_filter(1200 + 200 * rng.random(shape), 2)
-    rho = gaussian_filter(2000 + 300 * rng.random(shape), 2)
-    s = ricker(15.0, NT, DT)[None, None]
-    src = np.array([[[75.3, 141.7]]])
-    rec = np.array([[[5.0 if free_surface else 30.0, x] for x in np.linspace(20.0, 270.0, 6)]])
-    comp = np.array([[[0.7, -0.4]]]) if source_type == "force" else np.array([[[1.0, 0.5, -0.3]]])
-    kw = dict(precision="float64", pml_velocity=2800.0, pml_frequency=15.0, pml_width=6, free_surface=free_surface,
-              source_type=source_type, device=DEVICE)  # fmt: skip
-    o = E.forward_elastic(vp * 1.03, vs * 0.97, rho, DX, DT, s, src, rec, source_components=comp, **kw)
-    obs = {"vx": o.vx, "vz": o.vz, "pressure": o.pressure * P_SCALE}
-    base = dict(vp=vp, vs=vs, rho=rho, source_amplitudes=s, source_components=comp, source_locations=src)
-    return base, rec, obs, kw
+    """tests/problems.elastic_problem with the pressure scaled by P_SCALE in the observed data."""
+    base, rec, o, kw = elastic_problem(free_surface, source_type)
+    return base, rec, {"vx": o.vx, "vz": o.vz, "pressure": o.pressure * P_SCALE}, kw
 
 
 def run_gradient(base, rec, misfit, kw, wrt=(), **changes):
