@@ -35,7 +35,28 @@ _WHERE = {
     "read_shot_gathers": "adseismic.data.read",
 }
 
-__all__ = sorted(_WHERE)
+__all__ = [
+    "ElasticGradient",
+    "ElasticResult",
+    "ForwardResult",
+    "GradientResult",
+    "Model",
+    "PropagationError",
+    "born",
+    "forward",
+    "forward_elastic",
+    "gradient",
+    "gradient_elastic",
+    "load_config",
+    "load_model",
+    "locate",
+    "minimize",
+    "plan_scene",
+    "read_shot_gathers",
+    "read_station_traces",
+    "ricker",
+    "run_fwi",
+]
 
 
 def __getattr__(name):

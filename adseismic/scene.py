@@ -320,7 +320,7 @@ class ElasticGridPlan:
 
 def plan_elastic_grid(vp_range, vs_min: float, f_max: float, order: int = 4, accuracy: float = 0.01,
                       cfl_safety: float = 0.9, free_surface: bool = False) -> ElasticGridPlan:  # fmt: skip
-    """Coarsest dx and its dt for the staggered elastic scheme (kernels/elastic.py).
+    """Coarsest dx and its dt for the staggered elastic scheme (kernels/elastic/).
 
     vp_range (vp_min, vp_max) m/s; vs_min m/s (0 for a fluid somewhere: the slowest wave is then vp_min);
     f_max Hz. The slowest wave is S (or P in a fluid), or with a free surface the Rayleigh wave, which

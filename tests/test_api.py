@@ -13,6 +13,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def test_all_is_small_and_every_name_resolves_with_a_docstring():
     assert 10 <= len(adseismic.__all__) <= 22
+    assert sorted(adseismic.__all__) == sorted(adseismic._WHERE)  # every exported name is importable, and only those
     for name in adseismic.__all__:
         doc = inspect.getdoc(getattr(adseismic, name)) or ""
         assert len(doc) >= 60, f"adseismic.{name} needs a docstring that states units and shapes"

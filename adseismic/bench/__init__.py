@@ -10,7 +10,7 @@ Scenes (../shared/docs/reference.md section 6; dx 10 m, dt 1 ms, Ricker 15 Hz, P
     E2000     elastic 2000 x 2000 (vp 2000, vs vp/1.8, rho 2200 kg/m^3), 1 shot, nt 500
     E600x16   elastic 600 x 600, 16 shots, nt 1000
 
-Every scene runs "forward" (propagate.forward) and "gradient" (forward + gradient: gradient.gradient
+Every scene runs "forward" (adseismic.forward) and "gradient" (forward + gradient: adseismic.gradient
 with respect to the velocity, default checkpointing). Rate = padded-grid cell updates per second:
 prod(n + 2 PML + order over the axes) x nt x shots / seconds, the unit of the Deepwave anchors.
 On the CPU the per-core rate divides the cell updates by the process CPU time (user + system)
@@ -218,7 +218,7 @@ def run_elastic(mode: str, a: SceneArrays, device: str, order: int, memory_budge
 
 
 def run_acoustic(mode: str, a: SceneArrays, device: str, order: int, memory_budget, observed=None, segment_length=None):
-    """propagate.forward or gradient.gradient (wrt velocity, L2 misfit against ``observed``)."""
+    """adseismic.forward or adseismic.gradient (wrt velocity, L2 misfit against ``observed``)."""
     from adseismic.solve.acoustic import forward, gradient
 
     args = (a.model["velocity"], DX, DT, a.amplitudes, a.sources, a.receivers)

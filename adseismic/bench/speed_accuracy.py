@@ -11,7 +11,7 @@ For each spatial order, points per minimum wavelength ppw = c / (f_max dx) (f_ma
 CFL limit (0.9 is the planner's cfl_safety; a smaller dt cuts the time error, which dominates at
 orders 4 and 8 near the limit) and precision, the error is the relative L2 misfit of all receiver traces
 against adseismic.analytic.acoustic_2d in absolute amplitude; the time is the wall time of one
-propagate.forward call for the shot (setup and transfers included), best of ``repeat`` after a
+adseismic.forward call for the shot (setup and transfers included), best of ``repeat`` after a
 warm-up. On the CPU the chart uses the process CPU time (core-seconds) of the run instead, which
 other jobs on a shared machine do not inflate. The planner's default choice (plan_scene for this scene at the default accuracy target
 1% and order 4, float32) is measured the same way and marked on the chart.

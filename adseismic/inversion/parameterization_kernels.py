@@ -1,7 +1,7 @@
 """Warp kernels mapping model parameters to velocity (m/s); differentiated by wp.Tape with the
 wave-equation kernels, so the chain rule of a parameterisation costs no hand-written code.
 
-Velocity arrays are (nz, ny, nx) (ny = 1 in 2D), as in kernels/acoustic.py.
+Velocity arrays are (nz, ny, nx) (ny = 1 in 2D), as in kernels/acoustic/.
 """
 
 import functools

@@ -1,4 +1,4 @@
-"""2D isotropic elastic propagation and its exact, memory-bounded gradients (kernels/elastic.py).
+"""2D isotropic elastic propagation and its exact, memory-bounded gradients (kernels/elastic/).
 
 Conventions (as adseismic.solve.acoustic; z depth, positive down):
 - vp, vs (m/s), rho (kg/m^3): (nz, nx) NumPy or Warp arrays (a Warp array of the run's precision, e.g. already
@@ -12,7 +12,7 @@ Conventions (as adseismic.solve.acoustic; z depth, positive down):
                  (equivalent body force -div(M delta)); s must start at 0;
     "explosive": the moment tensor (1, 1, 0) s(t) (isotropic).
 - receiver data: vx, vz (m/s) sample n at t = (n - 1/2) dt, pressure -(sxx + szz)/2 (Pa) at t = n dt
-  (leapfrog staggering in time, see kernels/elastic.py), each (n_shots, n_receivers, nt).
+  (leapfrog staggering in time, see kernels/elastic/propagator.py), each (n_shots, n_receivers, nt).
 
 The time loop is solve/loop.py's and the checkpointed gradient solve/sweep.py's, as for every physics; this module
 says how the elastic kernels map onto them (ElasticSetup) and holds the hand-written adjoint's arrays and segment

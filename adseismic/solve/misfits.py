@@ -2,7 +2,7 @@
 
 Every misfit maps synthetic and observed data of shape (n_shots, n_receivers, nt), sampled at dt,
 to a scalar, and returns the exact derivative of that (discrete) scalar with respect to every
-synthetic sample; the wave-equation part of the chain rule is done by Warp's tape (gradient.py).
+synthetic sample; the wave-equation part of the chain rule is done by the adjoint sweep (solve/sweep.py).
 
 - "l2":        J = 1/2 sum (d - o)^2 dt
 - "correlation": J = sum over traces of 1 - <d, o> / (|d| |o|)   (normalised zero-lag cross-correlation;

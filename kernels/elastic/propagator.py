@@ -36,7 +36,7 @@ of those below. Velocities are not computed above the surface: the vertical deri
 whose full stencil would reach above it use the highest staggered order that fits (order 2 on the first
 row). Lamb's problem accuracy: docs/accuracy.md.
 
-Sources and receivers use the Kaiser-windowed sinc operator of kernels/acoustic.py (HICKS_RADIUS,
+Sources and receivers use the Kaiser-windowed sinc operator of kernels/common.py (HICKS_RADIUS,
 C^1 in the position) at each field's own staggered position. Near a free surface the operator's points
 above it are folded onto their mirror nodes, with a sign change for szz and sxz (odd images) and
 without for vx, vz, sxx; a normal-stress node on the surface gets no szz weight.
