@@ -1,9 +1,12 @@
-"""PNG figures of a forward run: the model with the acquisition, shot gathers, snapshots.
+"""PNG figures: a forward run's model with the acquisition, shot gathers and snapshots; an inversion's misfit
+curve and residual gather; a location's traces and map.
 
 Uses matplotlib's object API with the Agg canvas (no pyplot, no global backend switch, no
 display needed). Every figure is written atomically: to ``<name>.png.part`` first, renamed into
 place when complete. Coordinates are in world metres (shown in km when the section is wider than
-2 km), axis order (z, [y,] x); 3D volumes are shown as the x-z slice through a given y.
+2 km), axis order (z, [y,] x); 3D volumes are shown as the x-z slice through a given y. Every image
+has a colourbar with its quantity and units; gathers are drawn against receiver position in metres,
+one panel per receiver line.
 """
 from __future__ import annotations
 
@@ -12,8 +15,10 @@ import pathlib
 import numpy as np
 
 from adseismic.data.atomic import atomic_write
+from adseismic.runs import format_position
 
-__all__ = ["plot_model", "plot_gather", "plot_snapshots", "plot_misfit", "plot_station_traces", "plot_location", "save_figure", "xz_slice"]
+__all__ = ["plot_model", "plot_gather", "plot_snapshots", "plot_misfit", "plot_station_traces", "plot_location", "save_figure", "xz_slice",
+           "receiver_lines"]
 
 
 def _figure(width: float, height: float):
@@ -98,19 +103,31 @@ def plot_model(path, velocity, spacing: float, origin, sources=None, receivers=N
     return save_figure(fig, path)
 
 
-def plot_misfit(path, rows, title: str = "") -> pathlib.Path:
-    """Misfit (normalised by each band's start value) against iteration; rows: (band, iteration, misfit)."""
+def plot_misfit(path, rows, title: str = "", labels=None) -> pathlib.Path:
+    """Misfit (normalised by each band's start value) against iteration; rows: (band, iteration, misfit);
+    labels: {band: text} for the legend (e.g. format_band's "<= 4 Hz")."""
     fig = _figure(7.0, 4.5)
     ax = fig.add_subplot()
+    labels = labels or {}
     for b in sorted({r[0] for r in rows}):
         it = [(i, j) for bb, i, j in rows if bb == b]
-        ax.semilogy([i for i, _ in it], [j for _, j in it], "o-", ms=3, label=f"band {b}")
+        name = f"band {b}" + (f" ({labels[b]})" if b in labels else "")
+        ax.semilogy([i for i, _ in it], [j for _, j in it], "o-", ms=3, label=name)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("iteration")
     ax.set_ylabel("misfit / misfit at the band's start")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
-    ax.set_title(title or "misfit")
+    ax.set_title(title or "misfit per band")
     return save_figure(fig, path)
+
+
+def _norm(lo: float, hi: float):
+    from matplotlib.colors import Normalize
+
+    return Normalize(lo, hi)
 
 
 def _clip(a: np.ndarray, pct: float = 99.0) -> float:
@@ -120,33 +137,125 @@ def _clip(a: np.ndarray, pct: float = 99.0) -> float:
     return c if c > 0 else 1.0
 
 
-def plot_gather(path, data, dt: float, receiver_x=None, title: str = "",
-                percentile: float = 99.0) -> pathlib.Path:
-    """One shot gather (n_receivers, nt): time (s, down) against receiver x (world m), seismic
-    colormap clipped symmetrically at the ``percentile`` of |data|. If receiver x is not evenly
-    spaced and increasing (e.g. a vertical spread), the horizontal axis is the receiver index."""
-    data = np.asarray(data, dtype=float)
-    n_rec, nt = data.shape
-    clip = _clip(data, percentile)
-    fig = _figure(8.0, 6.0)
-    ax = fig.add_subplot()
-    x = None if receiver_x is None else np.asarray(receiver_x, float)
-    even = (x is not None and n_rec > 1 and np.all(np.diff(x) > 0)
-            and np.allclose(np.diff(x), np.diff(x).mean(), rtol=1e-3))
+def _axis_names(ncol: int) -> str:
+    return {1: "x", 2: "zx", 3: "zyx"}[ncol]
+
+
+def receiver_lines(receivers, max_lines: int = 6):
+    """The receivers split into lines for a gather's panels, or None when they form no few straight lines.
+
+    receivers: (n,) x or (n, ndim) world m (axis order (z,[y,]x)) in the order of the data. A line is a
+    run of consecutive receivers along which one coordinate changes, always in the same direction (a
+    surface line then a bottom line, a vertical borehole line); receivers that share every coordinate
+    but one, in any order, are one line. Returns [{"index": (k,) rows of the data sorted along the line,
+    "coordinate": (k,) m along it, "axis": "x", "y" or "z", "fixed": {axis: m} of the other axes}]."""
+    p = np.asarray(receivers, float)
+    p = p[:, None] if p.ndim == 1 else p
+    n, ncol = p.shape
+    names = _axis_names(ncol)
+    if n < 2:
+        return None
+    tol = 1e-6 * max(float(np.ptp(p, axis=0).max()), 1.0)
+    runs, start, axis, sign = [], 0, None, 0.0
+    for i in range(1, n + 1):
+        if i < n:
+            step = p[i] - p[i - 1]
+            moved = np.abs(step) > tol
+            if moved.sum() == 1:
+                a = int(np.argmax(moved))
+                if axis is None:
+                    axis, sign = a, np.sign(step[a])
+                    continue
+                if a == axis and np.sign(step[a]) == sign:
+                    continue
+        runs.append((start, i, axis))
+        start, axis, sign = i, None, 0.0
+    if len(runs) > max_lines or any(a is None for _, _, a in runs):  # one line in another order?
+        moving = np.ptp(p, axis=0) > tol
+        if moving.sum() != 1:
+            return None
+        runs = [(0, n, int(np.argmax(moving)))]
+    out = []
+    for s, e, a in runs:
+        idx = np.arange(s, e)
+        idx = idx[np.argsort(p[idx, a], kind="stable")]
+        out.append({"index": idx, "coordinate": p[idx, a], "axis": names[a],
+                    "fixed": {names[j]: float(p[s, j]) for j in range(ncol) if j != a}})  # fmt: skip
+    return out
+
+
+def _even(x) -> bool:
+    d = np.diff(x)
+    return len(x) > 1 and bool(np.all(d > 0)) and bool(np.allclose(d, d.mean(), rtol=1e-3))
+
+
+def _gather_panel(ax, data, dt: float, line, norm):
+    """Draw one line's traces (k, nt) on ax (colour limits: norm, shared by the panels and their colourbar);
+    returns (image, x-range (lo, hi) in m, km divisor)."""
+    nt = data.shape[1]
     t_end = (nt - 1) * dt
-    if even:
-        k, unit = _scale(x[-1] - x[0])
-        h = 0.5 * (x[1] - x[0])
-        extent = ((x[0] - h) / k, (x[-1] + h) / k, t_end + 0.5 * dt, -0.5 * dt)
-        ax.set_xlabel(f"receiver x ({unit})")
-    else:
-        extent = (-0.5, n_rec - 0.5, t_end + 0.5 * dt, -0.5 * dt)
+    kw = {"cmap": "seismic", "norm": norm}
+    if line is None:
+        im = ax.imshow(data.T, extent=(-0.5, len(data) - 0.5, t_end + 0.5 * dt, -0.5 * dt), aspect="auto",
+                       interpolation="bilinear", **kw)  # fmt: skip
         ax.set_xlabel("receiver index")
-    im = ax.imshow(data.T, extent=extent, aspect="auto", cmap="seismic", vmin=-clip, vmax=clip,
-                   interpolation="bilinear")
-    fig.colorbar(im, ax=ax, label=f"amplitude (clipped at the {percentile:g}th percentile)")
-    ax.set_ylabel("time (s)")
-    ax.set_title(title or "shot gather")
+        return im, None, 1.0
+    x = line["coordinate"]
+    k, unit = _scale(float(x[-1] - x[0]))
+    lo, hi = x[0] - 0.5 * (x[1] - x[0]), x[-1] + 0.5 * (x[-1] - x[-2])
+    if _even(x):
+        im = ax.imshow(data.T, extent=(lo / k, hi / k, t_end + 0.5 * dt, -0.5 * dt), aspect="auto",
+                       interpolation="bilinear", **kw)  # fmt: skip
+    else:  # irregular spacing: each trace at its receiver's position
+        from matplotlib.image import NonUniformImage
+
+        im = NonUniformImage(ax, interpolation="nearest", extent=(lo / k, hi / k, t_end, 0.0), **kw)
+        im.set_data(x / k, np.arange(nt) * dt, data.T)
+        ax.add_image(im)
+        ax.set_xlim(lo / k, hi / k)
+        ax.set_ylim(t_end + 0.5 * dt, -0.5 * dt)
+    ax.set_xlabel(f"receiver {'depth ' if line['axis'] == 'z' else ''}{line['axis']} ({unit})")
+    return im, (lo, hi), k
+
+
+def plot_gather(path, data, dt: float, receiver_x=None, title: str = "", percentile: float = 99.0,
+                source=None, units: str | None = None, quantity: str = "amplitude") -> pathlib.Path:  # fmt: skip
+    """One shot gather (n_receivers, nt): time (s, down) against receiver position (world m), seismic
+    colormap clipped symmetrically at the ``percentile`` of |data|, a colourbar in ``units``.
+
+    receiver_x: (n,) receiver x or (n, ndim) receiver positions (world m, axis order (z,[y,]x)) in the
+    order of the data. Receivers on several lines (a top and a bottom line, a borehole) get a panel
+    each (receiver_lines), the horizontal axis in m along the line; without positions, or when the
+    receivers form no few straight lines, the horizontal axis is the receiver index. source: the
+    shot's position (the same columns as receiver_x), a star above the panels. units: of the data
+    (default: a simulation's receiver data, in source-wavelet units, x m in 3D)."""
+    data = np.asarray(data, dtype=float)
+    clip = _clip(data, percentile)
+    norm = _norm(-clip, clip)  # one for every panel and the colourbar
+    pos = None if receiver_x is None else np.asarray(receiver_x, float)
+    names = None if pos is None else _axis_names(1 if pos.ndim == 1 else pos.shape[1])
+    lines = None if pos is None else receiver_lines(pos)
+    if units is None:
+        units = {"zx": "source-wavelet units", "zyx": "source-wavelet units x m"}.get(names, "source-wavelet units; x m in 3D")
+    panels = lines or [None]
+    fig = _figure(min(14.0, 4.0 + 4.0 * len(panels)), 6.0)
+    axes = list(fig.subplots(1, len(panels), sharey=True, squeeze=False)[0])
+    src = None if source is None else np.atleast_1d(np.asarray(source, float))
+    for i, (ax, line) in enumerate(zip(axes, panels)):
+        im, span, k = _gather_panel(ax, data if line is None else data[line["index"]], dt, line, norm)
+        if line is not None:
+            where = format_position(list(line["fixed"].values()), "".join(line["fixed"])) if line["fixed"] else f"line {i + 1}"
+            ax.set_title(f"{len(line['index'])} receivers at {where}" if line["fixed"] else where, fontsize=9)
+            if src is not None and len(src) == len(names):
+                s = src[names.index(line["axis"])]
+                if span[0] <= s <= span[1]:
+                    ax.plot([s / k], [0.0], marker="*", ms=13, color="gold", mec="k", clip_on=False, zorder=5,
+                            label="source" if i == 0 else None)  # fmt: skip
+        ax.tick_params(labelsize=8)
+    axes[0].set_ylabel("time (s)")
+    fig.colorbar(im, ax=axes, label=f"{quantity} ({units})\nclipped at ±{clip:.3g}, the {percentile:g}th percentile of |{quantity}|",
+                 fraction=0.05 if len(axes) > 1 else 0.15)  # fmt: skip
+    fig.suptitle(title or "shot gather", fontsize=11)
     return save_figure(fig, path)
 
 
@@ -154,8 +263,9 @@ def plot_snapshots(path, snapshots, times, spacing: float, origin, sources=None,
                    max_panels: int = 12, title: str = "") -> pathlib.Path:
     """A grid of wavefield snapshots of one shot: snapshots (n_snap, nz, [ny,] nx) at ``times``
     (s) on the grid of ``spacing`` m with node 0 at world ``origin``; at most ``max_panels``
-    evenly chosen frames, each clipped at its own 99.5th percentile of |u| (seismic colormap).
-    3D: the x-z slice through the first source. sources (n, ndim) world m are drawn as stars."""
+    evenly chosen frames, each divided by its own 99.5th percentile of |u| (given in its title) and
+    clipped at +-1, one colourbar for all (seismic colormap). 3D: the x-z slice through the first
+    source. sources (n, ndim) world m are drawn as stars."""
     snaps = np.asarray(snapshots)
     times = np.asarray(times, float)
     n = len(snaps)
@@ -163,6 +273,7 @@ def plot_snapshots(path, snapshots, times, spacing: float, origin, sources=None,
     src = None if sources is None else np.asarray(sources, float).reshape(-1, ndim)
     y0 = src[0, 1] if (ndim == 3 and src is not None and len(src)) else None
     pick = np.unique(np.linspace(0, n - 1, min(n, max_panels)).round().astype(int)) if n else []
+    norm = _norm(-1.0, 1.0)  # one for every frame and the colourbar
     cols = int(min(4, max(len(pick), 1)))
     rows = int(np.ceil(len(pick) / cols)) if len(pick) else 1
     frame0, _ = xz_slice(snaps[0], origin, spacing, y0) if n else (np.zeros((2, 2)), None)
@@ -176,19 +287,22 @@ def plot_snapshots(path, snapshots, times, spacing: float, origin, sources=None,
         ax = fig.add_subplot(rows, cols, i + 1)
         frame, _ = xz_slice(snaps[f], origin, spacing, y0)
         c = _clip(frame, 99.5)
-        ax.imshow(frame, extent=extent, cmap="seismic", vmin=-c, vmax=c, aspect="equal",
-                  interpolation="bilinear")
+        im = ax.imshow(frame / c, extent=extent, cmap="seismic", norm=norm, aspect="equal",
+                       interpolation="bilinear")
         if src is not None and len(src):
             ax.scatter(src[:1, -1] / k, src[:1, 0] / k, marker="*", s=40, c="gold",
                        edgecolors="black", linewidths=0.4)
             ax.set_xlim(extent[0], extent[1])
             ax.set_ylim(extent[2], extent[3])
-        ax.set_title(f"t = {times[f]:.3g} s", fontsize=9)
+        ax.set_title(f"t = {times[f]:.3g} s, clip {c:.2g}", fontsize=9)
         ax.tick_params(labelsize=7)
         if i % cols == 0:
             ax.set_ylabel(f"z ({unit})", fontsize=8)
         if i >= len(pick) - cols:
             ax.set_xlabel(f"x ({unit})", fontsize=8)
+    if len(pick):
+        fig.colorbar(im, ax=fig.axes, label="u / clip of its frame\n(clip: the 99.5th percentile of |u|, in each title)",
+                     shrink=0.8, fraction=0.04)  # fmt: skip
     fig.suptitle(title or "wavefield snapshots")
     return save_figure(fig, path)
 
@@ -221,19 +335,57 @@ def _ellipse_xy(cov_zx, center_zx, k: float, n: int = 100):
     return pts[:, 1], pts[:, 0]
 
 
+#: an ellipse narrower than this fraction of its panel gets a zoomed inset
+INSET_BELOW = 0.15
+
+
+def _ellipse_inset(ax, ex, ez, pos, truth=None, color="tab:cyan"):
+    """A zoomed inset in the upper right of ax on the ellipse (ex, ez) (world m) about pos (z, x): axes in m from
+    the event, equal scales, the zoomed square marked on ax and joined to the inset; returns the inset axes."""
+    from matplotlib.patches import Rectangle
+    from matplotlib.ticker import MaxNLocator
+
+    half = 1.3 * max(float(np.ptp(ex)), float(np.ptp(ez)), 1e-9) / 2
+    # a backdrop for the inset's labels, clear of the map's centre (the event)
+    ax.add_patch(Rectangle((0.53, 0.53), 0.47, 0.47, transform=ax.transAxes, fc="white", ec="none", alpha=0.9, zorder=4))
+    size = 0.36
+    ins = ax.inset_axes([0.625, 0.625, size, size])
+    ins.plot(ex - pos[1], ez - pos[0], color=color, lw=1.5)
+    ins.plot(0.0, 0.0, "*", color=color, ms=10, mec="k")
+    if truth is not None and max(abs(truth[-1] - pos[1]), abs(truth[0] - pos[0])) < half:
+        ins.plot(truth[-1] - pos[1], truth[0] - pos[0], "+", color="tab:green", ms=10, mew=2)
+    ins.set_xlim(-half, half)
+    ins.set_ylim(half, -half)
+    ins.set_aspect("equal")
+    for axis in (ins.xaxis, ins.yaxis):
+        axis.set_major_locator(MaxNLocator(4, symmetric=True))
+    ins.tick_params(labelsize=6, pad=1, length=2)
+    ins.set_xlabel("x - x_event (m)", fontsize=6, labelpad=1)
+    ins.set_ylabel("z - z_event (m)", fontsize=6, labelpad=1)
+    ins.grid(True, alpha=0.3)
+    x0, x1 = ax.get_xlim()
+    ins.set_title(f"zoom x{size * abs(x1 - x0) / (2 * half):.3g}, to scale", fontsize=7, pad=2)
+    ax.indicate_inset((pos[1] - half, pos[0] - half, 2 * half, 2 * half), inset_ax=ins, edgecolor="k", alpha=0.6)
+    return ins
+
+
 def plot_location(path, model, stations, result_zx, cov_zx, k: float, misfit_map: dict, candidates=(), truth_zx=None,
-                  stack=None, title: str = "") -> pathlib.Path:  # fmt: skip
+                  stack=None, title: str = "", confidence: float = 0.68) -> pathlib.Path:  # fmt: skip
     """Two panels: the model's (z, x) section (a slice through the event in 3D) with the stations,
-    the back-projection stack (contours), the start candidates and the located event with its
-    confidence ellipse (k: the ellipse scale for its confidence, adseismic.quakeml.confidence_scale);
-    and the waveform misfit over positions near the event (misfit_map: z, x, misfit) with the same
-    ellipse. Positions in world metres, (z, x)."""
+    the back-projection stack (contours), the start candidates, the located event with its
+    confidence ellipse (k: the ellipse scale for its confidence, adseismic.quakeml.confidence_scale)
+    and the outline of the misfit map; and the waveform misfit over positions near the event
+    (misfit_map: z, x, misfit = 1/2 sum((synthetic - observed) / noise std)^2) with a colourbar and
+    the same ellipse, drawn to scale, with a zoomed inset when it is smaller than INSET_BELOW of the
+    map. Positions in world metres, (z, x)."""
+    from matplotlib.patches import Rectangle
+
     vals, _ = xz_slice(model.values, model.origin, model.spacing[0], y=None if model.ndim == 2 else result_zx[1])
     (z0, z1), (x0, x1) = model.extent[0], model.extent[-1]
     kd, unit = _scale(max(z1 - z0, x1 - x0))
     pos = np.asarray(result_zx, float)[[0, -1]]
     ex, ez = _ellipse_xy(cov_zx, pos, k)
-    fig = _figure(13.0, 5.0)
+    fig = _figure(13.0, 5.5)
     ax, bx = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
     im = ax.imshow(vals, extent=(x0 / kd, x1 / kd, z1 / kd, z0 / kd), cmap="viridis", aspect="equal")
     fig.colorbar(im, ax=ax, label="velocity (m/s)", shrink=0.8)
@@ -250,25 +402,34 @@ def plot_location(path, model, stations, result_zx, cov_zx, k: float, misfit_map
     ax.plot(ex / kd, ez / kd, color="tab:red", lw=1.2)
     if truth_zx is not None:
         ax.plot(truth_zx[-1] / kd, truth_zx[0] / kd, "+", color="w", ms=12, mew=2, label="truth")
+    m = misfit_map
+    mx, mz, mis = np.asarray(m["x"], float), np.asarray(m["z"], float), np.asarray(m["misfit"], float)
+    ax.add_patch(Rectangle((mx.min() / kd, mz.min() / kd), np.ptp(mx) / kd, np.ptp(mz) / kd, fill=False, ec="w", lw=1.0,
+                           ls="--", label="misfit map (right)"))  # fmt: skip
     ax.set_xlabel(f"x ({unit})")
     ax.set_ylabel(f"z ({unit})")
     ax.legend(loc="lower left", fontsize=8)
-    ax.set_title("model, stations, back-projection stack, location")
-    m = misfit_map
-    mis = np.asarray(m["misfit"], float)
-    lev = np.nanmin(mis) + np.array([0.5, 1, 2, 4, 8, 16, 32, 64]) * max(k, 1.0) ** 2
-    bx.contourf(m["x"], m["z"], np.log10(mis - np.nanmin(mis) + 1.0), levels=20, cmap="magma_r")
-    cs = bx.contour(m["x"], m["z"], mis, levels=lev, colors="k", linewidths=0.5)
-    bx.clabel(cs, fontsize=6, fmt=lambda v: f"+{v - np.nanmin(mis):.3g}")
-    bx.plot(ex, ez, color="tab:cyan", lw=1.5, label="confidence ellipse")
+    ax.set_title("model, stations, back-projection stack, location", fontsize=10)
+    lo = np.nanmin(mis)
+    lev = lo + np.array([0.5, 1, 2, 4, 8, 16, 32, 64]) * max(k, 1.0) ** 2
+    cf = bx.contourf(mx, mz, np.log10(mis - lo + 1.0), levels=20, cmap="magma_r")
+    fig.colorbar(cf, ax=bx, label="log10(1 + misfit - its minimum)\nmisfit = 1/2 sum((synthetic - observed) / noise std)^2", shrink=0.8)
+    cs = bx.contour(mx, mz, mis, levels=lev, colors="k", linewidths=0.5)
+    bx.clabel(cs, fontsize=6, fmt=lambda v: f"+{v - lo:.3g}")
+    bx.plot(ex, ez, color="tab:cyan", lw=1.5, label=f"{100 * confidence:.0f}% confidence ellipse")
     bx.plot(pos[1], pos[0], "*", color="tab:cyan", ms=12, mec="k")
     if truth_zx is not None:
         bx.plot(truth_zx[-1], truth_zx[0], "+", color="tab:green", ms=12, mew=2, label="truth")
-    bx.invert_yaxis()
+    bx.set_xlim(mx.min(), mx.max())
+    bx.set_ylim(mz.max(), mz.min())
     bx.set_aspect("equal")
     bx.set_xlabel("x (m)")
     bx.set_ylabel("z (m)")
     bx.legend(loc="lower left", fontsize=8)
-    bx.set_title("waveform misfit near the event\n(contours: increase above the minimum)")
+    small = max(np.ptp(ex), np.ptp(ez)) < INSET_BELOW * max(np.ptp(mx), np.ptp(mz))
+    if small:
+        _ellipse_inset(bx, ex, ez, pos, truth_zx)
+    bx.set_title("waveform misfit near the event" + (" (inset: the ellipse to scale, zoomed)" if small else "")
+                 + "\n(contours: increase above the minimum)", fontsize=10)  # fmt: skip
     fig.suptitle(title)
     return save_figure(fig, path)

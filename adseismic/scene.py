@@ -86,6 +86,8 @@ class Plan:
             f"cost      {self.padded_cells:,} padded cells x {self.nt} steps x {self.n_shots} shot(s); "
             f"~{self.memory_bytes / 2**20:.0f} MiB, ~{self.seconds_per_shot:.3g} s per shot on {self.device} ({self.precision}, estimate)",
         ]
+        if self.reasons.get("memory"):
+            lines.append(f"memory    {self.reasons['memory']}")
         lines += [f"WARNING   {w}" for w in self.warnings]
         return "\n".join(lines)
 
@@ -110,6 +112,96 @@ def _nice_floor(x: float, digits: int = 2) -> float:
     """Round down to `digits` significant digits (keeps plans readable and reproducible)."""
     e = math.floor(math.log10(x)) - digits + 1
     return float(f"{math.floor(x / 10**e + 1e-9)}e{e}")
+
+
+def _nice_ceil(x: float, digits: int = 2) -> float:
+    """Round up to `digits` significant digits."""
+    e = math.floor(math.log10(x)) - digits + 1
+    return float(f"{math.ceil(x / 10**e - 1e-9)}e{e}")
+
+
+MIN_VELOCITY = 10.0  # m/s: below this a P velocity is a unit error (km/s typed as m/s), not a material
+MAX_VELOCITY = 15000.0  # m/s: above this (faster than any rock) a warning asks whether the units are right
+ABSURD_CELLS = 1e13  # grid cells (all shots) that no machine holds (4e13 bytes at float32 for one field)
+ABSURD_CELL_STEPS = 1e20  # cell updates that no machine runs (~100 years at 3e10 per second)
+ABSURD_VELOCITY = 1e5  # m/s: above this a velocity is refused (a unit error: mm/s? cm/s?)
+LONG_RUN_SECONDS = 86400.0  # a forward run estimated above a day gets a warning with the estimate
+
+
+def check_velocity_units(vmin: float, vmax: float, key: str = "model") -> list:
+    """Refuse velocities below MIN_VELOCITY m/s (ValueError naming `key`: km/s typed as m/s); warnings (list of str)
+    for velocities above MAX_VELOCITY m/s."""
+    if vmin < MIN_VELOCITY:
+        raise ValueError(f"{key}: velocities {vmin:.4g}..{vmax:.4g} m/s go below {MIN_VELOCITY:g} m/s, slower than any "
+                         f"seismic P wave; km/s? multiply by 1000 (for a model file set model.units: km/s)")
+    if vmax > ABSURD_VELOCITY:
+        raise ValueError(f"{key}: velocities up to {vmax:.4g} m/s, more than {ABSURD_VELOCITY:g} m/s (no seismic wave is "
+                         f"faster than ~14 km/s); check the units: velocities are in m/s")
+    if vmax > MAX_VELOCITY:
+        return [f"{key}: velocities up to {vmax:.4g} m/s are faster than any rock ({MAX_VELOCITY:g} m/s); check the "
+                f"units (m/s expected)"]
+    return []
+
+
+def forward_memory_bytes(padded: int, n_shots: int, n_receivers: int, nt: int, itemsize: int) -> int:
+    """Estimated peak bytes of a forward run of every shot at once: per shot u_prev, u and the CPML strips
+    (~3 padded grids), one padded model, and the receiver data on the device and on the host."""
+    return int(itemsize * (3 * padded * n_shots + padded) + 2 * itemsize * n_shots * n_receivers * nt)
+
+
+class _GridSize:
+    """The sizes of kernels.acoustic.Acoustic's padded grid and CPML strips, without building its kernels or arrays
+    (what solve.acoustic.plan_segments reads)."""
+
+    def __init__(self, plan, n_shots: int):
+        import warp as wp
+
+        R, nb, ndim = plan.order // 2, plan.pml_width, plan.ndim
+        shape3 = (plan.shape[0], plan.shape[1] if ndim == 3 else 1, plan.shape[-1])
+        lo = [0 if plan.free_surface else nb, nb if ndim == 3 else 0, nb]
+        hi = [nb, nb if ndim == 3 else 0, nb]
+        halo = [R, R if ndim == 3 else 0, R]
+        self.n_shots = int(n_shots)
+        self.dtype = wp.float32 if plan.precision == "float32" else wp.float64
+        self.padded = tuple(shape3[a] + lo[a] + hi[a] + 2 * halo[a] for a in range(3))
+        self.strip_width = [((3 * halo[a] + lo[a]) if lo[a] else 0) + ((3 * halo[a] + hi[a]) if hi[a] else 0) for a in range(3)]
+
+    def strip_shape(self, axis: int):
+        shape = [self.n_shots, *self.padded]
+        shape[axis + 1] = self.strip_width[axis]
+        return tuple(shape)
+
+
+def gradient_memory_bytes(plan, n_shots: int, memory_budget: float | None = None) -> int:
+    """Estimated peak bytes of one checkpointed gradient of `n_shots` shots at once on the planned grid: the
+    checkpoint plan solve.acoustic.plan_segments would choose within `memory_budget` (bytes; None: the memory
+    minimum). ValueError when the budget is below that gradient's minimum."""
+    from adseismic.solve.acoustic import plan_segments
+
+    _, peak = plan_segments(_GridSize(plan, n_shots), plan.nt, memory_budget)
+    return int(peak)
+
+
+def check_memory(need: int, sim, what: str, advice: str) -> str:
+    """Refuse (ValueError) an estimated `need` bytes above simulation.memory_budget_gb or, without a budget, above
+    the device's free memory, unless simulation.force; returns a one-line account of the comparison."""
+    from adseismic.data.memory import available_bytes
+
+    budget = getattr(sim, "memory_budget_gb", None)
+    if budget is not None:
+        limit, key, where = budget * 1e9, "simulation.memory_budget_gb", f"the budget simulation.memory_budget_gb = {budget:g} GB"
+    else:
+        free = available_bytes(str(sim.device))
+        if free is None:
+            return f"estimated {need / 2**30:.3g} GiB ({what}); free memory of {sim.device} unknown, not checked"
+        limit, key, where = free, "simulation", f"the {free / 2**30:.3g} GiB free on {sim.device} now"
+    line = f"estimated {need / 2**30:.3g} GiB ({what}) of {where}"
+    if need > limit:
+        if getattr(sim, "force", False):
+            return line + " -- above it, running anyway (simulation.force)"
+        raise ValueError(f"{key}: the run needs an estimated {need / 2**30:.3g} GiB ({what}), more than {where}; "
+                         f"{advice}, or set simulation.force: true (adseismic --force) to run anyway")
+    return line
 
 
 def wavelet_band(kind: str, params: dict):
@@ -152,6 +244,18 @@ def _choose_dx_dt(order, ndim, vmin, vmax, f_max, accuracy, safety, pins, extent
     limit = cfl_limit(order, ndim)
     if pins.get("dt") is not None and pins.get("dx") is not None:
         return pins["dx"], pins["dt"], "pinned by the config", "pinned by the config"
+    if pins.get("dt") is not None:
+        # dt pinned, dx free: the planner's own dx if the pinned dt is stable with it (Courant <= cfl_safety x the
+        # limit), else the smallest such dx; the plan then warns if it misses the accuracy target
+        dt = float(pins["dt"])
+        free_dx, free_dt, why, _ = _choose_dx_dt(order, ndim, vmin, vmax, f_max, accuracy, safety, {}, extent_cells_fn, t_record)
+        dx_stable = vmax * dt / (safety * limit)
+        if free_dx >= dx_stable:
+            return free_dx, dt, why, "pinned by the config"
+        dx = _nice_ceil(dx_stable)
+        return dx, dt, (f"the smallest dx for which the pinned dt = {dt:g} s is stable ({safety:g} x the CFL limit at v_max "
+                        f"{vmax:.0f} m/s); the accuracy target needs dx <= {free_dx:g} m, which needs dt <= {free_dt:g} s"), \
+            "pinned by the config"
     best = None
     for s in SAFETY_STEPS:
         c_max = safety * s * limit
@@ -173,22 +277,30 @@ def _choose_dx_dt(order, ndim, vmin, vmax, f_max, accuracy, safety, pins, extent
                    f"meet the {100 * accuracy:g}% group-velocity target at order {order}")  # fmt: skip
             why_dt = f"{safety * s:.2f} x the CFL limit (the cheapest dt/dx pair that meets the accuracy target)"
             best = (cost, dx, dt, why if pins.get("dx") is None else "pinned by the config", why_dt if pins.get("dt") is None else "pinned by the config")
-        if pins.get("dt") is not None:
-            break
     if best is None:
         raise ValueError(f"simulation.accuracy: {accuracy:g} cannot be reached at order {order}; raise the target (e.g. 0.01) or use order 4 or 8")
     return best[1:]
 
 
-def plan_scene(config, velocity_range=None, f_max=None) -> Plan:
+def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory_of_run=True) -> Plan:
     """Plan the simulation grid, time step, record and domain for a ForwardConfig (see config.py).
 
     velocity_range: (v_min, v_max) m/s to plan for instead of the model's own range (an inversion
     plans for its velocity bounds, so that every model it may visit is stable and resolved).
     f_max: highest frequency (Hz) the simulation must resolve, when below the wavelet's -20 dB edge
     (an inversion whose highest band is low-passed).
+
+    Refuses (ValueError naming the key): velocities below 10 m/s (km/s typed as m/s); a forward run whose
+    estimated memory (Plan.memory_bytes: every shot at once) exceeds simulation.memory_budget_gb or, without a
+    budget, the device's free memory (adseismic.data.memory.available_bytes) -- unless ``force`` (default:
+    config.simulation.force; the CLI's --force sets it) is true. check_memory_of_run=False skips that comparison
+    (callers that run something else than this forward run, e.g. an inversion, check their own estimate).
     """
     model, geo, sim = config.model, config.geometry, config.simulation
+    if force is not None and bool(force) != bool(getattr(sim, "force", False)):
+        import dataclasses
+
+        sim = dataclasses.replace(sim, force=bool(force))
     ndim, order = model.ndim, int(sim.order)
     src, rec = np.asarray(geo.sources, float), np.asarray(geo.receivers, float)
     for name, pts in (("geometry.sources", src), ("geometry.receivers", rec)):
@@ -196,7 +308,9 @@ def plan_scene(config, velocity_range=None, f_max=None) -> Plan:
         if not inside.all():
             i = int(np.argmin(inside))
             raise ValueError(f"{name}[{i}] = {pts[i].tolist()} m lies outside the model {[list(e) for e in model.extent]} m; move it inside or extend the model")
-    warnings = []
+    warnings = check_velocity_units(model.vmin, model.vmax, "model")
+    if velocity_range is not None:
+        check_velocity_units(*map(float, velocity_range), "inversion.bounds")
     f_wavelet, w_len = wavelet_band(config.wavelet.kind, config.wavelet.params)
     f_max = f_wavelet if f_max is None else min(float(f_max), f_wavelet)
 
@@ -240,6 +354,12 @@ def plan_scene(config, velocity_range=None, f_max=None) -> Plan:
         check_courant(ACOUSTIC, order, ndim, vmax, dx, dt)
     except ValueError as e:
         raise ValueError(f"simulation.{e}") from None
+    n_cells, n_steps = cells(dx), t_record / dt + 1  # floats: inf for absurd grids, where ints would overflow later
+    if not (n_cells * n_steps * len(src) <= ABSURD_CELL_STEPS and n_cells * len(src) <= ABSURD_CELLS):
+        raise ValueError(f"simulation: the plan has {n_cells:.3g} cells x {n_steps:.3g} steps x {len(src)} shot(s) (dx = {dx:g} m, "
+                         f"dt = {dt:g} s, a {t_record:.4g} s record over {' x '.join(f'{e:.4g}' for e in hi - lo)} m), beyond any "
+                         f"machine even with simulation.force; check the units of dx, dt, duration, the model's spacing and "
+                         f"velocities (m, s, m/s) and the wavelet's frequency (Hz)")
     limit = cfl_limit(order, ndim)
     courant = vmax * dt / dx
     err = _group_error(order, ndim, vmin, vmax, f_max, dx, dt)
@@ -255,17 +375,30 @@ def plan_scene(config, velocity_range=None, f_max=None) -> Plan:
     shape = tuple(int(n) for n in np.ceil((hi - lo) / dx - 1e-9) + 1)  # covers every source and receiver
     nt = int(math.ceil(t_record / dt)) + 1
     refl = DEFAULT_PML_REFLECTION[order] if sim.pml_reflection is None else float(sim.pml_reflection)
-    padded = int(np.prod([n + 2 * pml + order for n in shape]))
+    padded = math.prod(int(n) + 2 * pml + order for n in shape)  # Python ints: no int64 overflow for absurd grids
     itemsize = 4 if sim.precision == "float32" else 8
-    memory = itemsize * (3 * padded + padded) + itemsize * len(rec) * nt
+    memory = forward_memory_bytes(padded, len(src), len(rec), nt, itemsize)
     device_kind = "cuda" if str(sim.device).startswith("cuda") else "cpu"
+    seconds = padded * nt / EST_RATE[device_kind]
+    if seconds * len(src) > LONG_RUN_SECONDS:
+        warnings.append(f"long run: an estimated {seconds * len(src) / 3600:.3g} h on {sim.device} for {len(src)} shot(s) "
+                        f"({padded:,} padded cells x {nt:,} steps each); check the velocities, the wavelet's frequency and "
+                        f"simulation.accuracy")
+    if check_memory_of_run:
+        grid = " x ".join(str(n) for n in shape)
+        memory_line = check_memory(memory, sim, f"forward run: {len(src)} shot(s) on a {grid} grid, {nt:,} steps",
+                                   "lower the wavelet's frequency, relax simulation.accuracy, use fewer shots or a smaller domain")
+        reasons_memory = memory_line
+    else:
+        reasons_memory = None
     return Plan(
         ndim=ndim, order=order, dx=float(dx), dt=float(dt), nt=nt, shape=shape, origin=tuple(float(x) for x in lo),
         pml_width=pml, pml_reflection=refl, free_surface=bool(sim.free_surface), device=str(sim.device),
         precision=str(sim.precision), f_max=float(f_max), expected_error=float(err), courant=float(courant),
         cfl_limit=float(limit), padded_cells=padded, memory_bytes=int(memory),
-        seconds_per_shot=padded * nt / EST_RATE[device_kind], n_shots=len(src),
-        reasons={"dx": why_dx, "dt": why_dt, "nt": why_nt, "domain": why_domain}, warnings=warnings,
+        seconds_per_shot=seconds, n_shots=len(src),
+        reasons={"dx": why_dx, "dt": why_dt, "nt": why_nt, "domain": why_domain,
+                 **({"memory": reasons_memory} if reasons_memory else {})}, warnings=warnings,
     )  # fmt: skip
 
 

@@ -21,7 +21,7 @@ if [ "$what" = tests ]; then  # from the source tree (pytest puts the repo first
   ln -sfn ../kernels adseismic/kernels && ln -sfn ../data_synthetic adseismic/data_synthetic
   export WARP_CACHE_PATH=/tmp/cache_tests ADSEISMIC_TEST_DEVICE=cuda:0
   rm -rf "$WARP_CACHE_PATH"
-  PYTHONPATH=$site:$repo python3 -m pytest -q -p no:cacheprovider --durations=15 \
+  PYTHONPATH=$site:$repo python3 -m pytest -q -p no:cacheprovider -m "" --durations=15 \
     tests/test_propagate.py tests/test_gradient.py tests/test_elastic.py tests/test_devices.py tests/test_adjoint.py 2>&1 | tee "$out/tests.log"
 else
   cd /tmp  # not the repo: the installed packages are the ones imported

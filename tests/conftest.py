@@ -8,6 +8,11 @@ import pytest
 DEVICE = os.environ.get("ADSEISMIC_TEST_DEVICE", "cpu")
 
 
+def slow(*values):
+    """A parametrize case of the slow pass: .ci/run runs it (`pytest -m slow`), the README's command skips it."""
+    return pytest.param(*values, marks=pytest.mark.slow)
+
+
 @pytest.fixture
 def device():
     return DEVICE

@@ -7,7 +7,7 @@ For each mutation: the tracked files (git ls-files) are copied into a fresh temp
 layout made there (adseismic/kernels -> ../kernels, adseismic/data_synthetic -> ../data_synthetic, as pyproject.toml
 maps them), the mutation applied (its original text must occur exactly once in its file: a code change that moves
 or rewrites the text is refused, so that a stale mutation is noticed, not silently skipped), and
-`python -m pytest -q -x -p no:cacheprovider <selection>` run in the scratch root with PYTHONPATH at the scratch root
+`python -m pytest -q -x -p no:cacheprovider -m "" <selection>` (slow tests included) run in the scratch root with PYTHONPATH at the scratch root
 and a fresh empty WARP_CACHE_PATH (no kernel built from the unmutated code is loaded). Result: caught (pytest exit
 code 1: a test failed), missed (exit 0: every selected test passed on the mutant), error (any other exit code: no
 test collected, a usage or import error, an interruption). Before the mutations run, a scratch copy is checked to
@@ -249,7 +249,7 @@ def run_one(m: Mutation, files: list[str], mutate: bool = True) -> Result:
     try:
         if mutate:
             apply(root, m)
-        cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *m.selection]
+        cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", "-m", "", *m.selection]  # slow tests too
         p = subprocess.run(cmd, cwd=root, env=environment(root), capture_output=True, text=True)
         result = {0: "missed", 1: "caught"}.get(p.returncode, f"error (exit {p.returncode})")
         return Result(m, result, time.perf_counter() - t0, (p.stdout + p.stderr)[-3000:])
@@ -279,7 +279,9 @@ def write_doc(results: list[Result], partial: bool, baseline: bool):
     doc = f"""# Testing
 
 The tests run on the CPU with `pytest` (`ADSEISMIC_TEST_DEVICE=cuda:0 pytest` runs the propagator and gradient tests
-on a GPU).
+on a GPU). `python -m pytest -q` (the README's command, about 5 minutes on 2 cores) leaves out the tests marked `slow`
+(location studies, alternative kernel layouts, kill -9/resume, the demos' wall times); `python -m pytest -q -m slow`
+runs those, and CI (`.ci/run`) runs both passes.
 
 ## Mutation check
 

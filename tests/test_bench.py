@@ -17,6 +17,7 @@ def bench_run(tmp_path_factory):
     return code, out
 
 
+@pytest.mark.slow
 def test_bench_writes_json_markdown_png(bench_run):
     code, out = bench_run
     assert code == 0
@@ -126,3 +127,51 @@ def test_speed_accuracy_sweep_small(tmp_path):
     (planner,) = [p for p in pts if p["planner"]]
     assert planner["order"] == 4 and planner["precision"] == "float32" and planner["error"] < 0.05
     assert np.isfinite(planner["seconds"]) and "planner default" in (out / "speed_accuracy.md").read_text()
+
+
+@pytest.mark.parametrize("error", [MemoryError(), RuntimeError("CUDA out of memory. Tried to allocate 178.00 GiB | GPU 0")])
+def test_a_failing_reference_is_reported_and_exits_0(tmp_path, monkeypatch, error):
+    def deepwave_fails(*args, **kwargs):
+        raise error
+
+    monkeypatch.setattr(bench, "deepwave_available", lambda: True)
+    monkeypatch.setattr(bench, "run_deepwave", deepwave_fails)
+    out = tmp_path / "o"
+    assert cli.main(["bench", "--scenes", "S600", "--modes", "forward", "--steps", "4", "--in-process", "-o", str(out), "-q"]) == 0
+    rows = [bench.row_from_dict(r) for r in json.loads((out / "bench.json").read_text())["rows"]]
+    ours, ref = rows
+    assert ours.engine == "adseismic" and ours.ok and ref.engine == "deepwave" and not ref.ok
+    why = f"reference failed: {type(error).__name__}" + (": CUDA out of memory. Tried to allocate 178.00 GiB" if str(error) else "")
+    assert ref.status.startswith(why)
+    md = (out / "bench.md").read_text()
+    line = next(ln for ln in md.splitlines() if ln.startswith("| S600 | cpu | forward | 4 (of 1000) |"))
+    assert why in line and "recorded 2.08 (reference.md, 2-core CPU)" in line  # the reason, then the recorded anchor
+    assert why in next(ln for ln in md.splitlines() if ln.startswith("| S600 | cpu | forward |  |"))  # the live Deepwave table
+    assert "not our failure" in (out / "bench.log").read_text()
+
+
+def test_our_failure_still_exits_1_beside_a_failing_reference(tmp_path, monkeypatch):
+    def fails(*args, **kwargs):
+        raise RuntimeError("CUDA out of memory")
+
+    monkeypatch.setattr(bench, "deepwave_available", lambda: True)
+    monkeypatch.setattr(bench, "run_deepwave", fails)
+    monkeypatch.setattr(bench, "run_acoustic", fails)
+    out = tmp_path / "o"
+    assert cli.main(["bench", "--scenes", "S600", "--modes", "forward", "--steps", "4", "--in-process", "-o", str(out), "-q"]) == 1
+    statuses = [r["status"] for r in json.loads((out / "bench.json").read_text())["rows"]]
+    assert statuses == ["failed: RuntimeError: CUDA out of memory", "reference failed: RuntimeError: CUDA out of memory"]
+
+
+def test_a_worker_killed_in_deepwave_keeps_our_rows(monkeypatch):
+    # the worker printed our rows, then died inside Deepwave (e.g. killed for memory)
+    import subprocess
+    from dataclasses import asdict
+
+    ours = _row("cpu", 2e7, nt=8)
+    printed = bench.WORKER_MARK + json.dumps([asdict(ours)])
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, -9, stdout=printed + "\n", stderr=""))
+    job = bench.BenchJob("S600", "cpu", ("forward",), 4, 8, 1, None, True, "scene (own process)")
+    rows = bench.run_job_in_subprocess(job)
+    assert [r.engine for r in rows] == ["adseismic", "deepwave"] and rows[0].ok and rows[0].rate == 2e7
+    assert rows[1].status.startswith("reference failed: worker killed") and not bench.is_our_failure(rows[1])

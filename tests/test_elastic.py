@@ -35,7 +35,7 @@ from adseismic.solve.misfits import MISFITS
 from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.wavelets import ricker
 
-from .conftest import DEVICE
+from .conftest import DEVICE, slow
 from .problems import DT, DX, NT, P_SCALE, elastic_problem
 
 forward = functools.partial(E.forward_elastic, device=DEVICE)
@@ -188,6 +188,7 @@ def test_fluid_matches_acoustic_pressure():
 # --- stability, boundaries, guards ---------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("free_surface", [False, True])
 def test_stable_at_099_cfl_for_vp_vs_3_over_10000_steps(free_surface):
     # Poisson's ratio 0.44 (vp/vs = 3) at 0.99 of the exact staggered CFL limit, 10,000 steps with CPML (and
@@ -553,7 +554,8 @@ def random_step(prop, seed=5):
     return [a.numpy() for a in st.arrays()], [a.numpy() for a in ref.arrays()]
 
 
-@pytest.mark.parametrize("layout, order, free_surface", [(lay, 4, False) for lay in K.LAYOUTS] +
+# the layouts the code runs by default in the README's test command; the alternatives the benchmark times in the slow pass
+@pytest.mark.parametrize("layout, order, free_surface", [(lay, 4, False) if lay == K.CORE_LAYOUT else slow(lay, 4, False) for lay in K.LAYOUTS] +
                          [(K.CORE_LAYOUT, o, fs) for o, fs in ((2, True), (4, True), (8, False), (8, True))])  # fmt: skip
 def test_core_layouts_equal_reference_kernels(layout, order, free_surface):
     # Every layout the benchmark times (rows x cols tiles, lean model arrays, core and frame merged or not) on a
@@ -581,6 +583,7 @@ def assert_core_equals_reference(shape, order, free_surface, layout):
     return prop
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("nx, order, free_surface, layout, width",
                          [(30, 4, False, K.Layout(8, w, 128, False), w) for w in (1, 2, 4)] +
                          [(30, 4, False, K.Layout(4, 4, 128, True, False), 4), (30, 8, False, K.Layout(8, 4, 128, False), 4),
@@ -627,11 +630,11 @@ assert all(lay.split for lay in K.ADJOINT_LAYOUT.values())
 
 
 @pytest.mark.parametrize("layout, order, free_surface, shots, nx",
-                         [(FUSED, o, fs, s, 28) for o in (4, 8) for fs in (False, True) for s in (1, 3)] +
-                         [(lay, 4, True, 2, 28) for lay in K.ADJOINT_LAYOUTS if lay != FUSED and not lay.split] +
+                         [slow(FUSED, o, fs, s, 28) for o in (4, 8) for fs in (False, True) for s in (1, 3)] +
+                         [slow(lay, 4, True, 2, 28) for lay in K.ADJOINT_LAYOUTS if lay != FUSED and not lay.split] +
                          [(K.ADJOINT_LAYOUT[o], o, fs, s, 30) for o, fs, s in ((4, False, 1), (4, True, 3), (8, True, 1), (8, False, 3))] +
-                         [(lay, 4, True, 2, 30) for lay in K.ADJOINT_LAYOUTS if lay.split and lay != K.ADJOINT_LAYOUT[4]] +
-                         [(K.AdjointLayout(4, 4, 128, split=True), 4, False, 1, 28)])  # fmt: skip
+                         [slow(lay, 4, True, 2, 30) for lay in K.ADJOINT_LAYOUTS if lay.split and lay != K.ADJOINT_LAYOUT[4]] +
+                         [slow(K.AdjointLayout(4, 4, 128, split=True), 4, False, 1, 28)])  # fmt: skip
 def test_fused_adjoint_step_equals_per_cell_kernels(layout, order, free_surface, shots, nx):
     # The GPU's hand-written adjoint step (pass 1 outside the inner box; tiles of the adjoint box fusing both passes,
     # or split into the gathers' and the sums' kernels; the frame's gathers and, with several shots, sum_shots), forced

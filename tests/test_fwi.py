@@ -38,12 +38,17 @@ def write(tmp_path, cfg=TINY, name="fwi.yaml"):
     return path
 
 
-def test_tiny_inversion_end_to_end(tmp_path):
+def test_tiny_inversion_end_to_end(tmp_path, capsys):
     cfg = write(tmp_path)
     out = tmp_path / "run"
     assert main(["fwi", str(cfg), "-o", str(out), "-q"]) == 0
     for name in ("model.h5", "history.h5", "summary.json", "model.png", "gradient.png", "residual.png", "misfit.png", "fwi.log", "config.yaml", "observed.h5"):
         assert (out / name).exists(), name
+    wrote = [line for line in capsys.readouterr().out.splitlines() if line.startswith("wrote ")]
+    assert len(wrote) == 1  # the final line names every file of the run directory, journals included
+    assert all(p.name in wrote[0] for p in out.iterdir() if p.is_file()), wrote[0]
+    log = (out / "fwi.log").read_text()
+    assert log.splitlines()[0].endswith(f"fwi {cfg} -> {out}")  # the banner first, then the checks made before OUTDIR existed
     assert not list(out.glob("*.part"))
     summary = json.loads((out / "summary.json").read_text())
     assert [b["iterations"] for b in summary["bands"]] == [3, 3]
@@ -54,6 +59,7 @@ def test_tiny_inversion_end_to_end(tmp_path):
         assert f["band0/iter0001/model"].shape == m["model"].shape  # the planner's grid
 
 
+@pytest.mark.slow
 def test_kill_9_then_resume_equals_uninterrupted_run(tmp_path):
     cfg = write(tmp_path)
     whole, broken = tmp_path / "whole", tmp_path / "broken"
@@ -80,6 +86,7 @@ def test_kill_9_then_resume_equals_uninterrupted_run(tmp_path):
         assert sorted(a["band1"]) == sorted(b["band1"])
 
 
+@pytest.mark.slow
 def test_resume_guards(tmp_path, capsys):
     cfg = write(tmp_path)
     out = tmp_path / "run"

@@ -20,7 +20,7 @@ from adseismic.solve.loop import run_levels
 from adseismic.solve.misfits import MISFITS
 from adseismic.wavelets import ricker
 
-from .conftest import DEVICE
+from .conftest import DEVICE, slow
 
 DX, DT, NT = 10.0, 1e-3, 250
 KW = dict(precision="float64", pml_velocity=2600.0, pml_frequency=15.0, pml_width=8, device=DEVICE)
@@ -182,8 +182,8 @@ def test_parameterization_taylor(make):
 
 
 # order 4 without a free surface (2D and 3D): test_adjoint.test_checkpointed_equals_all_steps_and_warp
-@pytest.mark.parametrize("order, shape, free_surface", [(2, (30, 40), False), (8, (30, 40), False)] +
-                         [(o, s, True) for o, s in ((2, (30, 40)), (4, (30, 40)), (8, (30, 40)), (4, (12, 14, 16)))])  # fmt: skip
+@pytest.mark.parametrize("order, shape, free_surface", [(2, (30, 40), False), slow(8, (30, 40), False)] +
+                         [(o, s, True) for o, s in ((2, (30, 40)), (4, (30, 40)), (8, (30, 40)))] + [slow(4, (12, 14, 16), True)])  # fmt: skip
 def test_hand_adjoint_matches_warp_generated(order, shape, free_surface):
     # The hand-written adjoints of the stencil kernels replace Warp's generated ones for speed; they
     # must give the same gradients (measured: <= 1e-14 relative in float64).

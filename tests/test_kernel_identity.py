@@ -74,6 +74,7 @@ def test_patched_weights_give_their_own_kernel_in_one_process():
     check(impulse_step(1.0), impulse_step(1.01))
 
 
+@pytest.mark.slow
 def test_patched_weights_give_their_own_kernel_in_a_process_sharing_the_cache(tmp_path):
     env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "kernel-cache"))
 

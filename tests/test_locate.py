@@ -44,6 +44,7 @@ def noise_free():
     return run(clean, 1e-3 * np.abs(clean).max(axis=1))
 
 
+@pytest.mark.slow
 def test_noise_free_event_to_a_tenth_of_a_cell_and_sample():
     r = noise_free()
     assert np.linalg.norm(r.start["position"] - TRUTH) < 3 * DX  # back-projection, from no prior at all
@@ -52,6 +53,7 @@ def test_noise_free_event_to_a_tenth_of_a_cell_and_sample():
     assert r.peak_frequency == pytest.approx(F0, rel=1e-3) and r.amplitude == pytest.approx(A0, rel=1e-3)
 
 
+@pytest.mark.slow
 def test_ten_percent_noise_within_half_a_cell():
     model, rec, clean = scene()
     obs, sigma = noisy(clean, 0.1, np.random.default_rng(7))
@@ -59,6 +61,7 @@ def test_ten_percent_noise_within_half_a_cell():
     assert np.linalg.norm(r.position - TRUTH) <= 0.5 * DX
 
 
+@pytest.mark.slow
 def test_uncertainty_ellipse_coverage_over_20_noise_realisations():
     # The Gauss-Newton covariance (noise from the data, 1 sigma) must be honest: the 68% ellipse
     # (2 dof) contains the truth in 50-85% of realisations (binomial: 13.6 +- 2.1 of 20).
@@ -75,6 +78,7 @@ def test_uncertainty_ellipse_coverage_over_20_noise_realisations():
     assert 10 <= inside <= 17
 
 
+@pytest.mark.slow
 def test_3d_event_within_one_cell():
     h = 30.0
     model = constant((17, 17, 17), h, 2000.0)
@@ -88,6 +92,7 @@ def test_3d_event_within_one_cell():
     assert np.linalg.norm(r.position - truth) <= h
 
 
+@pytest.mark.slow
 def test_quakeml_of_a_location_reads_back(tmp_path):
     from obspy import UTCDateTime, read_events
 
@@ -106,6 +111,7 @@ def test_quakeml_of_a_location_reads_back(tmp_path):
     assert np.linalg.norm(np.asarray(back) - r.position) < 1e-3
 
 
+@pytest.mark.slow
 def test_free_source_time_function_and_multi_start():
     # A source-time function a Ricker cannot fit (phase rotated by 60 degrees): the Ricker fit is
     # biased by more than a quarter cell, the free STF (variable projection) recovers the position

@@ -89,7 +89,17 @@ def test_miniseed_stationxml_round_trip_gives_the_in_memory_location(tmp_path, c
     q = read_quakeml_origin(out / "event.xml")
     back = project(q["latitude"], q["longitude"], -q["depth"], Reference(**REF), ndim=2)
     assert np.linalg.norm(np.asarray(back) - pos) < 1e-2
-    assert "event at z =" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "event at z =" in printed
+    wrote = [line for line in printed.splitlines() if line.startswith("wrote ")]
+    assert len(wrote) == 1 and all(p.name in wrote[0] for p in out.iterdir() if p.is_file()), wrote
+    log = (out / "locate.log").read_text().splitlines()
+    assert " locate " in log[0] and str(out) in log[0]  # the banner first, then the preprocessing it did before OUTDIR
+    plan = [line for line in log if "plan: grid" in line]
+    assert len(plan) == 1  # the plan once
+    text = "\n".join(log)
+    # one event per evaluation (not the search box's corners as shots); nt from the trimmed window, not "pinned"
+    assert "x 1 shot(s)" in text and "why: the simulated window" in text.split("plan: nt", 1)[1].split("\n", 2)[1]
 
 
 def run_bad(tmp_path, capsys, cfg_path):

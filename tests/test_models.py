@@ -9,7 +9,7 @@ from adseismic.data.models import load_model
 from adseismic.data_synthetic import constant, gaussian_anomaly, layered, write_example_files
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "marmousi2"  # the clone holds Marmousi2
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"  # the overthrust model lives only beside the clone
+OVERTHRUST = Path(__file__).resolve().parents[1] / "data" / "overthrust"  # shipped in the clone (data/README.md)
 
 
 # ------------------------------------------------------------------------------- generators
@@ -116,12 +116,11 @@ def test_marmousi_raw_kms():
 
 
 def test_overthrust_hdf5_squared_slowness():
-    path = SHARED / "overthrust_model.h5"
-    if not path.exists():
-        pytest.skip(f"{path} absent (not part of the clone)")
+    path = OVERTHRUST / "overthrust_model.h5"
+    assert path.is_file(), f"{path}: shipped in the clone (data/README.md)"
     # Julia wrote n = [nx, nz] = [401, 121] column-major, so h5py sees (121, 401) = (z, x).
     m = load_model({"kind": "hdf5", "path": path.name, "dataset": "m", "spacing_dataset": "d",
-                    "units": "s2/km2", "axes": "zx"}, SHARED)
+                    "units": "s2/km2", "axes": "zx"}, OVERTHRUST)
     assert m.shape == (121, 401) and m.spacing == (25.0, 25.0)
     assert m.vmin == pytest.approx(1500, abs=0.1) and m.vmax == pytest.approx(5500, abs=0.1)
     np.testing.assert_allclose(m.values[0], 1500.0, rtol=1e-6)  # water at the surface

@@ -28,9 +28,12 @@ maximum of its forward and gradient, i.e. the gradient's). With --in-process bot
 high-water marks (labelled so). The gradient's own model of its peak (GradientResult.
 peak_bytes_estimate) is reported beside them.
 
-Deepwave: when ``import deepwave`` works the same scenes run through it in the same worker, after
-ours; otherwise the rates recorded in reference.md (H200 and a 2-core CPU VM) are printed as
-reference anchors, labelled as recorded figures.
+Deepwave: when it is installed the same scenes run through it in the same worker, after ours (our
+rows are printed first, so a Deepwave that kills the worker does not lose them); otherwise the rates
+recorded in reference.md (H200 and a 2-core CPU VM) are printed as reference anchors, labelled as
+recorded figures. A Deepwave run that fails (out of memory, torch or Deepwave broken, any exception,
+the worker killed) is reported in the table as "reference failed: <reason>" and does not change the
+exit status: only a failure of ours exits 1.
 
 Elastic scenes run through ``adseismic.elastic`` (:func:`run_elastic`: a vertical line force, vz
 recorded, gradient with respect to vp, vs and rho).
@@ -269,11 +272,14 @@ def run_deepwave(mode: str, a: SceneArrays, device: str, order: int):
 
 
 def deepwave_available() -> bool:
+    """Whether Deepwave is installed (found, not imported: an installation that fails to import
+    is run anyway and reported as "reference failed: ImportError: ..." in its rows)."""
+    import importlib.util
+
     try:
-        import deepwave  # noqa: F401
-    except ImportError:
+        return importlib.util.find_spec("deepwave") is not None
+    except (ImportError, ValueError):
         return False
-    return True
 
 
 # --------------------------------------------------------------------------------- rows
@@ -283,7 +289,7 @@ class BenchRow:
     """One (scene, engine, device, mode) measurement. seconds: best of ``times`` (s); rate: padded
     cell updates per second; rate_per_core: cell updates per CPU-second (CPU only); peaks in bytes;
     peak_estimate_bytes: the gradient's own model of its peak (adseismic only); status "ok",
-    "skipped: why" or "failed: why"."""
+    "skipped: why", "failed: why" (ours) or "reference failed: why" (a Deepwave row)."""
 
     scene: str
     kind: str
@@ -369,12 +375,27 @@ def _timed(fn, repeat: int, sync):
     return times[best], times, cpus[best], out
 
 
-def _failure(exc: BaseException) -> str:
-    return f"failed: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"[:300]
+def _failure(exc: BaseException, prefix: str = "failed") -> str:
+    text = str(exc).strip()
+    return (f"{prefix}: {type(exc).__name__}" + (f": {text.splitlines()[0]}" if text else ""))[:300]
 
 
-def run_job(job: BenchJob) -> list[BenchRow]:
-    """Warm up, then time every mode of one scene on one device (and through Deepwave when asked)."""
+REFERENCE_FAILED = "reference failed"  # status of a Deepwave row that did not run: never our failure
+
+
+def _reference_failure(exc: BaseException) -> str:
+    return _failure(exc, REFERENCE_FAILED)
+
+
+def is_our_failure(row) -> bool:
+    """A failed measurement of ours (exit status 1); a failed reference (Deepwave) is reported only."""
+    return row.engine == "adseismic" and row.status.startswith("failed")
+
+
+def run_job(job: BenchJob, emit=None) -> list[BenchRow]:
+    """Warm up, then time every mode of one scene on one device (and through Deepwave when asked).
+    emit(rows), when given, gets our rows before Deepwave runs (a worker prints them, so that a
+    reference that kills the process does not take our measurements with it)."""
     import warp as wp
 
     from adseismic.solve.common import resolve_device
@@ -404,7 +425,8 @@ def run_job(job: BenchJob) -> list[BenchRow]:
         if "gradient" in job.modes:
             engine("gradient", w, np.zeros_like(fw.receiver_amplitudes), segment_length=None if spec.kind == "elastic" else 5)
     except Exception as exc:  # a broken engine fails its rows, not the whole benchmark
-        return [BenchRow(engine="adseismic", mode=m, status=_failure(exc), **base) for m in job.modes]
+        rows = [BenchRow(engine="adseismic", mode=m, status=_failure(exc), **base) for m in job.modes]
+        return rows + (_deepwave_rows_guarded(job, a, base, emit, rows) if job.deepwave else [])
     observed = None
     for mode in job.modes:
         row = BenchRow(engine="adseismic", mode=mode, memory_scope=job.memory_scope, **base)
@@ -432,35 +454,68 @@ def run_job(job: BenchJob) -> list[BenchRow]:
         row.device_memory_source = "Warp CUDA mempool high-water mark" if row.peak_device_bytes is not None else ""
         log.info("%s %s on %s: %.3f s, %.3g cell updates/s", spec.name, mode, device, row.seconds, row.rate)
     if job.deepwave:
-        rows += run_deepwave_rows(job, a, base)
+        rows += _deepwave_rows_guarded(job, a, base, emit, rows)
     return rows
+
+
+def _deepwave_rows_guarded(job, a, base, emit, ours) -> list[BenchRow]:
+    """run_deepwave_rows after emitting ours; whatever goes wrong becomes "reference failed" rows."""
+    if emit is not None:
+        emit(ours)
+    try:
+        return run_deepwave_rows(job, a, base)
+    except Exception as exc:  # e.g. torch missing or broken: the reference failed, not us
+        return [BenchRow(engine="deepwave", mode=m, memory_scope=job.memory_scope, status=_reference_failure(exc), **base)
+                for m in job.modes]  # fmt: skip
 
 
 def run_deepwave_rows(job: BenchJob, a: SceneArrays, base: dict) -> list[BenchRow]:
     """Time the scene through Deepwave (after ours: its host memory is not separable, so only its
-    CUDA peak, torch.cuda.max_memory_allocated, is reported)."""
-    import torch
-
+    CUDA peak, torch.cuda.max_memory_allocated, is reported). A mode that raises (out of memory,
+    Deepwave or torch missing or broken, anything) gets status "reference failed: <reason>"; the
+    other modes still run."""
     rows = []
     for mode in job.modes:
         row = BenchRow(engine="deepwave", mode=mode, memory_scope=job.memory_scope, **base)
         rows.append(row)
+        once = None
         try:
             once = run_deepwave(mode, a, job.device, job.order)
             once()  # warm-up
             if device_kind(job.device) == "cuda":
+                import torch
+
                 torch.cuda.reset_peak_memory_stats(job.device)
             row.seconds, row.times, row.cpu_seconds, _ = _timed(once, job.repeat, lambda: None)
         except Exception as exc:
-            row.status = _failure(exc)
+            row.status = _reference_failure(exc)  # (cmd_bench logs it)
+            del once
+            _free_torch_memory(job.device)
             continue
         row.rate = row.cell_updates / row.seconds
         if device_kind(job.device) == "cpu" and row.cpu_seconds > 0:
             row.rate_per_core = row.cell_updates / row.cpu_seconds
         else:
+            import torch
+
             row.peak_device_bytes = int(torch.cuda.max_memory_allocated(job.device))
             row.device_memory_source = "torch.cuda.max_memory_allocated"
     return rows
+
+
+def _free_torch_memory(device: str) -> None:
+    """After a failed Deepwave run (e.g. out of memory): give torch's cached CUDA memory back."""
+    if device_kind(device) != "cuda":
+        return
+    try:
+        import gc
+
+        import torch
+
+        gc.collect()
+        torch.cuda.empty_cache()
+    except Exception:  # torch missing or its CUDA state broken: nothing to free
+        pass
 
 
 def run_job_in_subprocess(job: BenchJob) -> list[BenchRow]:
@@ -468,10 +523,17 @@ def run_job_in_subprocess(job: BenchJob) -> list[BenchRow]:
     cmd = [sys.executable, "-m", "adseismic.bench", "--worker", json.dumps(asdict(job))]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith(WORKER_MARK)]
+    rows = [row_from_dict(d) for d in json.loads(lines[-1][len(WORKER_MARK):])] if lines else []
     if proc.returncode == 0 and lines:
-        return [row_from_dict(d) for d in json.loads(lines[-1][len(WORKER_MARK):])]
+        return rows
     tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
     why = "killed (out of host memory?)" if proc.returncode < 0 else f"exit code {proc.returncode}"
+    if rows and job.deepwave and not any(r.engine == "deepwave" for r in rows):  # ours printed, then Deepwave died
+        log.warning("worker for %s on %s died in Deepwave (%s): %s", job.scene, job.device, why, proc.stderr[-2000:])
+        base = {k: getattr(rows[0], k) for k in ("scene", "kind", "device", "device_name", "order", "shape", "shots", "nt",
+                                                 "nt_reference", "padded_cells")}  # fmt: skip
+        return rows + [BenchRow(engine="deepwave", mode=m, memory_scope=job.memory_scope,
+                                status=f"{REFERENCE_FAILED}: worker {why} in Deepwave: {tail}"[:300], **base) for m in job.modes]  # fmt: skip
     log.error("worker for %s on %s failed (%s): %s", job.scene, job.device, why, proc.stderr[-2000:])
     spec = SCENES[job.scene]
     base = dict(scene=spec.name, kind=spec.kind, device=job.device, device_name="", order=job.order, shape=tuple(spec.shape),
@@ -548,6 +610,13 @@ def reference_for(row: BenchRow, rows) -> tuple[float | None, str]:
     return (None, "") if a is None else (getattr(a, row.mode), a.where)
 
 
+def reference_failure_for(row: BenchRow, rows) -> str | None:
+    """The "reference failed: <reason>" status of the live Deepwave row of our row's measurement, if it failed."""
+    live = next((r for r in rows if r.engine == "deepwave" and (r.scene, r.mode, r.device, r.order, r.nt)
+                 == (row.scene, row.mode, row.device, row.order, row.nt)), None)  # fmt: skip
+    return live.status.replace("|", "/") if live is not None and live.status.startswith(REFERENCE_FAILED) else None
+
+
 def markdown(rows, machine: dict) -> str:
     """The bench.md table: ours, the Deepwave rate and their ratio side by side, CUDA/CPU ratios."""
     ratios = cuda_cpu_ratios(rows)
@@ -570,12 +639,15 @@ def markdown(rows, machine: dict) -> str:
         if r.engine != "adseismic":
             continue
         nt = f"{r.nt}" + (f" (of {r.nt_reference})" if r.nt != r.nt_reference else "")
+        failed_ref = reference_failure_for(r, rows)
         if not r.ok:
-            lines.append(f"| {r.scene} | {r.device} | {r.mode} | {nt} | {r.status} |  |  |  |  |  |  |  |  |")
+            lines.append(f"| {r.scene} | {r.device} | {r.mode} | {nt} | {r.status} |  |  |  |  |  | {failed_ref or ''} |  |  |")
             continue
         ref, label = reference_for(r, rows)
         refs = "" if ref is None else f"{ref / 1e9:.3g} ({label})"
         vs = "" if ref is None else _ratio(r.rate / ref)
+        if failed_ref:  # the live reference failed: say why (a recorded anchor, if any, follows)
+            refs = failed_ref + ("" if ref is None else f"; recorded {refs}")
         ratio = ratios.get((r.scene, r.mode, r.engine, r.order))
         lines.append(
             f"| {r.scene} | {r.device} | {r.mode} | {nt} | {r.seconds:.3f} | {_g(r.rate)} | {_g(r.rate_per_core)} | "
@@ -587,7 +659,7 @@ def markdown(rows, machine: dict) -> str:
         lines += ["", "Deepwave rows (live):", "", "| scene | device | mode | seconds | Gcell/s | per core | peak device GB | status |",
                   "|---|---|---|---|---|---|---|---|"]  # fmt: skip
         lines += [f"| {r.scene} | {r.device} | {r.mode} | {'' if r.seconds is None else f'{r.seconds:.3f}'} | {_g(r.rate)} | "
-                  f"{_g(r.rate_per_core)} | {_gb(r.peak_device_bytes)} | {r.status} |" for r in live]  # fmt: skip
+                  f"{_g(r.rate_per_core)} | {_gb(r.peak_device_bytes)} | {r.status.replace('|', '/')} |" for r in live]  # fmt: skip
     scopes = sorted({r.memory_scope for r in rows if r.memory_scope})
     lines += [
         "",
@@ -736,7 +808,8 @@ def _check_args(args) -> tuple[list[str], dict]:
 
 
 def cmd_bench(args) -> int:
-    """Run the benchmark suites and write the reports; exit 1 if a measurement failed."""
+    """Run the benchmark suites and write the reports; exit 1 if a measurement of ours failed (a
+    failed reference, Deepwave, is reported in the table as "reference failed: <reason>" only)."""
     from tqdm.auto import tqdm
 
     devices, jobs = _check_args(args)
@@ -757,7 +830,10 @@ def cmd_bench(args) -> int:
                 log.info("running %s on %s (nt %d, order %d, modes %s, repeat %d)", job.scene, job.device, job.nt, job.order,
                          "+".join(job.modes), job.repeat)  # fmt: skip
                 rows += run_job(job) if args.in_process else run_job_in_subprocess(job)
-            failed += [r for r in rows if r.status.startswith("failed")]
+            failed += [r for r in rows if is_our_failure(r)]
+            for r in rows:
+                if r.status.startswith(REFERENCE_FAILED):
+                    log.warning("%s %s on %s: Deepwave %s (reported, not our failure)", r.scene, r.mode, r.device, r.status)
             payload = {"machine": machine, "command": sys.argv[1:], "rows": [asdict(r) for r in rows],
                        "cuda_cpu_ratios": [dict(zip(("scene", "mode", "engine", "order"), k), ratio=v)
                                            for k, v in cuda_cpu_ratios(rows).items()],
@@ -792,6 +868,9 @@ def _worker_main(argv) -> int:
     from adseismic.solve.common import init_warp
 
     init_warp()
-    rows = run_job(job)
-    print(WORKER_MARK + json.dumps([asdict(r) for r in rows]), flush=True)
+
+    def emit(rows):
+        print(WORKER_MARK + json.dumps([asdict(r) for r in rows]), flush=True)
+
+    emit(run_job(job, emit))  # ours first, then ours + Deepwave's: the parent takes the last line
     return 0

@@ -1,23 +1,25 @@
 """The ``adseismic`` command line.
 
-    adseismic plan CONFIG                      validate a config, print the planner's decisions
+    adseismic plan CONFIG                      check any config, print the plan and its workflow's costs
     adseismic forward CONFIG -o OUTDIR         plan, simulate every shot, write data.h5 + PNGs
-    adseismic fwi CONFIG -o OUTDIR             full-waveform inversion (adseismic/fwi.py)
-    adseismic locate CONFIG -o OUTDIR          locate an event from its traces (adseismic/locate_run.py)
-    adseismic bench [--device cpu cuda:0] -o DIR   speed/memory on the standard scenes (adseismic/bench.py)
+    adseismic fwi CONFIG -o OUTDIR             full-waveform inversion (adseismic.inversion.fwi)
+    adseismic locate CONFIG -o OUTDIR          locate an event from its traces (adseismic.location.run)
+    adseismic bench [--device cpu cuda:0] -o DIR   speed/memory on the standard scenes (adseismic.bench)
 
-Exit codes: 0 success; 2 invalid input (config, model, refused plan: the message says which key
-and how to fix it, no traceback); 3 the simulation blew up (PropagationError; no data.h5 is
-written); 1 anything unexpected (with traceback).
+forward, fwi and locate share -o/--output/--outdir, --dry-run (what ``plan`` runs), --force and -q.
+Exit codes: 0 success; 2 invalid input (config, model, refused plan, output directory: the message says
+which key and how to fix it, no traceback); 3 the simulation blew up (PropagationError; no data.h5 is
+written); 130 interrupted (one line); 1 anything unexpected (with traceback).
 
-Each subcommand is a (register, run) pair in :data:`COMMANDS`; adding one (``fwi``, ``locate``,
-``bench``) means writing its two functions and adding it there.
+Each subcommand is a (register, run) pair in :data:`COMMANDS`; adding one means writing its two
+functions and adding it there.
 """
 from __future__ import annotations
 
 import argparse
 import datetime
 import json
+import math
 import pathlib
 import sys
 import time
@@ -27,7 +29,7 @@ import numpy as np
 from adseismic.config import ConfigError, ForwardConfig, load_config
 from adseismic.data.atomic import write_text_atomic
 from adseismic.data.model import ModelError
-from adseismic.runs import EXIT_INPUT, EXIT_OK, EXIT_UNSTABLE, CommandError, RunLog, log, version
+from adseismic.runs import EXIT_INPUT, EXIT_INTERRUPTED, EXIT_OK, EXIT_UNSTABLE, CommandError, RunLog, format_position, log, version
 
 SNAPSHOT_LIMIT_BYTES = 8 * 2**30  # refuse snapshot settings that would hold more than this
 
@@ -76,54 +78,175 @@ def _config_text(config: ForwardConfig) -> str:
     return yaml.safe_dump(config.raw, sort_keys=False)
 
 
+# --------------------------------------------------------------------------------- shared flags
+
+def _register_run(p: argparse.ArgumentParser, what: str) -> None:
+    """The flags every workflow shares (forward, fwi, locate): CONFIG, -o, --dry-run, --force, -q."""
+    p.add_argument("config", type=pathlib.Path, help=f"YAML {what} config file")
+    p.add_argument("-o", "--output", "--outdir", dest="outdir", type=pathlib.Path,
+                   help="output directory (created if needed); required unless --dry-run")
+    p.add_argument("--dry-run", action="store_true",
+                   help="check the config and inputs, print the plan with its costs, write nothing")
+    p.add_argument("--force", action="store_true",
+                   help="run although the planner's memory or time estimate is above the budget")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar, log only warnings to stderr (the log file is complete)")
+
+
+def _force(config, force: bool):
+    """config (a workflow config) with simulation.force set when --force was given."""
+    if not force:
+        return config
+    import dataclasses
+
+    if hasattr(config, "forward"):
+        return dataclasses.replace(config, forward=_force(config.forward, True))
+    return dataclasses.replace(config, simulation=dataclasses.replace(config.simulation, force=True))
+
+
+def _outdir(args) -> pathlib.Path:
+    """The output directory of a run (not a dry run): refused before any work if it cannot be one."""
+    outdir = args.outdir
+    if outdir is None:
+        raise CommandError("-o/--outdir: missing; give the output directory (or --dry-run to only check and plan)")
+    if outdir.exists() and not outdir.is_dir():
+        raise CommandError(f"-o: {outdir} exists and is not a directory; choose another output directory")
+    return outdir
+
+
+def _check_device(device: str, dry_run: bool) -> None:
+    """Refuse a device this machine lacks, before any work; a dry run (plan) only warns, so that a config for
+    another machine (a GPU) can be planned here."""
+    from adseismic.solve.common import resolve_device
+
+    try:
+        resolve_device(device)
+    except ValueError as e:
+        if not dry_run:
+            raise
+        print(f"WARNING   {e}: the plan below is for that device; running here would be refused")
+
+
+def _make_outdir(outdir: pathlib.Path, args) -> None:
+    """Create the run directory; records in args.created what was there, for _clean_refused."""
+    existed = outdir.is_dir()
+    args.created = (outdir, existed, {p.name for p in outdir.iterdir()} if existed else set())
+    try:
+        outdir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise CommandError(f"-o: cannot create {outdir} ({e.strerror or e}); choose a directory you can write to") from None
+
+
+PREAMBLE = ("config.yaml", "forward.log", "fwi.log", "locate.log", "observed.h5")  # written before a run's work
+
+
+def _clean_refused(args) -> None:
+    """After a refusal (exit 2) raised once the run directory existed: remove the files of PREAMBLE this run created
+    (and the directory, if it created it and it is left empty), so that a refused run leaves what was there before.
+    Work products (journals, data) are never removed."""
+    state = getattr(args, "created", None)
+    if state is None or not state[0].is_dir():
+        return
+    outdir, existed, before = state
+    for name in PREAMBLE:
+        if name not in before and (outdir / name).is_file():
+            (outdir / name).unlink()
+    if not existed and not any(outdir.iterdir()):
+        outdir.rmdir()
+
+
+def _written(outdir: pathlib.Path, since: float) -> list[str]:
+    """Names of the files in outdir (recursively) written since ``since`` (time.time()), sorted."""
+    return sorted(str(p.relative_to(outdir)) for p in outdir.rglob("*") if p.is_file() and p.stat().st_mtime >= since - 1.0)
+
+
+def _wrote_line(outdir: pathlib.Path, since: float, detail: dict | None = None) -> str:
+    names = [f"{n} ({detail[n]})" if detail and n in detail else n for n in _written(outdir, since)]
+    return f"wrote {outdir}/ ({len(names)} files): {', '.join(names)}"
+
+
+def _hms(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.3g} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+#: seconds of a misfit + gradient evaluation per shot, in forward runs of that shot: the forward, its checkpointed
+#: re-run and the adjoint (measured 6.0 on 2 CPU cores for configs/fwi_demo.yaml: 1.65 s an evaluation of 6 shots
+#: planned at 0.046 s a forward shot)
+GRADIENT_COST = 6.0
+
+
 # --------------------------------------------------------------------------------- plan
 
+WORKFLOWS = ("forward", "fwi", "locate")
+
+
+def workflow_of(path: pathlib.Path) -> str:
+    """Which workflow a config is for, from its top-level keys: `inversion` (or `true_model`, `observed`) -> fwi,
+    `traces` -> locate, otherwise forward."""
+    from adseismic.config.common import _read_yaml
+
+    raw, _ = _read_yaml(path)
+    if any(k in raw for k in ("inversion", "true_model", "observed")):
+        return "fwi"
+    return "locate" if "traces" in raw else "forward"
+
+
 def _register_plan(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", type=pathlib.Path, help="YAML config file")
+    p.add_argument("config", type=pathlib.Path, help="YAML config of any workflow (forward, fwi, locate)")
+    p.add_argument("--workflow", choices=WORKFLOWS, help="the workflow to plan (default: read from the config's keys)")
+    p.add_argument("--force", action="store_true", help="plan although the estimate is above the budget")
 
 
 def cmd_plan(args) -> int:
-    config = load_config(args.config)
-    plan = _plan(config)
-    print(f"plan for {args.config} ({config.model.ndim}D, {config.n_shots} shot(s), "
-          f"{len(config.geometry.receivers)} receivers)")
+    """`adseismic plan CONFIG` is `adseismic <workflow> CONFIG --dry-run` for the config's workflow."""
+    wf = args.workflow or workflow_of(args.config)
+    dry = build_parser().parse_args([wf, str(args.config), "--dry-run"] + ["--force"] * args.force)
+    return dry.func(dry)
+
+
+def _print_plan(title: str, plan, extra: list[str] = ()) -> None:
+    print(title)
     print(plan.describe())
     for w in _warnings_text(plan):
         print(f"WARNING   {w}")
-    return EXIT_OK
+    for line in extra:
+        print(line)
 
 
 # --------------------------------------------------------------------------------- forward
 
 def _register_forward(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", type=pathlib.Path, help="YAML config file")
-    p.add_argument("-o", "--output", "--outdir", dest="outdir", type=pathlib.Path, required=True,
-                   help="output directory (created if needed; existing outputs are replaced)")
+    _register_run(p, "forward")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
                    help="show a progress bar over time steps (default: on)")
-    p.add_argument("-q", "--quiet", action="store_true",
-                   help="no progress bar, log only warnings to stderr (the log file is complete)")
 
 
 def cmd_forward(args) -> int:
     from adseismic import plotting
     from adseismic.data import store as io
     from adseismic.scene import build_scene, run_forward
-    from adseismic.solve.common import PropagationError, resolve_device
+    from adseismic.solve.common import PropagationError
 
     # --- everything that can be refused is checked before OUTDIR is touched
-    config = load_config(args.config)
+    config = _force(load_config(args.config), args.force)
     plan = _plan(config)
     every = snapshot_every(config, plan)
-    resolve_device(plan.device)  # ValueError if the device is not available here
-    outdir = args.outdir
-    if outdir.exists() and not outdir.is_dir():
-        raise CommandError(f"-o: {outdir} exists and is not a directory; choose another output "
-                           f"directory")
+    _check_device(plan.device, args.dry_run)
+    if args.dry_run:
+        _print_plan(f"forward plan for {args.config} ({config.model.ndim}D, {config.n_shots} shot(s), "
+                    f"{len(config.geometry.receivers)} receivers)", plan,
+                    [f"total     ~{_hms(plan.seconds_per_shot * config.n_shots)} for {config.n_shots} shot(s) on {plan.device} (estimate)"])
+        return EXIT_OK
+    outdir = _outdir(args)
     scene = build_scene(config, plan)
     progress = args.progress and not args.quiet
 
-    outdir.mkdir(parents=True, exist_ok=True)
+    since = time.time()
+    _make_outdir(outdir, args)
     with RunLog(outdir / "forward.log", args.quiet):
         log.info("adseismic %s forward %s -> %s", version(), args.config, outdir)
         log.info("plan:\n%s", plan.describe())
@@ -135,7 +258,7 @@ def cmd_forward(args) -> int:
         stale = [p for p in stale if p.exists()]
         if stale:
             log.info("replacing the outputs of an earlier run in %s: %s", outdir,
-                        ", ".join(p.name for p in stale))
+                     ", ".join(p.name for p in stale))
             for p in stale:
                 p.unlink()
         text = _config_text(config)
@@ -197,33 +320,52 @@ def cmd_forward(args) -> int:
                 outdir / "snapshots_shot0.png", result.snapshots[:, 0], result.snapshot_times,
                 plan.dx, plan.origin, src_world[:1], title="shot 0 wavefield u"))
         log.info("wrote %d figures", len(pngs))
+        wrote = _wrote_line(outdir, since, {"data.h5": f"{n_shots} shots x {len(rec_world)} receivers x {plan.nt} samples"})
+        log.info("%s", wrote)
 
     if not args.quiet:
         print(plan.describe())
-    print(f"wrote {outdir}/: data.h5 ({n_shots} shots x {len(rec_world)} receivers x {plan.nt} "
-          f"samples), config.yaml, forward.log, {', '.join(p.name for p in pngs)}")
+    print(wrote)
     return EXIT_OK
 
 
 # --------------------------------------------------------------------------------- fwi
 
 def _register_fwi(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", type=pathlib.Path, help="YAML inversion config (forward sections + inversion)")
-    p.add_argument("-o", "--outdir", type=pathlib.Path, required=True, help="run directory")
+    _register_run(p, "inversion (forward sections + inversion)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in OUTDIR from its journals (same config required)")
-    p.add_argument("-q", "--quiet", action="store_true", help="log only warnings to stderr")
+
+
+def _fwi_costs(config, prepared) -> list[str]:
+    inv, plan = config.inversion, prepared.plan
+    n_bands, shots = len(inv.bands), plan.n_shots
+    its = inv.iterations if isinstance(inv.iterations, list) else [inv.iterations] * n_bands
+    # an L-BFGS iteration takes ~1.2 evaluations (line search) plus one at the start of a band
+    evals = sum(inv.evaluations or int(math.ceil(1.2 * i)) + 1 for i in its)
+    per_eval = GRADIENT_COST * plan.seconds_per_shot * shots
+    observed = "simulated from true_model first (one forward per shot)" if prepared.observed is None else "read from files"
+    return [f"fwi       {n_bands} band(s) x <= {max(its)} iterations: <= {evals} evaluations x {shots} shot(s) "
+            f"(misfit + gradient), observed data {observed}",
+            f"          wall time up to ~{_hms(evals * per_eval)} on {plan.device} ({_hms(per_eval)} an evaluation; estimate)"]
 
 
 def cmd_fwi(args) -> int:
     from adseismic.config import load_fwi_config
     from adseismic.inversion.fwi import prepare_fwi, run_fwi
-    from adseismic.solve.common import PropagationError, resolve_device
+    from adseismic.solve.common import PropagationError
 
-    config = load_fwi_config(args.config)
-    resolve_device(config.forward.simulation.device)
-    prepared = prepare_fwi(config)  # plans and reads/checks observed files before OUTDIR is touched
-    outdir = args.outdir
+    config = _force(load_fwi_config(args.config), args.force)
+    _check_device(config.forward.simulation.device, args.dry_run)
+    with RunLog(None, args.quiet or args.dry_run) as early:
+        log.info("adseismic %s fwi %s -> %s%s", version(), args.config, args.outdir, " (resume)" if args.resume else "")
+        prepared = prepare_fwi(config)  # plans and reads/checks observed files before OUTDIR is touched
+    if args.dry_run:
+        c = config.forward
+        _print_plan(f"fwi plan for {args.config} ({c.model.ndim}D, {c.n_shots} shot(s), {len(c.geometry.receivers)} receivers)",
+                    prepared.plan, _fwi_costs(config, prepared))
+        return EXIT_OK
+    outdir = _outdir(args)
     text = _config_text(config.forward)
     started = outdir.is_dir() and any(outdir.glob("journal_band*.h5"))
     if args.resume:
@@ -235,24 +377,29 @@ def cmd_fwi(args) -> int:
                                "config (start a new run directory for a changed one)")
     elif started:
         raise CommandError(f"-o: {outdir} already holds a run; add --resume to continue it or choose another directory")
-    outdir.mkdir(parents=True, exist_ok=True)
-    with RunLog(outdir / "fwi.log", args.quiet):
-        log.info("adseismic %s fwi %s -> %s%s", version(), args.config, outdir, " (resume)" if args.resume else "")
+    since = time.time()
+    _make_outdir(outdir, args)
+    with RunLog(outdir / "fwi.log", args.quiet, earlier=early.records):
         write_text_atomic(outdir / "config.yaml", text)
         try:
             res = run_fwi(config, outdir, progress=not args.quiet, prepared=prepared)
         except PropagationError as e:
             raise CommandError(f"simulation failed: {e}", EXIT_UNSTABLE) from None
-    for b in res.bands:
-        print(f"band {b['band']} Hz: {b['iterations']} iterations, {b['evaluations']} evaluations, "
+        except KeyboardInterrupt:
+            log.error("interrupted; continue with: adseismic fwi %s -o %s --resume", args.config, outdir)
+            raise
+        wrote = _wrote_line(outdir, since)
+        log.info("%s (%.0f s)", wrote, res.seconds)
+    for i, b in enumerate(res.bands):
+        print(f"band {i} ({b['band']}): {b['iterations']} iterations, {b['evaluations']} evaluations, "
               f"misfit {b['misfit']:.4g} of its start ({b['stop_reason']})")
     if res.errors:
         e = res.errors
+        change = 1 - e["final_anomaly"] / e["start_anomaly"]
         print(f"relative model error in the anomaly: {e['start_anomaly']:.4f} -> {e['final_anomaly']:.4f} "
-              f"({100 * (1 - e['final_anomaly'] / e['start_anomaly']):.0f}% lower); below the water / masks: "
+              f"({100 * abs(change):.0f}% {'lower' if change >= 0 else 'higher'}); below the water / masks: "
               f"{e['start_below_water']:.4f} -> {e['final_below_water']:.4f}")
-    print(f"wrote {outdir}/: model.h5, history.h5, summary.json, model.png, gradient.png, residual.png, misfit.png, fwi.log "
-          f"({res.seconds:.0f} s)")
+    print(f"{wrote} ({res.seconds:.0f} s)")
     return EXIT_OK
 
 
@@ -273,45 +420,64 @@ def cmd_bench(args) -> int:
 # --------------------------------------------------------------------------------- locate
 
 def _register_locate(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", type=pathlib.Path, help="YAML location config (model, traces, preprocess, source, search)")
-    p.add_argument("-o", "--outdir", type=pathlib.Path, required=True, help="run directory")
+    _register_run(p, "location (model, traces, preprocess, source, search)")
     p.add_argument("--compare-optimizers", action="store_true",
                    help="also run the optimiser study (GD, Adam, L-BFGS-B, Gauss-Newton; scaled and raw units) on this event")
     p.add_argument("--study-evaluations", type=int, default=30, metavar="N",
                    help="evaluations per optimiser in --compare-optimizers (default 30)")
     p.add_argument("--misfit-map", type=int, default=11, metavar="N",
                    help="positions per axis of the misfit map around the event (one batched simulation; default 11)")
-    p.add_argument("-q", "--quiet", action="store_true", help="log only warnings to stderr")
+
+
+def _locate_costs(config, prep, args) -> list[str]:
+    plan, search = prep.plan, config.search
+    starts = len(prep.starts)
+    evals = starts * int(math.ceil(1.2 * search["iterations"]))
+    per_eval = GRADIENT_COST * plan.seconds_per_shot  # one event
+    n_map = args.misfit_map ** plan.ndim
+    lines = [f"locate    1 event, {len(prep.stations)} stations, {starts} start(s) x <= {search['iterations']} iterations: "
+             f"<= {evals} evaluations (misfit + gradient)",
+             f"          misfit map {args.misfit_map}^{plan.ndim} = {n_map} positions (forward only, batched)",
+             f"          wall time up to ~{_hms(evals * per_eval + n_map * plan.seconds_per_shot)} on {plan.device} "
+             f"({_hms(per_eval)} an evaluation; estimate)"]
+    if args.compare_optimizers:
+        lines.append(f"          + optimiser study: 8 runs x <= {args.study_evaluations} evaluations "
+                     f"(~{_hms(8 * args.study_evaluations * per_eval)})")
+    return lines
 
 
 def cmd_locate(args) -> int:
     from adseismic.config import load_locate_config
     from adseismic.location.locate import compare_optimizers, optimizer_table
     from adseismic.location.run import event_misfit_map, locate_event, prepare_locate, simulation_options, write_outputs
-    from adseismic.solve.common import PropagationError, resolve_device
+    from adseismic.solve.common import PropagationError
 
     if args.study_evaluations < 1:
         raise CommandError(f"--study-evaluations: {args.study_evaluations} < 1; give at least 1")
     if args.misfit_map < 3:
         raise CommandError(f"--misfit-map: {args.misfit_map} < 3; give at least 3 positions per axis")
-    config = load_locate_config(args.config)
-    resolve_device(config.simulation.device)
-    outdir = args.outdir
-    if (outdir / "summary.json").exists():
-        raise CommandError(f"-o: {outdir} already holds a location (summary.json); choose another directory")
-    with RunLog(None, args.quiet):
+    config = _force(load_locate_config(args.config), args.force)
+    _check_device(config.simulation.device, args.dry_run)
+    if not args.dry_run:
+        outdir = _outdir(args)
+        if (outdir / "summary.json").exists():
+            raise CommandError(f"-o: {outdir} already holds a location (summary.json); choose another directory")
+    with RunLog(None, args.quiet or args.dry_run) as early:
+        log.info("adseismic %s locate %s -> %s", version(), args.config, args.outdir)
         prep = prepare_locate(config)  # reads and checks every input before OUTDIR is touched
-    outdir.mkdir(parents=True, exist_ok=True)
-    with RunLog(outdir / "locate.log", args.quiet):
-        log.info("adseismic %s locate %s -> %s", version(), args.config, outdir)
-        for line in prep.plan.describe().splitlines():
-            log.info("plan: %s", line)
+    if args.dry_run:
+        _print_plan(f"locate plan for {args.config} ({prep.model.ndim}D, 1 event, {len(prep.stations)} stations)",
+                    prep.plan, _locate_costs(config, prep, args))
+        return EXIT_OK
+    since = time.time()
+    _make_outdir(outdir, args)
+    with RunLog(outdir / "locate.log", args.quiet, earlier=early.records):
         write_text_atomic(outdir / "config.yaml", _config_text(config))
         t0 = time.perf_counter()
 
         def progress(iteration, evaluations, position, origin_time):
-            log.info("iteration %d (%d evaluations): position %s m, origin time %.5f s", iteration, evaluations,
-                     np.round(position, 2).tolist(), prep.t_shift + origin_time)  # fmt: skip
+            log.info("iteration %d (%d evaluations): %s, origin time %.5f s", iteration, evaluations,
+                     format_position(position), prep.t_shift + origin_time)  # fmt: skip
 
         try:
             res = locate_event(prep, callback=progress)
@@ -325,18 +491,22 @@ def cmd_locate(args) -> int:
                                            progress=lambda r: log.info("study: %s", r), **simulation_options(prep))  # fmt: skip
         except PropagationError as e:
             raise CommandError(f"simulation failed: {e}", EXIT_UNSTABLE) from None
-        paths = write_outputs(outdir, prep, res, mmap, study)
+        write_outputs(outdir, prep, res, mmap, study)
         log.info("located in %.0f s", time.perf_counter() - t0)
+        wrote = _wrote_line(outdir, since)
+        log.info("%s", wrote)
     s = json.loads((outdir / "summary.json").read_text())
-    pos = ", ".join(f"{k} = {v:.2f} +- {s['position_error_m_1sigma'][k]:.2f}" for k, v in s["position_m"].items())
-    print(f"event at {pos} m (1 sigma); origin time {s['origin_time_utc']} +- {s['origin_time_error_s_1sigma']:.4f} s")
+    axes = list(s["position_m"])
+    pos = ", ".join(f"{k} = {v:.1f} +- {s['position_error_m_1sigma'][k]:.1f} m" for k, v in s["position_m"].items())
+    print(f"event at {pos} (1 sigma; axes {', '.join(axes)}); origin time {s['origin_time_utc']} +- "
+          f"{s['origin_time_error_s_1sigma']:.4f} s")
     if "latitude" in s:
         print(f"latitude {s['latitude']:.5f}, longitude {s['longitude']:.5f}, depth {s['depth_m']:.0f} m")
     if "truth_position_error_m" in s:
         print(f"distance to the true position: {s['truth_position_error_m']:.2f} m")
     if study is not None:
         print(optimizer_table(study))
-    print(f"wrote {outdir}/: {', '.join(p.name for p in paths)}, config.yaml, locate.log")
+    print(wrote)
     return EXIT_OK
 
 
@@ -380,8 +550,15 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except CommandError as e:
+        if e.code == EXIT_INPUT:
+            _clean_refused(args)
         print(f"adseismic {args.command}: error: {e}", file=sys.stderr)
         return e.code
     except (ConfigError, ModelError, ValueError) as e:
+        _clean_refused(args)
         print(f"adseismic {args.command}: error: {e}", file=sys.stderr)
         return EXIT_INPUT
+    except KeyboardInterrupt:
+        resume = " (outputs are complete or absent; fwi: rerun with --resume to continue)" if args.command in ("fwi", "forward", "locate") else ""
+        print(f"adseismic {args.command}: interrupted{resume}", file=sys.stderr)
+        return EXIT_INTERRUPTED

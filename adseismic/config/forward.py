@@ -90,6 +90,8 @@ class SimulationConfig:
     pml_reflection: float | None = None
     margin: float | None = None
     domain: str = "auto"
+    memory_budget_gb: float | None = None  # GB (1e9 bytes) the run may use; None: the device's free memory
+    force: bool = False  # run even when the planner's memory estimate exceeds the budget / free memory
 
 
 @dataclass
@@ -121,7 +123,8 @@ class ForwardConfig:
 SECTIONS = ("model", "geometry", "wavelet", "simulation", "output")
 REQUIRED_SECTIONS = ("model", "geometry", "wavelet")
 SIMULATION_KEYS = ("order", "accuracy", "free_surface", "device", "precision", "cfl_safety",
-                   "dx", "dt", "duration", "pml_width", "pml_reflection", "margin", "domain")
+                   "dx", "dt", "duration", "pml_width", "pml_reflection", "margin", "domain",
+                   "memory_budget_gb", "force")
 OUTPUT_KEYS = ("snapshot_interval",)
 GEOMETRY_KEYS = ("sources", "receivers")
 SPREAD_FORMS = ("points", "line", "lines")
@@ -137,6 +140,8 @@ DOMAINS = ("auto", "model")
 DEVICE_RE = re.compile(r"^cpu$|^cuda(:\d+)?$")
 MIN_PML_WIDTH = 4  # half-width of the sinc source/receiver operator (kernels.acoustic.HICKS_RADIUS)
 AXES = {2: ("z", "x"), 3: ("z", "y", "x")}  # model axis order by dimension
+MAX_DELAY_PERIODS = 100.0  # a wavelet delayed by more is a typo (and its sampled band would not fit in memory)
+MAX_LINE_POINTS = 1_000_000  # points on one geometry line: more is a typo (and would not fit in memory)
 
 # ------------------------------------------------------------------------------ sections
 
@@ -201,6 +206,10 @@ def _parse_simulation(raw, key="simulation") -> SimulationConfig:
         out["margin"] = m
     if s.get("domain") is not None:
         out["domain"] = _choice(s["domain"], f"{key}.domain", DOMAINS)
+    if s.get("memory_budget_gb") is not None:
+        out["memory_budget_gb"] = _positive(s["memory_budget_gb"], f"{key}.memory_budget_gb", "GB")
+    if s.get("force") is not None:
+        out["force"] = _boolean(s["force"], f"{key}.force")
     return SimulationConfig(**{**d.__dict__, **out})
 
 
@@ -220,7 +229,7 @@ def _parse_output(raw, key="output") -> OutputConfig:
 def _parse_wavelet(raw, base_dir: Path, key="wavelet") -> WaveletConfig:
     w = _mapping(raw, key, "kind and its parameters")
     kind = w.get("kind")
-    if kind not in WAVELET_KEYS:
+    if not isinstance(kind, str) or kind not in WAVELET_KEYS:
         raise ConfigError(f"{key}.kind: {kind!r} is not one of {', '.join(WAVELET_KEYS)}; "
                           f"set the source time function")
     _check_keys(w, key, WAVELET_KEYS[kind])
@@ -234,6 +243,11 @@ def _parse_wavelet(raw, base_dir: Path, key="wavelet") -> WaveletConfig:
             if delay < 0:
                 raise ConfigError(f"{key}.delay: {w['delay']!r} is negative; give the time of the "
                                   f"wavelet's centre in seconds (>= 0) or leave it out")
+            most = MAX_DELAY_PERIODS / params["peak_frequency"]
+            if delay > most:
+                raise ConfigError(f"{key}.delay: {delay:g} s is more than {MAX_DELAY_PERIODS:g} periods of the "
+                                  f"{params['peak_frequency']:g} Hz wavelet ({most:g} s); give the time of its centre, "
+                                  f"a few periods (default {1.5 / params['peak_frequency']:g} s), or leave it out")
             params["delay"] = delay
         return WaveletConfig(kind, params)
     # kind: array
@@ -290,6 +304,9 @@ def _parse_line(raw, key: str, ndim: int) -> np.ndarray:
     if count < 1:
         raise ConfigError(f"{key}.count: {line['count']!r} is not >= 1; give the number of "
                           f"evenly spaced points from start to end")
+    if count > MAX_LINE_POINTS:
+        raise ConfigError(f"{key}.count: {line['count']!r} points is more than {MAX_LINE_POINTS:,} on one line; "
+                          f"give the number of sources or receivers on the line (a typo? e.g. 1.4e15 for 140)")
     return np.linspace(start, end, count).reshape(count, ndim)
 
 

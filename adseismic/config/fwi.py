@@ -6,12 +6,15 @@ The accepted misfit names are :data:`MISFIT_NAMES` (kept equal to
 """
 from __future__ import annotations
 
+import math
 import pathlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from adseismic.config.common import ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number, _positive, _read_yaml
-from adseismic.config.forward import ForwardConfig, parse_config
+import numpy as np
+
+from adseismic.config.common import ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number, _positive, _read_yaml, _short
+from adseismic.config.forward import AXES, ForwardConfig, parse_config
 from adseismic.data.models import Model, ModelError, load_model
 
 __all__ = ["InversionConfig", "FWIConfig", "parse_fwi_config", "load_fwi_config", "MISFIT_NAMES", "OPTIMIZERS",
@@ -24,6 +27,9 @@ FWI_SECTIONS = ("true_model", "observed", "inversion")
 OPTIMIZERS = ("lbfgs", "gd", "adam")
 PRECONDITIONERS = ("none", "depth", "pseudo_hessian")
 MISFIT_NAMES = ("l2", "correlation", "traveltime", "envelope")  # adseismic.solve.misfits.MISFITS
+OBSERVED_KEYS = ("kind", "path", "paths", "coordinate_scale", "inventory", "reference", "component", "shot_times",
+                 "depth_convention")
+DEPTH_CONVENTIONS = ("auto", "elevation", "depth")  # adseismic.data.read.DEPTH_CONVENTIONS
 
 
 
@@ -85,6 +91,21 @@ def _parse_band(b, key: str) -> tuple:
     raise ConfigError(f"{key}: {b!r} is not a band; give fmax in Hz (e.g. 5), {{fmin: 2, fmax: 5}} or null (full band)")
 
 
+def _check_band_order(bands, key: str) -> None:
+    """Refuse bands whose upper edges fall (null = the full band, the highest): multiscale inversion goes from
+    low to high frequencies, and high first invites cycle skipping that the later low bands cannot undo."""
+    def top(b):
+        return math.inf if b[1] is None else b[1]
+
+    for i in range(1, len(bands)):
+        if top(bands[i]) < top(bands[i - 1]):
+            def show(b):
+                return "null (full band)" if b[1] is None else f"{b[1]:g} Hz"
+            raise ConfigError(f"{key}: band {i} (up to {show(bands[i])}) is lower than band {i - 1} (up to {show(bands[i - 1])}); "
+                              f"bands run low to high (each starts from the previous one's model): reorder them, e.g. "
+                              f"{sorted((b[1] for b in bands if b[1] is not None))}{' then null' if any(b[1] is None for b in bands) else ''}")
+
+
 def _parse_inversion(raw, key="inversion") -> InversionConfig:
     sec = _mapping(raw or {}, key, "inversion settings")
     _check_keys(sec, key, INVERSION_KEYS)
@@ -93,6 +114,7 @@ def _parse_inversion(raw, key="inversion") -> InversionConfig:
         if not isinstance(sec["bands"], list) or not sec["bands"]:
             raise ConfigError(f"{key}.bands: {sec['bands']!r} is not a non-empty list; e.g. [3, 5, 8] (Hz, low to high)")
         out.bands = [_parse_band(b, f"{key}.bands[{i}]") for i, b in enumerate(sec["bands"])]
+        _check_band_order(out.bands, f"{key}.bands")
     for name, choices in (("misfit", MISFIT_NAMES), ("optimizer", OPTIMIZERS), ("preconditioning", PRECONDITIONERS)):
         if sec.get(name) is not None:
             setattr(out, name, _choice(sec[name], f"{key}.{name}", choices))
@@ -163,26 +185,60 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
             raise ConfigError(f"true_{e}" if str(e).startswith("model") else f"true_model.{e}") from e
         if true_model.ndim != forward.model.ndim:
             raise ConfigError(f"true_model: {true_model.ndim}D but the start model is {forward.model.ndim}D")
+        for name in ("sources", "receivers"):
+            pts = getattr(forward.geometry, name)
+            inside = true_model.contains(pts)
+            if not inside.all():
+                i = int(np.argmin(inside))
+                where = ", ".join(f"{a}={v:g}" for a, v in zip(AXES[true_model.ndim], pts[i]))
+                box = ", ".join(f"{a} [{lo:g}, {hi:g}]" for a, (lo, hi) in zip(AXES[true_model.ndim], true_model.extent))
+                raise ConfigError(f"true_model: it covers {box} m, smaller than the geometry: geometry.{name} point {i} "
+                                  f"({where}) m and {int((~inside).sum()) - 1} more of {len(pts)} lie outside it; give a "
+                                  f"true model that covers every source and receiver (like the start model: "
+                                  f"{', '.join(f'{a} [{lo:g}, {hi:g}]' for a, (lo, hi) in zip(AXES[forward.ndim], forward.model.extent))} m)")
     observed = None
     if has_obs:
         observed = dict(_mapping(raw["observed"], "observed", "observed-data settings"))
-        _check_keys(observed, "observed", ("kind", "path", "paths", "coordinate_scale", "inventory", "reference", "component", "shot_times"))
+        _check_keys(observed, "observed", OBSERVED_KEYS)
         observed["kind"] = _choice(observed.get("kind"), "observed.kind", ("hdf5", "segy", "su", "mseed", "sac"))
         if observed["kind"] in ("mseed", "sac"):  # station traces: one file (or glob) per shot, in geometry order
             paths = observed.get("paths")
-            if not isinstance(paths, list) or len(paths) != forward.n_shots:
-                raise ConfigError(f"observed.paths: {paths!r} is not a list of {forward.n_shots} files (one per shot of geometry.sources, in order)")
+            if not isinstance(paths, list) or len(paths) != forward.n_shots or not all(isinstance(p, str) and p for p in paths):
+                raise ConfigError(f"observed.paths: {_short(paths)} is not a list of {forward.n_shots} file paths (one per shot "
+                                  f"of geometry.sources, in order)")
             observed["paths"] = [str((base_dir / str(p)).resolve()) for p in paths]
             if observed.get("inventory") is not None:
+                if not isinstance(observed["inventory"], str):
+                    raise ConfigError(f"observed.inventory: {_short(observed['inventory'])} is not a file path; give the StationXML file")
                 observed["inventory"] = str((base_dir / str(observed["inventory"])).resolve())
-            if observed.get("shot_times") is not None and len(observed["shot_times"]) != forward.n_shots:
-                raise ConfigError(f"observed.shot_times: {len(observed['shot_times'])} times for {forward.n_shots} shots")
+            times = observed.get("shot_times")
+            if times is not None:
+                if not isinstance(times, list) or not all(isinstance(t, str) for t in times):
+                    raise ConfigError(f"observed.shot_times: {_short(times)} is not a list of UTC times (text, e.g. "
+                                      f"'2024-01-01T00:00:00'), one per shot")
+                if len(times) != forward.n_shots:
+                    raise ConfigError(f"observed.shot_times: {len(times)} times for {forward.n_shots} shots; give one per shot")
+            if observed.get("reference") is not None and not isinstance(observed["reference"], (list, dict)):
+                raise ConfigError(f"observed.reference: {_short(observed['reference'])} is not [latitude, longitude] (degrees) "
+                                  f"or {{latitude, longitude, datum, azimuth}}")
+            if observed.get("component") is not None and not isinstance(observed["component"], str):
+                raise ConfigError(f"observed.component: {_short(observed['component'])} is not a component letter, e.g. Z")
         else:
-            if observed.get("path") is None:
-                raise ConfigError("observed.path: missing; give the data file (relative to the config)")
+            if observed.get("path") is None or not isinstance(observed["path"], str):
+                raise ConfigError(f"observed.path: {_short(observed.get('path'))}: missing or not a path; give the data file "
+                                  f"(relative to the config)")
             observed["path"] = (base_dir / str(observed["path"])).resolve()
-            if not observed["path"].exists():
+            if not observed["path"].is_file():
                 raise ConfigError(f"observed.path: {str(observed['path'])!r} does not exist")
+        if observed.get("coordinate_scale") is not None:
+            observed["coordinate_scale"] = _positive(observed["coordinate_scale"], "observed.coordinate_scale", "m per header unit")
+        if observed.get("depth_convention") is not None:
+            if observed["kind"] not in ("segy", "su"):
+                raise ConfigError(f"observed.depth_convention: only for kind segy or su (trace headers), not {observed['kind']}; "
+                                  f"drop it")
+            observed["depth_convention"] = _choice(observed["depth_convention"], "observed.depth_convention", DEPTH_CONVENTIONS)
+        elif observed["kind"] in ("segy", "su"):
+            observed["depth_convention"] = "auto"
     return FWIConfig(forward, inversion, true_model, observed)
 
 

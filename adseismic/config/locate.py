@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adseismic.config.common import ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number, _positive, _read_yaml
+from adseismic.config.common import ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number, _positive, _read_yaml, _short
 from adseismic.config.forward import AXES, SimulationConfig, _check_inside, _load_model, _parse_simulation, _point
 from adseismic.data.models import Model
 
@@ -98,6 +98,31 @@ def _parse_location_bounds(raw, key: str, model: Model):
     return out
 
 
+def _check_trace_options(traces: dict, ndim: int) -> None:
+    """Types of traces.reference, local_coordinates, component and fill_gaps (their values are checked when the
+    traces are read)."""
+    ref = traces["reference"]
+    if ref is not None and not isinstance(ref, (list, dict)):
+        raise ConfigError(f"traces.reference: {_short(ref)} is not [latitude, longitude(, datum, azimuth)] or "
+                          f"{{latitude, longitude, datum, azimuth}} (degrees, m, degrees)")
+    local = traces["local_coordinates"]
+    if local is not None:
+        if not isinstance(local, dict):
+            raise ConfigError(f"traces.local_coordinates: {_short(local)} is not a mapping of station (NET.STA or "
+                              f"NET.STA.LOC.CHA) to [{', '.join(AXES[ndim])}] in metres")
+        for k, v in local.items():
+            pts = list(v.values()) if isinstance(v, dict) else v
+            if not isinstance(k, str) or not isinstance(pts, list) or len(pts) != ndim:
+                raise ConfigError(f"traces.local_coordinates.{k}: {_short(v)} is not [{', '.join(AXES[ndim])}] in metres")
+            for i, x in enumerate(pts):
+                _number(x, f"traces.local_coordinates.{k}[{i}]", "m")
+    if traces["component"] is not None and not isinstance(traces["component"], str):
+        raise ConfigError(f"traces.component: {_short(traces['component'])} is not a component letter, e.g. Z")
+    fill = traces["fill_gaps"]
+    if fill is not None and fill != "interpolate":
+        traces["fill_gaps"] = _number(fill, "traces.fill_gaps")
+
+
 def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None) -> LocateConfig:
     """Validate a location config (sections model, traces, preprocess, source, search, simulation,
     truth); only model and traces are required. Raises ConfigError naming the key."""
@@ -129,6 +154,7 @@ def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Pat
         traces["inventory"] = str(inv)
     if t.get("align") is not None:
         traces["align"] = _boolean(t["align"], "traces.align")
+    _check_trace_options(traces, model.ndim)
 
     p = _mapping(raw.get("preprocess") or {}, "preprocess", "detrend, taper, band, noise_window, window")
     _check_keys(p, "preprocess", PREPROCESS_KEYS)

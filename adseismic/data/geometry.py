@@ -43,7 +43,8 @@ import numpy as np
 
 from adseismic.data.traces import TraceError
 
-__all__ = ["AXES", "Reference", "as_reference", "project", "unproject", "check_samples", "check_inside"]
+__all__ = ["AXES", "Reference", "as_reference", "project", "unproject", "offline_distance", "check_samples", "check_inside",
+           "check_offline"]
 
 log = logging.getLogger(__name__)
 
@@ -209,6 +210,48 @@ def project(lat, lon, elevation, reference, *, ndim: int = 3) -> np.ndarray:
         log.info("project (2D, line azimuth %g deg): largest off-line distance %.1f m dropped",
                  ref.azimuth, float(np.max(np.abs(off))))
     return np.stack([z, x], axis=-1)
+
+
+def offline_distance(lat, lon, reference) -> np.ndarray:
+    """Distance (m) of geographic points from the 2D line through ``reference`` with azimuth
+    ``reference.azimuth`` (in the azimuthal equidistant frame of :func:`project`): what the 2D projection
+    drops."""
+    ref = as_reference(reference)
+    s, alpha = _vincenty_inverse(ref.latitude, ref.longitude, np.asarray(lat, float), np.asarray(lon, float))
+    east, north = s * np.sin(alpha), s * np.cos(alpha)
+    az = math.radians(ref.azimuth)
+    return np.abs(-east * math.cos(az) + north * math.sin(az))
+
+
+OFFLINE_REFUSE = 0.5  # fraction of the 2D model's length: stations farther off its line are refused
+OFFLINE_WARN = 0.05  # fraction of the length above which an off-line distance gets a warning
+
+
+def check_offline(offline, names, model, key: str = "traces.reference") -> None:
+    """2D: refuse (TraceError naming the stations and distances) stations farther off the model's line than
+    OFFLINE_REFUSE x the model's x length, which a 2D model cannot place (their distances to an event would be
+    wrong by about the off-line distance); warn (log) above OFFLINE_WARN x the length. ``offline`` (n,) m or None."""
+    if offline is None or model.ndim != 2:
+        return
+    off = np.asarray(offline, float)
+    lo, hi = model.extent[-1]
+    length = max(hi - lo, min(model.spacing))
+    far = np.flatnonzero(off > OFFLINE_REFUSE * length)
+    if far.size:
+        order = far[np.argsort(-off[far])]
+        listed = ", ".join(f"{names[i]} ({off[i] / 1e3:,.3f} km)" for i in order[:6])
+        more = f" and {far.size - 6} more" if far.size > 6 else ""
+        raise TraceError(f"{key}: {far.size} of {off.size} stations lie far off the 2D model's line: {listed}{more}, more "
+                         f"than {OFFLINE_REFUSE:g} x the model's {length:g} m length; a 2D model cannot place them (the "
+                         f"distance dropped would be ignored): set the line's azimuth ({key}: {{latitude, longitude, "
+                         f"azimuth}}) along the stations, check the station coordinates and the reference, use a 3D "
+                         f"model, or drop those stations")
+    warn = np.flatnonzero(off > OFFLINE_WARN * length)
+    if warn.size:
+        i = int(warn[np.argmax(off[warn])])
+        log.warning("%d of %d stations lie more than %.3g m (%g x the model's length) off the 2D line, up to %.4g m (%s); "
+                    "their distances to the event are taken along the line only", warn.size, off.size,
+                    OFFLINE_WARN * length, OFFLINE_WARN, off[i], names[i])
 
 
 def unproject(points, reference):

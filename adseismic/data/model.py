@@ -27,12 +27,17 @@ class ModelError(ValueError):
 
 def per_axis(value, ndim: int, key: str) -> tuple[float, ...]:
     """Expand a scalar or length-``ndim`` sequence to a tuple of ``ndim`` finite floats."""
+    def is_bool(v):
+        return isinstance(v, (bool, np.bool_)) or (isinstance(v, (list, tuple)) and any(map(is_bool, v)))
+
     try:
-        arr = None if isinstance(value, (str, bytes)) else np.atleast_1d(np.asarray(value, float))
-    except (TypeError, ValueError):
+        arr = None if isinstance(value, (str, bytes)) or is_bool(value) else np.atleast_1d(np.asarray(value, float))
+    except (TypeError, ValueError, OverflowError):
         arr = None
     if arr is None or arr.ndim != 1 or arr.size not in (1, ndim) or not np.all(np.isfinite(arr)):
-        raise ModelError(f"{key}: {value!r} is not a number or a list of {ndim} numbers "
+        text = repr(value) if len(repr(value)) <= 80 else repr(value)[:77] + "..."
+        hint = " (true/false are not numbers)" if is_bool(value) else ""
+        raise ModelError(f"{key}: {text} is not a number or a list of {ndim} numbers{hint} "
                          f"in axis order {AXES[ndim]}; give one value per axis (metres)")
     return tuple(float(v) for v in np.broadcast_to(arr, (ndim,)))
 

@@ -58,7 +58,7 @@ def load_model(spec: dict, base_dir: pathlib.Path | None = None) -> Model:
         allowed = _COMMON_KEYS | {"shape", "spacing"} | _GENERATOR_KEYS[kind]
     else:
         allowed = _COMMON_KEYS | {"path", "units", "axes", "spacing"} | _FILE_KEYS[kind]
-    unknown = sorted(set(spec) - allowed)
+    unknown = sorted(set(spec) - allowed, key=str)
     if unknown:
         raise ModelError(f"model.{unknown[0]}: {spec[unknown[0]]!r} is not a key of a {kind!r} "
                          f"model; use only {', '.join(sorted(allowed))}")
@@ -82,7 +82,9 @@ def _crop(model: Model, crop) -> Model:
     for a, name in enumerate(names):
         lo, hi = model.extent[a]
         rng = crop.get(name, [lo, hi])
-        if not (isinstance(rng, list) and len(rng) == 2 and rng[0] < rng[1]):
+        if not (isinstance(rng, list) and len(rng) == 2
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in rng)
+                and rng[0] < rng[1]):
             raise ModelError(f"model.crop.{name}: {rng!r} is not [min, max] with min < max (metres)")
         i0 = int(np.ceil((rng[0] - model.origin[a]) / model.spacing[a] - 1e-9))
         i1 = int(np.floor((rng[1] - model.origin[a]) / model.spacing[a] + 1e-9))
@@ -99,11 +101,15 @@ def _smooth(model: Model, sigma) -> Model:
     from scipy.ndimage import gaussian_filter
 
     try:
-        sigma = float(sigma)
-    except (TypeError, ValueError):
+        sigma = -1.0 if isinstance(sigma, bool) else float(sigma)
+    except (TypeError, ValueError, OverflowError):
         sigma = -1.0
     if not (math.isfinite(sigma) and sigma >= 0):
         raise ModelError(f"model.smoothing: {sigma!r} is not a length >= 0 in metres (Gaussian standard deviation)")
+    size = max(n * h for n, h in zip(model.shape, model.spacing))
+    if sigma > size:
+        raise ModelError(f"model.smoothing: {sigma:g} m is larger than the model ({size:g} m across); give a "
+                         f"Gaussian standard deviation below it (the result would be constant)")
     slow = gaussian_filter(1.0 / model.values, [sigma / h for h in model.spacing], mode="nearest")
     return replace(model, values=1.0 / slow)
 
@@ -114,9 +120,71 @@ def _require(spec: dict, key: str, what: str):
     return spec[key]
 
 
+def _short(value, limit: int = 80) -> str:
+    r = repr(value)
+    return r if len(r) <= limit else r[: limit - 3] + "..."
+
+
+def _real(value, key: str, what: str) -> float:
+    """A finite real number (not a bool, not text)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        hint = (" (YAML reads 1.5e3 as text: write 1500.0 or 1.5e+3)" if isinstance(value, str)
+                else " (true/false are not numbers)" if isinstance(value, (bool, np.bool_)) else "")
+        raise ModelError(f"{key}: {_short(value)} is not a number{hint}; give {what}")
+    try:
+        x = float(value)
+    except OverflowError:
+        x = math.inf
+    if not math.isfinite(x):
+        raise ModelError(f"{key}: {_short(value)} is not a finite number; give {what}")
+    return x
+
+
+def check_shape(shape, key: str = "model.shape", itemsize: int = 8) -> tuple:
+    """[nz, nx] or [nz, ny, nx] positive integers (not bools) whose float64 array fits in memory."""
+    ok = (isinstance(shape, (list, tuple)) and len(shape) in (2, 3)
+          and all(isinstance(n, (int, np.integer)) and not isinstance(n, (bool, np.bool_)) and n > 0 for n in shape))
+    if not ok:
+        raise ModelError(f"{key}: {_short(shape)} is not [nz, nx] or [nz, ny, nx] positive integers; give the number "
+                         f"of grid nodes per axis")
+    shape = tuple(int(n) for n in shape)
+    nbytes = math.prod(shape) * itemsize
+    from adseismic.data.memory import available_bytes
+
+    free = available_bytes("cpu")
+    if nbytes > MAX_MODEL_BYTES or (free is not None and 2 * nbytes > free):
+        raise ModelError(f"{key}: {list(shape)} is {math.prod(shape):,} nodes = {nbytes / 2**30:.3g} GiB as float64, "
+                         f"more than this machine can hold ({'free memory ' + format(free / 2**30, '.3g') + ' GiB, ' if free else ''}"
+                         f"the model needs about twice its size while loading); give fewer nodes (a coarser spacing or a "
+                         f"crop), and check the numbers")
+    return shape
+
+
+MAX_MODEL_BYTES = 2**40  # 1 TiB: above this a node count is a typo, whatever the machine
+
+
 def _generate(kind: str, spec: dict) -> Model:
     params = {k: _require(spec, k, "this value") for k in ("shape", "spacing") + tuple(
         sorted(_GENERATOR_KEYS[kind]))}
+    # check types here: the generators assume numbers and lists of numbers
+    check_shape(params["shape"])
+    ndim = len(params["shape"])
+    for k in ("spacing", "center"):
+        if k in params:
+            per_axis(params[k], ndim, f"model.{k}")
+    if spec.get("origin") is not None:
+        per_axis(spec["origin"], ndim, "model.origin")
+    for k in ("velocity", "background", "perturbation", "radius"):
+        if k in params:
+            _real(params[k], f"model.{k}", "a number (m/s for velocities, m for radius)")
+    for k in ("velocities", "interfaces"):
+        if k in params:
+            v = params[k]
+            if not isinstance(v, (list, tuple)):
+                raise ModelError(f"model.{k}: {_short(v)} is not a list; give "
+                                 f"{'the layer velocities in m/s, top to bottom' if k == 'velocities' else 'the interface depths in m, top to bottom'}")
+            for i, x in enumerate(v):
+                _real(x, f"model.{k}[{i}]", "a number (m/s)" if k == "velocities" else "a depth in m")
     try:
         return getattr(generators, kind)(origin=spec.get("origin"), **params)
     except ModelError as e:  # generator messages start with the parameter (= key) name
@@ -132,7 +200,7 @@ def _load_file(kind: str, spec: dict, base_dir: pathlib.Path) -> Model:
         raise ModelError(f"model.path: {str(raw_path)!r} does not exist (looked for {path}); "
                          f"give an absolute path or one relative to {base_dir}")
     units = spec.get("units", "m/s")
-    if units not in _UNITS:
+    if not isinstance(units, str) or units not in _UNITS:
         raise ModelError(f"model.units: {units!r} is not one of {', '.join(_UNITS)}; "
                          f"set the units the file stores")
     if "spacing" in spec and "spacing_dataset" in spec:
@@ -147,18 +215,22 @@ def _load_file(kind: str, spec: dict, base_dir: pathlib.Path) -> Model:
     if kind == "raw":
         data = _read_raw(spec, path)
     elif kind == "npy":
+        if path.stat().st_size == 0:
+            raise ModelError(f"model.path: {path} is an empty file (0 bytes); save the model with numpy.save")
         try:
             data = np.load(path, allow_pickle=False)
-        except ValueError as e:
-            raise ModelError(f"model.path: {path} is not a readable .npy array ({e}); "
-                             f"save it with numpy.save") from None
+        except (ValueError, OSError, EOFError) as e:
+            raise ModelError(f"model.path: {path} is not a readable .npy array ({type(e).__name__}: {e}); the file "
+                             f"may be truncated or of another format; save it with numpy.save") from None
+        if not isinstance(data, np.ndarray):  # an .npz archive
+            names = ", ".join(getattr(data, "files", [])[:5])
+            raise ModelError(f"model.path: {path} is an .npz archive ({names}), not one .npy array; save the model "
+                             f"alone with numpy.save")
     elif kind == "hdf5":
         data, spacing_stored = _read_hdf5(spec, path)
     else:
         data = _read_segy(path)
-    if data.ndim not in (2, 3):
-        raise ModelError(f"model.path: {path} holds an array of shape {data.shape}; "
-                         f"a velocity model needs 2 or 3 axes")
+    data = _check_stored(data, path)
 
     # --- reorder axes to (z,[y,]x), convert units, check values
     axes = spec.get("axes", "xz" if kind == "segy" else AXES[data.ndim])
@@ -181,16 +253,39 @@ def _load_file(kind: str, spec: dict, base_dir: pathlib.Path) -> Model:
         raise ModelError(f"model.{e}") from None
 
 
+def _check_stored(data, path: pathlib.Path) -> np.ndarray:
+    """The stored array as read: real numbers, 2 or 3 axes, not empty (ModelError naming the file)."""
+    data = np.asarray(data)
+    kind = data.dtype.kind
+    if kind == "c":
+        im = float(np.max(np.abs(data.imag))) if data.size else 0.0
+        raise ModelError(f"model.path: {path} holds complex numbers ({data.dtype}, largest |imaginary part| {im:g}); "
+                         f"a velocity model is real: save numpy.real(v) (or numpy.abs(v)) in m/s")
+    if kind not in "fiu" or data.dtype.names:
+        raise ModelError(f"model.path: {path} holds {data.dtype} values, not numbers; save the velocities as "
+                         f"float32 or float64")
+    if data.ndim not in (2, 3):
+        raise ModelError(f"model.path: {path} holds an array of shape {data.shape}; "
+                         f"a velocity model needs 2 or 3 axes")
+    if data.size == 0:
+        raise ModelError(f"model.path: {path} holds an empty array of shape {data.shape}; save the model's "
+                         f"values (at least 1 node per axis)")
+    return data
+
+
 def _read_raw(spec: dict, path: pathlib.Path) -> np.ndarray:
     """Headerless binary array: ``shape`` in stored axis order, ``dtype``, ``endian``."""
     shape = _require(spec, "shape", "the stored array shape (slowest axis first, as in 'axes')")
-    if not (isinstance(shape, (list, tuple)) and all(isinstance(n, int) and n > 0 for n in shape)):
-        raise ModelError(f"model.shape: {shape!r} is not a list of positive integers; give the "
+    if not (isinstance(shape, (list, tuple)) and shape
+            and all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in shape)):
+        raise ModelError(f"model.shape: {_short(shape)} is not a list of positive integers; give the "
                          f"stored array shape, slowest axis first")
     try:
-        dtype = np.dtype(spec.get("dtype", "float32"))
-    except TypeError:
-        raise ModelError(f"model.dtype: {spec['dtype']!r} is not a numpy dtype; use e.g. "
+        dtype = np.dtype(spec.get("dtype", "float32")) if isinstance(spec.get("dtype", "float32"), str) else None
+    except (TypeError, ValueError):
+        dtype = None
+    if dtype is None or dtype.kind not in "fiu" or dtype.names:
+        raise ModelError(f"model.dtype: {_short(spec.get('dtype'))} is not a numeric numpy dtype; use e.g. "
                          f"float32 or float64") from None
     endian = spec.get("endian", "little")
     if endian not in ("little", "big"):
@@ -209,15 +304,31 @@ def _read_hdf5(spec: dict, path: pathlib.Path) -> tuple[np.ndarray, object]:
     import h5py
 
     name = _require(spec, "dataset", "the name of the HDF5 dataset holding the model")
-    with h5py.File(path, "r") as f:
-        found = []
-        f.visititems(lambda n, obj: found.append(n) if isinstance(obj, h5py.Dataset) else None)
-        for key in ("dataset", "spacing_dataset"):
-            if key in spec and spec[key] not in found:
-                raise ModelError(f"model.{key}: {spec[key]!r} is not a dataset in {path.name}; "
-                                 f"it has {', '.join(found)}")
-        spacing = f[spec["spacing_dataset"]][()] if "spacing_dataset" in spec else None
-        return f[name][()], spacing
+    for key in ("dataset", "spacing_dataset"):
+        if key in spec and not isinstance(spec[key], str):
+            raise ModelError(f"model.{key}: {_short(spec[key])} is not a dataset name; give the name (text) of an "
+                             f"HDF5 dataset, e.g. 'velocity' or 'group/vp'")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        size = path.stat().st_size
+        raise ModelError(f"model.path: {path} ({size:,} bytes) is not a readable HDF5 file ({e}); it may be empty, "
+                         f"truncated or another format: write it again (h5py) or give kind: npy / raw") from None
+    try:
+        with f:
+            found = []
+            f.visititems(lambda n, obj: found.append(n) if isinstance(obj, h5py.Dataset) else None)
+            for key in ("dataset", "spacing_dataset"):
+                if key in spec and spec[key] not in found:
+                    raise ModelError(f"model.{key}: {spec[key]!r} is not a dataset in {path.name}; "
+                                     f"it has {', '.join(found) or 'no datasets'}")
+            spacing = f[spec["spacing_dataset"]][()] if "spacing_dataset" in spec else None
+            return f[name][()], spacing
+    except (OSError, RuntimeError, KeyError, TypeError, ValueError) as e:
+        if isinstance(e, ModelError):
+            raise
+        raise ModelError(f"model.path: {path}: dataset {name!r} could not be read ({type(e).__name__}: {e}); the file "
+                         f"may be truncated or corrupt: write it again") from None
 
 
 def _read_segy(path: pathlib.Path) -> np.ndarray:
@@ -229,6 +340,8 @@ def _read_segy(path: pathlib.Path) -> np.ndarray:
     except Exception as e:  # ObsPy raises assorted types for unreadable files
         raise ModelError(f"model.path: {path} could not be read as SEG-Y ({e}); "
                          f"check the file or choose another kind") from None
+    if len(stream) == 0:
+        raise ModelError(f"model.path: {path} holds no traces; give a SEG-Y file with one trace per x position")
     lengths = {len(tr.data) for tr in stream}
     if len(lengths) != 1:
         raise ModelError(f"model.path: {path.name} has traces of {len(lengths)} different "

@@ -109,7 +109,7 @@ def preprocess(data, dt_in, *, dt, nt, t_shift=0.0, detrend=True, taper=0.05, ba
         if fmin is not None and fmax is not None and not float(fmin) < float(fmax):
             raise TraceError(f"band: fmin = {fmin} Hz is not below fmax = {fmax} Hz")
         if fmin is None and fmax is None:
-            log.info("%s: band (None, None): no band filter", name)
+            log.info("%s: full band: no band filter", name)
         else:
             if fmin is None:
                 sos, what = _butter("lowpass", float(fmax), 1 / dt_in, order), f"low-pass {fmax} Hz"

@@ -17,7 +17,7 @@ import pathlib
 
 import numpy as np
 
-from adseismic.data.geometry import AXES, as_reference, check_samples, project
+from adseismic.data.geometry import AXES, as_reference, check_samples, offline_distance, project
 from adseismic.data.traces import ShotGathers, StationTraces, TraceError
 
 __all__ = ["read_shot_gathers", "read_station_traces"]
@@ -59,8 +59,11 @@ def _read_one(path: pathlib.Path, fmt: str | None):
     return stream, fmt
 
 
+DEPTH_CONVENTIONS = ("auto", "elevation", "depth")
+
+
 def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
-                      group_by="source") -> ShotGathers:
+                      group_by="source", depth_convention="elevation", model=None) -> ShotGathers:
     """Read SEG-Y or SU file(s) into :class:`ShotGathers` (see its docstring for shapes / units).
 
     paths: one path or a list (traces are taken in file order, then trace order); fmt: "SEGY",
@@ -72,6 +75,15 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
     * receiver_group_elevation, surface_elevation_at_source, source_depth_below_surface times
       scalar_to_be_applied_to_all_elevations_and_depths: receiver z = -elevation, source
       z = depth - surface elevation (z = depth, m, positive down);
+    * ``depth_convention`` says how the file stores depth: "elevation" (the SEG-Y standard, above):
+      elevations positive up, receiver z = -receiver_group_elevation, source z =
+      source_depth_below_surface - surface_elevation_at_source; "depth": the elevation fields hold
+      positive depths (as JUDI.jl / Devito write them, usually with scalar -1000): receiver z =
+      receiver_group_elevation, source z = surface_elevation_at_source + source_depth_below_surface;
+      "auto": whichever puts every source and receiver inside ``model`` (an
+      :class:`adseismic.data.model.Model`) when only one of them does (a warning says so), else
+      "elevation". With "elevation" or "depth", a warning names the other convention when every
+      position falls inside the model with it but not with the one given;
     * ``coordinate_scale`` (m per header unit) replaces both header scalars when given (files
       with wrong scalars); SEG-Y binary header measurement_system 2 (feet) converts to metres;
     * sample_interval_in_ms_for_this_trace (microseconds) -> dt; number of samples -> nt;
@@ -90,6 +102,8 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
         raise TraceError(f"ndim: {ndim!r} is not 2 or 3")
     if group_by not in ("source", "record"):
         raise TraceError(f"group_by: {group_by!r} is not 'source' or 'record'")
+    if depth_convention not in DEPTH_CONVENTIONS:
+        raise TraceError(f"depth_convention: {depth_convention!r} is not one of {', '.join(DEPTH_CONVENTIONS)}")
     if coordinate_scale is not None and not (math.isfinite(float(coordinate_scale))
                                              and float(coordinate_scale) > 0):
         raise TraceError(f"coordinate_scale: {coordinate_scale!r} is not a positive number of "
@@ -98,6 +112,7 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
     if not path_list:
         raise TraceError("paths: no files given")
     labels, samples, src, rec, rec_no, dts, t0s = [], [], [], [], [], [], []
+    src_z_depth, rec_z_depth = [], []  # z of the "depth" convention (elevation fields hold depths)
     for p in map(pathlib.Path, path_list):
         stream, f = _read_one(p, fmt)
         unit = 1.0
@@ -126,6 +141,8 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
             gx, gy = cs * h.group_coordinate_x, cs * h.group_coordinate_y
             sz = es * (h.source_depth_below_surface - h.surface_elevation_at_source)
             gz = -es * h.receiver_group_elevation
+            src_z_depth.append(es * (h.surface_elevation_at_source + h.source_depth_below_surface))
+            rec_z_depth.append(es * h.receiver_group_elevation)
             src.append((sz, sy, sx))
             rec.append((gz, gy, gx))
             rec_no.append(rec_id)
@@ -150,6 +167,8 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
         raise TraceError(f"{first}: sample interval {dt!r} s is not positive; set "
                          f"sample_interval_in_ms_for_this_trace (microseconds)")
     src, rec = np.array(src, dtype=float), np.array(rec, dtype=float)
+    src, rec = _apply_depth_convention(src, rec, np.array(src_z_depth, float), np.array(rec_z_depth, float),
+                                       depth_convention, model, ndim, path_list)
     if ndim == 2:
         ys = np.concatenate([src[:, 1], rec[:, 1]])
         if np.ptp(ys) > 1e-3:
@@ -186,6 +205,42 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
     log.info("read %d shots x %d receivers x %d samples, dt %g s, t0 %g s from %d file(s)",
              gathers.n_shots, gathers.n_receivers, gathers.nt, dt, gathers.t0, len(path_list))
     return gathers
+
+
+def _apply_depth_convention(src, rec, src_z_depth, rec_z_depth, convention, model, ndim, path_list):
+    """(src, rec) (n, 3) with z from the chosen convention (read_shot_gathers' depth_convention), warning when
+    only the other one puts every source and receiver inside the model."""
+    alt_src, alt_rec = src.copy(), rec.copy()
+    alt_src[:, 0], alt_rec[:, 0] = src_z_depth, rec_z_depth
+    where = f"{len(path_list)} file(s) from {pathlib.Path(path_list[0]).name}"
+    if model is None or getattr(model, "ndim", None) != ndim:
+        if convention == "depth":
+            return alt_src, alt_rec
+        return src, rec
+
+    def inside(s, r):
+        pick = [0, 2] if ndim == 2 else [0, 1, 2]
+        pts = np.concatenate([s[:, pick], r[:, pick]])
+        return bool(np.all(model.contains(pts))), float(pts[:, 0].min()), float(pts[:, 0].max())
+
+    ok = {"elevation": inside(src, rec), "depth": inside(alt_src, alt_rec)}
+    z_top, z_bottom = model.extent[0]
+    if convention == "auto":
+        if ok["depth"][0] and not ok["elevation"][0]:
+            log.warning("%s: with the SEG-Y elevation convention (z = -elevation) the sources and receivers lie at z "
+                        "%.4g..%.4g m, outside the model (z %.4g..%.4g m); read as depths (elevation fields holding "
+                        "positive depths, as JUDI.jl writes them) all are inside (z %.4g..%.4g m): using depth_convention "
+                        "'depth' (set it explicitly to silence this warning)", where, ok["elevation"][1],
+                        ok["elevation"][2], z_top, z_bottom, ok["depth"][1], ok["depth"][2])
+            return alt_src, alt_rec
+        return src, rec
+    other = "depth" if convention == "elevation" else "elevation"
+    if ok[other][0] and not ok[convention][0]:
+        log.warning("%s: with depth_convention '%s' the sources and receivers lie at z %.4g..%.4g m, not all inside "
+                    "the model (z %.4g..%.4g m); with '%s' all would be inside (z %.4g..%.4g m): set depth_convention: "
+                    "%s if the file stores depth that way", where, convention, ok[convention][1], ok[convention][2],
+                    z_top, z_bottom, other, ok[other][1], ok[other][2], other)
+    return (alt_src, alt_rec) if convention == "depth" else (src, rec)
 
 
 # ------------------------------------------------------------------------------- stations
@@ -259,12 +314,38 @@ def read_station_traces(paths, *, inventory=None, reference=None, ndim=2, local_
     stream = _merged_stream(paths, component, fill_gaps, starttime, endtime)
     names = [tr.id for tr in stream]
     data, delta, t_start, nt = _common_window(stream, align)
-    positions, ref = _positions(stream, inventory, reference, ndim, local_coordinates)
+    positions, ref, offline = _positions(stream, inventory, reference, ndim, local_coordinates)
     check_samples(data, names)
     noise = _noise_std(data, noise_window, t_start, delta, nt)
     log.info("read %d traces x %d samples, dt %g s, from %s", len(names), nt, delta, t_start)
     return StationTraces(data=data, dt=delta, starttime=t_start, positions=np.array(positions, float),
-                         names=names, noise_std=noise, reference=ref)
+                         names=names, noise_std=noise, reference=ref, offline=offline)
+
+
+def _read_checked(p):
+    """obspy.read(p), refusing files ObsPy reads only in part (a truncated or corrupt MiniSEED record) and passing
+    ObsPy's other warnings to the log."""
+    import warnings
+
+    import obspy
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            st = obspy.read(str(p))
+        except Exception as e:  # noqa: BLE001 - ObsPy raises assorted types for unreadable files
+            raise TraceError(f"{p}: could not be read by ObsPy ({type(e).__name__}: {e}); check "
+                             f"the path and the format") from None
+    for w in caught:
+        text = str(w.message)
+        if "not enough to constitute a full SEED record" in text or "Corrupt" in text or "corrupt" in text:
+            size = os.path.getsize(p) if os.path.isfile(p) else 0
+            got = ", ".join(f"{tr.id}: {tr.stats.npts} samples to {tr.stats.endtime}" for tr in st[:3])
+            raise TraceError(f"{p}: truncated or corrupt ({size:,} bytes; ObsPy: {text.strip()}); only the complete "
+                             f"records were readable ({got or 'no samples'}); copy the file again, or keep the complete "
+                             f"records explicitly (obspy.read(...).write(..., format='MSEED')) and use that file")
+        log.warning("%s: %s", p, text.strip())
+    return st
 
 
 def _merged_stream(paths, component, fill_gaps, starttime, endtime):
@@ -278,11 +359,7 @@ def _merged_stream(paths, component, fill_gaps, starttime, endtime):
         raise TraceError("paths: no files given")
     stream = obspy.Stream()
     for p in path_list:
-        try:
-            stream += obspy.read(str(p))
-        except Exception as e:
-            raise TraceError(f"{p}: could not be read by ObsPy ({type(e).__name__}: {e}); check "
-                             f"the path and the format") from None
+        stream += _read_checked(p)
     if component is not None:
         stream = stream.select(component=component)
         log.info("kept %d traces of component %s", len(stream), component)
@@ -353,6 +430,12 @@ def _common_window(stream, align):
     if t_end - t_start < delta:
         raise TraceError(f"traces share no common time window (latest start {t_start}, earliest "
                          f"end {t_end}); select traces that overlap in time")
+    longest = max(tr.stats.endtime - tr.stats.starttime for tr in stream)
+    if t_end - t_start < 0.5 * longest:
+        short = min(stream, key=lambda tr: tr.stats.endtime - tr.stats.starttime)
+        log.warning("the traces share only %.4g s of the longest record's %.4g s: %s covers %s .. %s (%d samples), a "
+                    "truncated file? every trace is cut to the common window", t_end - t_start, longest, short.id,
+                    short.stats.starttime, short.stats.endtime, short.stats.npts)
     nt = int(math.floor((t_end - t_start) / delta + 1e-6)) + 1
     rows = []
     for tr in stream:
@@ -383,6 +466,7 @@ def _positions(stream, inventory, reference, ndim, local_coordinates):
                                      f"{e}); give StationXML (or another ObsPy inventory format)") from None
     local = dict(local_coordinates or {})
     positions = [None] * len(stream)
+    offline = None
     geo, missing = {}, []
     for i, tr in enumerate(stream):
         over = _local_override(local, tr, ndim)
@@ -423,10 +507,13 @@ def _positions(stream, inventory, reference, ndim, local_coordinates):
         xyz = project(lat, lon, elev, ref, ndim=ndim)
         for j, i in enumerate(sorted(geo)):
             positions[i] = xyz[j]
+        if ndim == 2:
+            offline = np.zeros(len(stream))
+            offline[sorted(geo)] = offline_distance(lat, lon, ref)
         log.info("projected %d stations about (%.6f, %.6f), datum %g m%s", len(geo),
                  ref.latitude, ref.longitude, ref.datum,
                  f", 2D line azimuth {ref.azimuth:g} deg" if ndim == 2 else "")
-    return positions, ref
+    return positions, ref, offline
 
 
 def _noise_std(data, noise_window, t_start, delta, nt):

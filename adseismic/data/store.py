@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from adseismic.data.atomic import write_h5_atomic
+from adseismic.data.traces import TraceError
 
 __all__ = ["write_forward", "read_forward", "ForwardData", "AXES"]
 
@@ -151,26 +152,45 @@ def read_forward(path) -> ForwardData:
     path = pathlib.Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file; run 'adseismic forward' first")
-    with h5py.File(path, "r") as f:
-        attrs = {}
-        for k, v in f.attrs.items():
-            if isinstance(v, bytes):
-                v = v.decode()
-            elif isinstance(v, np.generic):
-                v = v.item()
-            attrs[k] = v
-        vel = f["velocity"]
-        has_snap = "snapshots" in f
-        return ForwardData(
-            receiver_data=f["receiver_data"][()],
-            source_wavelet=f["source_wavelet"][()],
-            source_coordinates=f["source_coordinates"][()],
-            receiver_coordinates=f["receiver_coordinates"][()],
-            time=f["time"][()],
-            velocity=vel[()],
-            spacing=float(vel.attrs["spacing"]),
-            origin=tuple(float(x) for x in vel.attrs["origin"]),
-            attrs=attrs,
-            snapshots=f["snapshots"][()] if has_snap else None,
-            snapshot_times=f["snapshot_times"][()] if has_snap else None,
-        )
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise TraceError(f"{path} ({path.stat().st_size:,} bytes) is not a readable HDF5 file ({e}); it may be empty, "
+                         f"truncated or another format: give a data.h5 written by 'adseismic forward'") from None
+    try:
+        return _read_forward(f, path)
+    except (KeyError, OSError, RuntimeError, TypeError, ValueError) as e:
+        if isinstance(e, TraceError):
+            raise
+        raise TraceError(f"{path}: not a complete 'adseismic forward' data file ({type(e).__name__}: {e}); it needs "
+                         f"receiver_data, source_wavelet, source_coordinates, receiver_coordinates, time and velocity "
+                         f"(with attrs spacing, origin): write it with 'adseismic forward' or "
+                         f"adseismic.data.store.write_forward") from None
+    finally:
+        f.close()
+
+
+def _read_forward(f, path) -> ForwardData:
+    """The ForwardData of the open HDF5 file f (KeyError etc. when a dataset or attribute is missing)."""
+    attrs = {}
+    for k, v in f.attrs.items():
+        if isinstance(v, bytes):
+            v = v.decode()
+        elif isinstance(v, np.generic):
+            v = v.item()
+        attrs[k] = v
+    vel = f["velocity"]
+    has_snap = "snapshots" in f
+    return ForwardData(
+        receiver_data=f["receiver_data"][()],
+        source_wavelet=f["source_wavelet"][()],
+        source_coordinates=f["source_coordinates"][()],
+        receiver_coordinates=f["receiver_coordinates"][()],
+        time=f["time"][()],
+        velocity=vel[()],
+        spacing=float(vel.attrs["spacing"]),
+        origin=tuple(float(x) for x in vel.attrs["origin"]),
+        attrs=attrs,
+        snapshots=f["snapshots"][()] if has_snap else None,
+        snapshot_times=f["snapshot_times"][()] if has_snap else None,
+    )

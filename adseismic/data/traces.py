@@ -87,7 +87,9 @@ class StationTraces:
     dt: sample interval (s). One row per trace (channel), so a three-component station gives
     three rows. reference: the :class:`adseismic.data.geometry.Reference` the positions were
     projected about (None when every position came from ``local_coordinates``); pass it to
-    :func:`adseismic.data.geometry.unproject`.
+    :func:`adseismic.data.geometry.unproject`. offline: 2D only, the distance (m) of each station from
+    the model's line (:func:`adseismic.data.geometry.offline_distance`; 0 for local coordinates), which
+    the projection drops; :func:`adseismic.data.geometry.check_offline` refuses stations far off it.
     """
 
     data: np.ndarray
@@ -97,6 +99,7 @@ class StationTraces:
     names: list
     noise_std: np.ndarray | None = None
     reference: object = None  # adseismic.data.geometry.Reference
+    offline: np.ndarray | None = None  # 2D: (n_stations,) m each station lies off the line (dropped by project)
 
     @property
     def nt(self) -> int:

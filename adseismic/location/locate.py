@@ -37,6 +37,7 @@ from scipy.signal import hilbert
 
 from adseismic.data.model import Model
 from adseismic.inversion.optimize import minimize
+from adseismic.runs import format_position
 from adseismic.scene import straight_ray_times
 from adseismic.solve.acoustic import forward, gradient
 from adseismic.solve.batch import shot_slices
@@ -246,11 +247,11 @@ def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_windo
                callback=callback)  # fmt: skip
     runs = []
     for k, st in enumerate(starts):
-        log.info("start %d/%d: position %s m, origin time %.4f s%s", k + 1, len(starts), np.round(st["position"], 2),
+        log.info("start %d/%d: %s, origin time %.4f s%s", k + 1, len(starts), format_position(st["position"], digits=2),
                  st["origin_time"], f" (stack {st['stack']:.2f})" if "stack" in st else "")  # fmt: skip
         runs.append(_fit_ricker(prob, st, **fit))
-        log.info("start %d/%d: misfit %.6g at %s m after %d evaluations (%s)", k + 1, len(starts), runs[-1]["misfit"],
-                 np.round(runs[-1]["p"][: model.ndim], 2), runs[-1]["evaluations"], runs[-1]["stop_reason"])  # fmt: skip
+        log.info("start %d/%d: misfit %.6g at %s after %d evaluations (%s)", k + 1, len(starts), runs[-1]["misfit"],
+                 format_position(runs[-1]["p"][: model.ndim], digits=2), runs[-1]["evaluations"], runs[-1]["stop_reason"])  # fmt: skip
     order_ = sorted(range(len(runs)), key=lambda i: runs[i]["misfit"])
     best = runs[order_[0]]
     candidates = [{**{k: v for k, v in starts[i].items() if k != "grid"}, "misfit": runs[i]["misfit"],

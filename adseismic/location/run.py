@@ -33,6 +33,7 @@ from adseismic.config import ForwardConfig, GeometryConfig, LocateConfig, Output
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
 from adseismic.inversion.fwi import band_pass
 from adseismic.location.locate import LocationResult, back_projection, locate, misfit_map, noise_from_window
+from adseismic.runs import format_position
 from adseismic.scene import plan_scene, straight_ray_times
 from adseismic.solve.common import dominant_frequency
 
@@ -78,7 +79,7 @@ def _seconds(value, starttime, key: str) -> float:
 def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
     """Read, check and preprocess the event's traces and plan the simulation (see the module
     docstring). Raises ValueError (ConfigError, TraceError) naming the key, file or station."""
-    from adseismic.data.geometry import check_inside
+    from adseismic.data.geometry import check_inside, check_offline
     from adseismic.data.preprocess import preprocess
     from adseismic.data.read import read_station_traces
 
@@ -87,6 +88,7 @@ def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
     st = read_station_traces(t["paths"], inventory=t["inventory"], reference=t["reference"], ndim=model.ndim,
                              local_coordinates=t["local_coordinates"], component=t["component"],
                              fill_gaps=t["fill_gaps"], align=t["align"])  # fmt: skip
+    check_offline(st.offline, st.names, model, "traces.reference")  # 2D: stations the projection would move onto the line
     check_inside(st.positions, model, "station", names=st.names)
     record = (st.nt - 1) * st.dt
     a, b = pre["noise_window"]
@@ -105,8 +107,8 @@ def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
         starts = back_projection(model, st.positions, raw, st.dt, bounds, spacing, n_best=cfg.search["multi_start"])
         stack = starts[0].pop("grid")
         for s in starts:
-            log.info("back-projection start: position %s m, origin time %.4f s after the record start (stack %.2f)",
-                     np.round(s["position"], 1), s["origin_time"], s["stack"])  # fmt: skip
+            log.info("back-projection start: %s, origin time %.4f s after the record start (stack %.2f)",
+                     format_position(s["position"]), s["origin_time"], s["stack"])  # fmt: skip
     times = [s["origin_time"] for s in starts]
     corners = np.array(np.meshgrid(*[np.linspace(lo, hi, 3) for lo, hi in bounds], indexing="ij")).reshape(model.ndim, -1).T
     t_travel = float(straight_ray_times(model, corners, st.positions).max())
@@ -124,6 +126,10 @@ def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
     fwd = ForwardConfig(model, GeometryConfig(sources, st.positions), WaveletConfig("ricker", {"peak_frequency": f0}), sim, OutputConfig())
     band_hi = None if pre["band"] is None else pre["band"][1]
     plan = plan_scene(fwd, f_max=None if band_hi is None else 1.33 * band_hi)  # Butterworth: -20 dB near 1.33 f_high
+    # the 2^ndim "sources" at the search box's corners only size the domain: the run simulates one event
+    # per evaluation, over the window chosen above (not a duration pinned in the config)
+    nt_why = plan.reasons["nt"] if cfg.simulation.duration else f"the simulated window {w0:.4g}..{w1:.4g} s ({why})"
+    plan = dataclasses.replace(plan, n_shots=1, reasons={**plan.reasons, "nt": nt_why})
     for line in plan.describe().splitlines():
         log.info("plan: %s", line)
     k0 = int(round(w0 / plan.dt))
@@ -261,7 +267,8 @@ def write_outputs(outdir: Path, prep: PreparedEvent, res: LocationResult, mmap: 
     truth = None if prep.truth is None else prep.truth["position"]
     written.append(plot_location(outdir / "location.png", prep.model, prep.stations, res.position, res.covariance[[0, ndim - 1]][:, [0, ndim - 1]],
                                  confidence_scale(2, CONFIDENCE), mmap, candidates=res.candidates, truth_zx=truth, stack=prep.stack,
-                                 title=f"located at {np.round(res.position, 1).tolist()} m, origin {summ['origin_time_utc']}"))  # fmt: skip
+                                 title=f"located at {format_position(res.position)}, origin {summ['origin_time_utc']}",
+                                 confidence=CONFIDENCE))  # fmt: skip
     if study is not None:
         from adseismic.location.locate import optimizer_table
 

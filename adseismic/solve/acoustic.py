@@ -22,12 +22,12 @@ from typing import Callable
 
 import numpy as np
 import warp as wp
-from tqdm.auto import tqdm
 
 from adseismic.accel.reductions import value_range
 from adseismic.kernels.acoustic import DESCRIPTION, Acoustic, State
 from adseismic.kernels.common import operator_shape
 from adseismic.kernels.numerics import check_order
+from adseismic.runs import progress_bar
 from adseismic.solve import common, loop, sweep
 from adseismic.solve.misfits import misfit as named_misfit
 
@@ -353,7 +353,7 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
     seg, peak = plan_segments(prop, nt, memory_budget, segment_length, adjoint)
     n_seg = math.ceil(nt / seg)
     energy = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device) if illumination else None
-    bar = tqdm(total=2 * n_seg, desc="gradient segments", disable=not progress, leave=False)
+    bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
     if adjoint == "hand":
         model_tape = wp.Tape()
         with model_tape:

@@ -29,12 +29,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
-from tqdm.auto import tqdm
 
 from adseismic.accel import graphs
 from adseismic.accel.reductions import l2_residual_kernel, value_ranges
 from adseismic.kernels.elastic import DESCRIPTION, MATERIALS, PSI, Elastic, shear_ratio
 from adseismic.kernels.numerics import check_order
+from adseismic.runs import progress_bar
 from adseismic.solve import common, loop, sweep
 from adseismic.solve.misfits import misfit as named_misfit
 
@@ -341,7 +341,7 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
 
     seg, peak = plan_segments(su.prop, su.nt, memory_budget, segment_length, adjoint)
     n_seg = math.ceil(su.nt / seg)
-    bar = tqdm(total=2 * n_seg, desc="gradient segments", disable=not progress, leave=False)
+    bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
     if adjoint == "hand":
         loss, synthetic, grads = _hand_sweep(su, seg, n_seg, loss_fn, bar, observed_l2, on_device=isinstance(vp, wp.array))
     else:

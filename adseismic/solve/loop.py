@@ -28,10 +28,10 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import warp as wp
-from tqdm.auto import tqdm
 
 from adseismic.accel import graphs
 from adseismic.accel.reductions import field_stats, reduction_kernels
+from adseismic.runs import progress_bar
 from adseismic.solve.common import padded_samples
 
 
@@ -102,7 +102,7 @@ def run(su, guard, progress=False, callback=None):
     """Run every level of su with the blow-up guard; returns the receiver data, a tuple of (S, n_rec, >= nt) arrays
     on the device (a kept loop's own buffers on a GPU: copy them before the next call) and whether a kept loop ran.
     callback(state, n): called at every level (forces the level-by-level loop)."""
-    bar = tqdm(total=su.nt, desc="time steps", unit="step", disable=not progress, leave=False)
+    bar = progress_bar(total=su.nt, desc="time steps", unit="steps", enabled=progress)
     use_graphs = callback is None and graphs.graph_plan(su.prop.cuda, su.nt, guard.every, su.period)[1] > 0
     if use_graphs:
         loop = kept_loop(su, guard.every)

@@ -1,0 +1,329 @@
+"""The bad-input catalogue (issue 24): every class of bad input ends with a clear refusal (exit status 2, one message
+naming the key or file, the value and the fix, no traceback) and leaves no file in the output directory; legal but
+suspicious input runs with a warning that gives the numbers.
+
+Each row of CATALOGUE: name, the files to write (name -> text, bytes or a function of the directory), the command
+line (``{d}`` is the case's directory, ``{out}`` its output directory), the expected exit status and fragments
+that must all appear in the output. Everything is refused before any simulation runs, so the whole table takes
+seconds on a CPU.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from adseismic.cli import main
+
+# --------------------------------------------------------------------------- building blocks
+
+MODEL = "model: {kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0}\n"
+GEOMETRY = ("geometry:\n  sources: {points: [{x: 100, z: 20}, {x: 200, z: 20}]}\n"
+            "  receivers: {line: {start: {x: 0, z: 10}, end: {x: 300, z: 10}, count: 16}}\n")
+WAVELET = "wavelet: {kind: ricker, peak_frequency: 10.0}\n"
+SIM = "simulation: {order: 4, pml_width: 8}\n"
+FORWARD = MODEL + GEOMETRY + WAVELET + SIM
+TRUE = "true_model: {kind: gaussian_anomaly, shape: [21, 31], spacing: 10.0, background: 2000.0, perturbation: 100.0, center: [100, 150], radius: 30}\n"
+
+
+def fwi(inversion: str = "{bands: [null], iterations: 1}", data: str = TRUE, sim: str = SIM, model: str = MODEL) -> str:
+    return model + GEOMETRY + WAVELET + sim + data + f"inversion: {inversion}\n"
+
+
+def npy(array):
+    def write(d: Path, name: str):
+        np.save(d / name, array)
+    return write
+
+
+def h5(fill):
+    def write(d: Path, name: str):
+        import h5py
+
+        with h5py.File(d / name, "w") as f:
+            fill(f)
+    return write
+
+
+def truncated(writer, keep: float):
+    """The file `writer` makes, cut to the fraction `keep` of its bytes."""
+    def write(d: Path, name: str):
+        writer(d, name)
+        data = (d / name).read_bytes()
+        (d / name).write_bytes(data[: int(len(data) * keep)])
+    return write
+
+
+def forward_data(zero=False, dt=1e-3, nt=400):
+    """An 'adseismic forward' data.h5 for the FWI geometry above (written directly, no simulation)."""
+    def write(d: Path, name: str):
+        from adseismic.data.store import write_forward
+
+        src = np.array([[20.0, 100.0], [20.0, 200.0]])
+        rec = np.stack([np.full(16, 10.0), np.linspace(0, 300, 16)], axis=1)
+        rng = np.random.default_rng(0)
+        data = np.zeros((2, 16, nt)) if zero else rng.standard_normal((2, 16, nt))
+        write_forward(d / name, receiver_data=data, source_wavelet=np.zeros(nt), dt=dt, source_coordinates=src,
+                      receiver_coordinates=rec, velocity=np.full((21, 31), 2000.0), spacing=10.0, origin=(0.0, 0.0))
+    return write
+
+
+def miniseed(d: Path, name: str, truncate=False):
+    import obspy
+
+    tr = obspy.Trace(np.random.default_rng(1).standard_normal(20000).astype(np.float32),
+                     {"network": "XX", "station": "A", "channel": "HHZ", "sampling_rate": 100.0})
+    obspy.Stream([tr]).write(str(d / name), format="MSEED", reclen=512, encoding="FLOAT32")
+    if truncate:
+        data = (d / name).read_bytes()
+        (d / name).write_bytes(data[: len(data) // 2 + 100])  # half the file, ending inside a record
+
+
+def stations_off_line(d: Path, name: str):
+    """MiniSEED + StationXML of three stations on an east-west line through (45 N, 7 E) and one 10 degrees
+    (~1,112 km) north of it."""
+    from adseismic.data.traces import StationTraces
+    from adseismic.data.write import write_station_traces
+
+    rng = np.random.default_rng(2)
+    st = StationTraces(data=rng.standard_normal((4, 400)), dt=0.005, starttime=0.0, positions=np.zeros((4, 2)),
+                       names=[f"XX.S{i}..HHZ" for i in range(4)])
+    lat = [45.0, 45.0, 45.0, 55.0]
+    lon = [7.0 + k for k in (0.0, 0.002, 0.004, 0.002)]
+    write_station_traces(d, st, latitude=lat, longitude=lon, elevation=[0.0] * 4, stem=Path(name).stem)
+
+
+def judi_segy(d: Path, name: str):
+    """A SEG-Y shot file written the way JUDI.jl writes one: positive depths (m) x 1000 in the elevation fields with
+    scalar -1000, for the FWI geometry above (sources z = 20 m, receivers z = 10 m)."""
+    import obspy
+    from obspy.core import AttribDict
+    from obspy.io.segy.segy import SEGYBinaryFileHeader, SEGYTraceHeader
+
+    traces = []
+    for s, sx in enumerate((100.0, 200.0)):
+        for r, gx in enumerate(np.linspace(0, 300, 16)):
+            h = SEGYTraceHeader()
+            h.original_field_record_number, h.trace_number_within_the_original_field_record = s + 1, r + 1
+            h.scalar_to_be_applied_to_all_coordinates = -1000
+            h.scalar_to_be_applied_to_all_elevations_and_depths = -1000
+            h.source_coordinate_x, h.group_coordinate_x = int(sx * 1000), int(gx * 1000)
+            h.surface_elevation_at_source, h.receiver_group_elevation = 20_000, 10_000  # depths, as JUDI writes them
+            h.sample_interval_in_ms_for_this_trace = 1000  # microseconds
+            tr = obspy.Trace(np.random.default_rng(r).standard_normal(400).astype(np.float32), {"delta": 1e-3})
+            tr.stats.segy = AttribDict(trace_header=h)
+            traces.append(tr)
+    st = obspy.Stream(traces)
+    st.stats = AttribDict(binary_file_header=SEGYBinaryFileHeader())
+    st.stats.binary_file_header.number_of_data_traces_per_ensemble = 16
+    st.write(str(d / name), format="SEGY", data_encoding=5, byteorder=">")
+
+
+LOCATE = ("preprocess: {noise_window: [0.0, 0.3]}\n"
+          "model: {kind: constant, shape: [41, 61], spacing: 10.0, velocity: 2000.0, origin: [0, -300]}\n")
+
+
+@dataclass
+class Case:
+    name: str
+    files: dict
+    argv: list
+    status: int
+    fragments: tuple
+    absent: tuple = ()  # fragments that must NOT appear
+    files_after: bool = field(default=False)  # the command may write outputs (status 0)
+
+
+def C(name, files, argv, status, *fragments, absent=()):  # noqa: N802 - a table row
+    return Case(name, files, argv, status, fragments, absent)
+
+
+PLAN = ["plan", "{d}/c.yaml"]
+FWI = ["fwi", "{d}/c.yaml", "-o", "{out}"]
+LOC = ["locate", "{d}/c.yaml", "-o", "{out}"]
+
+CATALOGUE = [
+    # --- 1. the config loader
+    C("non-utf8 config", {"c.yaml": FORWARD.encode() + b"# caf\xe9\n"}, PLAN, 2, "not UTF-8", "byte 305", "line 7", "c.yaml"),
+    C("binary file as config", {"c.yaml": bytes(range(256))}, PLAN, 2, "not UTF-8", "byte 128"),
+    C("duplicate key", {"c.yaml": FORWARD + "wavelet: {kind: ricker, peak_frequency: 5.0}\n"}, PLAN, 2,
+      "'wavelet' appears twice", "line 5 and line 7"),
+    C("duplicate nested key", {"c.yaml": MODEL + GEOMETRY + "wavelet: {kind: ricker, peak_frequency: 10.0, peak_frequency: 5}\n"},
+      PLAN, 2, "'peak_frequency' appears twice"),
+    C("spacing: true", {"c.yaml": FORWARD.replace("spacing: 10.0", "spacing: true")}, PLAN, 2,
+      "model.spacing", "True", "true/false are not numbers"),
+    C("dx: true", {"c.yaml": FORWARD.replace("pml_width: 8", "pml_width: 8, dx: true")}, PLAN, 2,
+      "simulation.dx", "true/false are not numbers"),
+    C("velocity: yes", {"c.yaml": FORWARD.replace("velocity: 2000.0", "velocity: yes")}, PLAN, 2, "model.velocity", "True"),
+    C("1.4e15 receivers on a line", {"c.yaml": FORWARD.replace("count: 16", "count: 1.4e15")}, PLAN, 2,
+      "geometry.receivers.line.count", "1.4e15", "more than 1,000,000"),
+    C("impossible date", {"c.yaml": FORWARD.replace("kind: constant,", "kind: constant, name: 2001-02-30,")}, PLAN, 2,
+      "could not be parsed", "day is out of range"),
+    C("nested too deeply", {"c.yaml": "model: " + "[" * 5000 + "]" * 5000 + "\n"}, PLAN, 2, "c.yaml"),
+    C("wavelet kind a list", {"c.yaml": FORWARD.replace("kind: ricker", "kind: []")}, PLAN, 2, "wavelet.kind", "[]"),
+    C("bands high to low", {"c.yaml": fwi("{bands: [8.0, 4.0], iterations: 1}")}, FWI, 2,
+      "inversion.bands", "band 1 (up to 4 Hz) is lower than band 0 (up to 8 Hz)", "reorder"),
+    C("full band before a low-pass", {"c.yaml": fwi("{bands: [null, 4.0], iterations: 1}")}, FWI, 2,
+      "inversion.bands", "null (full band)"),
+    # --- 2. model loading
+    C("empty npy array", {"m.npy": npy(np.zeros((0, 5))), "c.yaml": FORWARD.replace(
+        "kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0", "kind: npy, path: m.npy, spacing: 10.0")},
+      PLAN, 2, "model.path", "m.npy", "empty array"),
+    C("empty npy file", {"m.npy": b"", "c.yaml": FORWARD.replace(
+        "kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0", "kind: npy, path: m.npy, spacing: 10.0")},
+      PLAN, 2, "model.path", "empty file"),
+    C("truncated npy", {"m.npy": truncated(npy(np.full((21, 31), 2000.0)), 0.5), "c.yaml": FORWARD.replace(
+        "kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0", "kind: npy, path: m.npy, spacing: 10.0")},
+      PLAN, 2, "model.path", "not a readable .npy", "truncated"),
+    C("complex npy", {"m.npy": npy(np.full((21, 31), 2000.0 + 1j)), "c.yaml": FORWARD.replace(
+        "kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0", "kind: npy, path: m.npy, spacing: 10.0")},
+      PLAN, 2, "model.path", "complex", "numpy.real"),
+    C("NaN in npy", {"m.npy": npy(np.where(np.eye(21, 31) > 0, np.nan, 2000.0)), "c.yaml": FORWARD.replace(
+        "kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0", "kind: npy, path: m.npy, spacing: 10.0")},
+      PLAN, 2, "model.path", "non-finite"),
+    C("inf in npy", {"m.npy": npy(np.full((21, 31), np.inf)), "c.yaml": FORWARD.replace(
+        "kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0", "kind: npy, path: m.npy, spacing: 10.0")},
+      PLAN, 2, "model.path", "non-finite"),
+    C("empty HDF5 file", {"m.h5": b"", "c.yaml": FORWARD.replace(
+        "kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0", "kind: hdf5, path: m.h5, dataset: v, spacing: 10.0")},
+      PLAN, 2, "model.path", "m.h5", "not a readable HDF5 file"),
+    C("corrupt HDF5 file", {"m.h5": b"\x89HDF\r\n\x1a\n" + bytes(300), "c.yaml": FORWARD.replace(
+        "kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0", "kind: hdf5, path: m.h5, dataset: v, spacing: 10.0")},
+      PLAN, 2, "model.path", "not a readable HDF5 file"),
+    C("truncated HDF5 file", {"m.h5": truncated(h5(lambda f: f.create_dataset("v", data=np.full((21, 31), 2000.0))), 0.6),
+                              "c.yaml": FORWARD.replace("kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0",
+                                                        "kind: hdf5, path: m.h5, dataset: v, spacing: 10.0")},
+      PLAN, 2, "model.path", "m.h5"),
+    C("HDF5 string dataset", {"m.h5": h5(lambda f: f.create_dataset("v", data="fast")), "c.yaml": FORWARD.replace(
+        "kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0", "kind: hdf5, path: m.h5, dataset: v, spacing: 10.0")},
+      PLAN, 2, "model.path", "not numbers"),
+    C("model of 1e16 nodes", {"c.yaml": FORWARD.replace("shape: [21, 31]", "shape: [100000000, 100000000]")}, PLAN, 2,
+      "model.shape", "GiB", "more than this machine can hold"),
+    C("observed HDF5 corrupt", {"obs.h5": truncated(forward_data(), 0.3), "c.yaml": fwi(data="observed: {kind: hdf5, path: obs.h5}\n")},
+      FWI, 2, "observed.path", "obs.h5"),
+    C("observed HDF5 empty", {"obs.h5": b"", "c.yaml": fwi(data="observed: {kind: hdf5, path: obs.h5}\n")},
+      FWI, 2, "observed.path", "not a readable HDF5 file"),
+    C("observed HDF5 without datasets", {"obs.h5": h5(lambda f: f.create_dataset("x", data=1.0)),
+                                         "c.yaml": fwi(data="observed: {kind: hdf5, path: obs.h5}\n")},
+      FWI, 2, "observed.path", "not a complete 'adseismic forward' data file"),
+    C("true model smaller than the geometry", {"c.yaml": fwi(data=TRUE.replace("shape: [21, 31]", "shape: [21, 11]")
+                                                          .replace("center: [100, 150]", "center: [100, 50]"))},
+      FWI, 2, "true_model", "smaller than the geometry", "geometry.sources point 1"),
+    # --- 3. traces
+    C("half-truncated MiniSEED", {"ev.mseed": lambda d, n: miniseed(d, n, truncate=True),
+                                  "c.yaml": LOCATE + "traces: {paths: [ev.mseed], local_coordinates: {XX.A: [10, 0]}}\n"},
+      LOC, 2, "ev.mseed", "truncated or corrupt", "bytes"),
+    C("JUDI SEG-Y read as elevations", {"shots.segy": judi_segy,
+                                        "c.yaml": fwi(data="observed: {kind: segy, path: shots.segy, depth_convention: elevation}\n")},
+      FWI, 2, "observed.path", "only the depths differ", "depth_convention: depth"),
+    C("depth_convention for station data", {"c.yaml": fwi(data="observed: {kind: mseed, paths: [a.mseed, b.mseed], depth_convention: depth}\n")},
+      FWI, 2, "observed.depth_convention", "only for kind segy or su"),
+    C("depth_convention misspelt", {"shots.segy": judi_segy, "c.yaml": fwi(data="observed: {kind: segy, path: shots.segy, depth_convention: down}\n")},
+      FWI, 2, "observed.depth_convention", "'down'", "auto, elevation, depth"),
+    # --- 4. 2D locate with a station far off the model's line
+    C("station 1,112 km off the 2D line", {"ev.mseed": stations_off_line,
+                                           "c.yaml": LOCATE + "traces: {paths: [ev.mseed], inventory: ev.xml, reference: [45.0, 7.0]}\n"},
+      LOC, 2, "traces.reference", "XX.S3..HHZ (1,11", "km)", "off the 2D model's line"),
+    # --- 5. the planner
+    C("velocities in km/s", {"c.yaml": FORWARD.replace("velocity: 2000.0", "velocity: 2.0")}, PLAN, 2,
+      "model", "2 m/s", "km/s? multiply by 1000"),
+    C("layered velocities in km/s", {"c.yaml": FORWARD.replace("kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0",
+                                                              "kind: layered, shape: [21, 31], spacing: 10.0, velocities: [1.5, 3.0], interfaces: [100]")},
+      PLAN, 2, "1.5..3 m/s", "km/s? multiply by 1000"),
+    C("memory budget", {"c.yaml": FORWARD.replace("pml_width: 8", "pml_width: 8, memory_budget_gb: 1e-6")}, PLAN, 2,
+      "simulation.memory_budget_gb", "estimated", "GiB", "simulation.force: true"),
+    C("memory budget forced", {"c.yaml": FORWARD.replace("pml_width: 8", "pml_width: 8, memory_budget_gb: 1e-6, force: true")},
+      PLAN, 0, "running anyway"),
+    C("more memory than the machine has", {"c.yaml": FORWARD.replace("shape: [21, 31], spacing: 10.0", "shape: [21, 1001], spacing: 1000.0")
+                                           .replace("end: {x: 300, z: 10}, count: 16", "end: {x: 1000000, z: 10}, count: 16")
+                                           .replace("pml_width: 8", "pml_width: 8, dx: 0.2, domain: model")},  # ~11 TiB
+      PLAN, 2, "simulation: the run needs an estimated", "e+04 GiB", "free on cpu"),
+    C("pinned dt without dx", {"c.yaml": FORWARD.replace("pml_width: 8", "pml_width: 8, dt: 0.004")}, PLAN, 0,
+      "the smallest dx for which the pinned dt = 0.004 s is stable", "under-resolved", absent=("e-07", "e-08", "e-09")),
+    C("force must be a boolean", {"c.yaml": FORWARD.replace("pml_width: 8", "pml_width: 8, force: 1")}, PLAN, 2,
+      "simulation.force", "true or false"),
+    # --- 6. FWI selections and bands
+    C("time window after the record", {"c.yaml": fwi("{bands: [null], iterations: 1, time_window: [50, 60]}")}, FWI, 2,
+      "inversion.time_window", "[50, 60] s keeps no sample"),
+    C("time window before any arrival", {"c.yaml": fwi("{bands: [null], iterations: 1, time_window: [0.0, 0.02], offsets: [200, 400]}")},
+      FWI, 2, "inversion.time_window", "earliest possible arrival"),
+    C("offsets select nothing", {"c.yaml": fwi("{bands: [null], iterations: 1, offsets: [5000, 6000]}")}, FWI, 2,
+      "inversion.offsets", "selects none of the 32 source-receiver pairs"),
+    C("all-zero observed data", {"obs.h5": forward_data(zero=True), "c.yaml": fwi(data="observed: {kind: hdf5, path: obs.h5}\n")},
+      FWI, 2, "every sample of the observed data is zero"),
+    C("400 Hz band above the simulation's Nyquist", {"c.yaml": fwi("{bands: [4.0, 400.0], iterations: 1}")}, FWI, 2,
+      "inversion.bands[1]", "400 Hz", "Nyquist", absent=("inf%",)),
+    C("band above the data's Nyquist", {"obs.h5": forward_data(dt=0.01, nt=60),
+                                        "c.yaml": fwi("{bands: [60.0], iterations: 1}", data="observed: {kind: hdf5, path: obs.h5}\n",
+                                                      sim=SIM.replace("pml_width: 8", "pml_width: 8, dt: 0.001, dx: 5"))},
+      FWI, 2, "inversion.bands[0]", "60 Hz", "Nyquist frequency 50 Hz of the observed data", absent=("inf%",)),
+    C("checkpoint budget below the minimum", {"c.yaml": fwi("{bands: [null], iterations: 1, memory_budget_gb: 1e-9}")}, FWI, 2,
+      "inversion.memory_budget_gb", "too small"),
+    C("fwi above the memory budget", {"c.yaml": fwi(sim=SIM.replace("pml_width: 8", "pml_width: 8, memory_budget_gb: 1e-6"))}, FWI, 2,
+      "simulation.memory_budget_gb", "inversion: gradients of 2 shot(s)"),
+    C("fwi velocities in km/s", {"c.yaml": fwi("{bands: [null], iterations: 1, bounds: [1.0, 3.0]}", data=TRUE,
+                                               model=MODEL.replace("2000.0", "2.0"))}, FWI, 2, "km/s? multiply by 1000"),
+]
+
+
+@pytest.mark.parametrize("case", CATALOGUE, ids=[c.name for c in CATALOGUE])
+def test_bad_input_catalogue(case, tmp_path, capsys, caplog):
+    d = tmp_path / "in"
+    d.mkdir()
+    for name, content in case.files.items():
+        if callable(content):
+            content(d, name)
+        elif isinstance(content, bytes):
+            (d / name).write_bytes(content)
+        else:
+            (d / name).write_text(content, encoding="utf-8")
+    out = tmp_path / "out"
+    argv = [a.format(d=d, out=out) for a in case.argv]
+    with caplog.at_level(logging.INFO, logger="adseismic"):
+        status = main(argv)
+    captured = capsys.readouterr()
+    text = captured.out + captured.err + caplog.text
+    assert "Traceback" not in text, text
+    assert status == case.status, text
+    for fragment in case.fragments:
+        assert fragment in text, f"{fragment!r} not in:\n{text}"
+    for fragment in case.absent:
+        assert fragment not in text, f"{fragment!r} in:\n{text}"
+    if status != 0:
+        assert not out.exists() or not any(out.iterdir()), f"a refusal left {sorted(p.name for p in out.iterdir())}"
+        assert len([ln for ln in captured.err.splitlines() if "error:" in ln]) == 1, captured.err
+
+
+# --------------------------------------------------------------------------- the SEG-Y depth convention
+
+def test_segy_depth_convention_auto_reads_judi_depths_with_a_warning(tmp_path, caplog):
+    from adseismic.data.model import Model
+    from adseismic.data.read import read_shot_gathers
+
+    judi_segy(tmp_path, "shots.segy")
+    model = Model(np.full((21, 31), 2000.0), 10.0)
+    with caplog.at_level(logging.WARNING, logger="adseismic"):
+        auto = read_shot_gathers(tmp_path / "shots.segy", depth_convention="auto", model=model)
+    assert np.allclose(auto.sources[:, 0], 20.0) and np.allclose(auto.receivers[..., 0], 10.0)
+    assert "using depth_convention 'depth'" in caplog.text and "z -20..-10 m" in caplog.text
+    caplog.clear()
+    elev = read_shot_gathers(tmp_path / "shots.segy", depth_convention="elevation", model=model)
+    assert np.allclose(elev.sources[:, 0], -20.0)  # the SEG-Y standard: elevation up
+    assert "set depth_convention: depth" in caplog.text
+    depth = read_shot_gathers(tmp_path / "shots.segy", depth_convention="depth")
+    assert np.allclose(depth.sources, auto.sources) and np.allclose(depth.receivers, auto.receivers)
+    x = read_shot_gathers(tmp_path / "shots.segy", depth_convention="auto")  # no model: the standard
+    assert np.allclose(x.sources[:, 0], -20.0)
+
+
+def test_station_a_little_off_the_line_warns_with_the_distance(caplog):
+    from adseismic.data.geometry import check_offline
+    from adseismic.data.model import Model
+
+    model = Model(np.full((21, 31), 2000.0), 10.0)  # 300 m long
+    with caplog.at_level(logging.WARNING, logger="adseismic"):
+        check_offline(np.array([0.0, 5.0, 40.0]), ["A", "B", "C"], model)
+    assert "1 of 3 stations" in caplog.text and "40 m (C)" in caplog.text
