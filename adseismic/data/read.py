@@ -1,5 +1,7 @@
-"""Reading observed data through ObsPy: SEG-Y / SU shot gathers (:func:`read_shot_gathers` ->
-:class:`adseismic.data.traces.ShotGathers`) and event traces with their station coordinates
+"""Reading observed data: SEG-Y / SU shot gathers (:func:`read_shot_gathers` ->
+:class:`adseismic.data.traces.ShotGathers`; streamed window by window through numpy memory maps, with only the
+header fields it needs and the samples of the shots / receivers asked for held in memory, ObsPy for files of
+variable trace length) and event traces with their station coordinates through ObsPy
 (:func:`read_station_traces` -> :class:`adseismic.data.traces.StationTraces`; latitude /
 longitude / elevation mapped to local metres by :func:`adseismic.data.geometry.project`).
 
@@ -14,6 +16,7 @@ import logging
 import math
 import os
 import pathlib
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -59,11 +62,157 @@ def _read_one(path: pathlib.Path, fmt: str | None):
     return stream, fmt
 
 
+# ------------------------------------------------------------------------------- streaming SEG-Y / SU
+
+#: trace header fields the streaming reader takes: ObsPy's name -> (0-based byte offset in the 240-byte trace header,
+#: type). SEG-Y rev 1 positions, the same in SU; tests/test_segy.py holds them to ``obspy.io.segy.header``.
+TRACE_FIELDS = {
+    "original_field_record_number": (8, "i4"),
+    "trace_number_within_the_original_field_record": (12, "i4"),
+    "receiver_group_elevation": (40, "i4"),
+    "surface_elevation_at_source": (44, "i4"),
+    "source_depth_below_surface": (48, "i4"),
+    "scalar_to_be_applied_to_all_elevations_and_depths": (68, "i2"),
+    "scalar_to_be_applied_to_all_coordinates": (70, "i2"),
+    "source_coordinate_x": (72, "i4"),
+    "source_coordinate_y": (76, "i4"),
+    "group_coordinate_x": (80, "i4"),
+    "group_coordinate_y": (84, "i4"),
+    "coordinate_units": (88, "i2"),
+    "delay_recording_time": (108, "i2"),
+    "number_of_samples_in_this_trace": (114, "u2"),
+    "sample_interval_in_ms_for_this_trace": (116, "u2"),
+    "scalar_to_be_applied_to_times": (214, "i2"),
+}
+#: SEG-Y data sample format code -> (sample type in the file, numpy type returned); 1 = IBM float (converted)
+SAMPLE_FORMATS = {1: ("u4", np.float32), 2: ("i4", np.int32), 3: ("i2", np.int16), 5: ("f4", np.float32),
+                  8: ("i1", np.int8)}
+#: bytes of the file mapped at a time; the reader's working memory is a few of these (sample conversion) plus the
+#: header index (~350 bytes per trace at its peak) and the traces selected, whatever the file's size
+CHUNK_BYTES = 8 * 2**20
+
+# IBM float: sign (1 bit), base-16 exponent biased by 64 (7 bits), 24-bit fraction: value = +-fraction/2^24 * 16^(e-64)
+_IBM_SCALE = np.array([(-1.0 if b & 0x80 else 1.0) * 16.0 ** ((b & 0x7F) - 64) / 2.0 ** 24 for b in range(256)])
+
+
+def _ibm_to_float32(u):
+    """IBM single-precision floats given as native uint32 words -> float32 (exact where float32 can hold the value)."""
+    with np.errstate(over="ignore"):
+        return ((u & 0xFFFFFF).astype(np.float64) * _IBM_SCALE[u >> 24]).astype(np.float32)
+
+
+@dataclass
+class _Layout:
+    """A SEG-Y / SU file of fixed-length traces as the streaming reader maps it."""
+
+    path: pathlib.Path
+    fmt: str
+    endian: str  # ">" or "<"
+    code: int  # data sample format code (SU: 5)
+    start: int  # byte offset of the first trace header
+    nt: int
+    n_traces: int
+    unit: float  # m per header length unit (0.3048 for SEG-Y measurement_system 2)
+    binary_dt: float  # s, the binary header's sample interval (0 if unset; SU: 0)
+
+    @property
+    def itemsize(self) -> int:
+        return 240 + self.nt * np.dtype(SAMPLE_FORMATS[self.code][0]).itemsize
+
+    def windows(self, first: int = 0):
+        """(a, b): consecutive runs of traces of about CHUNK_BYTES each, from trace ``first``."""
+        per = max(1, CHUNK_BYTES // self.itemsize)
+        for a in range(first, self.n_traces, per):
+            yield a, min(a + per, self.n_traces)
+
+    def map(self, dtype, a, b):
+        return np.memmap(self.path, dtype=dtype, mode="r", offset=self.start + a * self.itemsize, shape=(b - a,))
+
+
+def _layout(path: pathlib.Path, fmt: str):
+    """The :class:`_Layout` of a file of fixed-length traces in a sample format numpy reads, or None (then ObsPy reads
+    it, and reports what is wrong with it)."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(3600 if fmt == "SEGY" else 240)
+
+    def num(buf, off, t):
+        return int(np.frombuffer(buf, dtype=t, count=1, offset=off)[0])
+
+    if fmt == "SU":
+        fits = [e for e in "<>" if len(head) == 240 and num(head, 114, e + "i2") > 0
+                and size % (240 + 4 * num(head, 114, e + "i2")) == 0]
+        if len(fits) != 1:
+            return None
+        nt = num(head, 114, fits[0] + "i2")
+        return _Layout(path, fmt, fits[0], 5, 0, nt, size // (240 + 4 * nt), 1.0, 0.0)
+    if len(head) < 3600:
+        return None
+    endian = next((e for e in "><" if num(head, 3224, e + "i2") in (1, 2, 3, 4, 5, 8)), None)
+    if endian is None or num(head, 3224, endian + "i2") not in SAMPLE_FORMATS:
+        return None
+    n_ext = num(head, 3504, endian + "i2")
+    start = 3600 + 3200 * n_ext
+    if n_ext < 0 or size < start + 240:
+        return None
+    with open(path, "rb") as f:
+        f.seek(start + 114)
+        nt = num(f.read(2), 0, endian + "u2")
+    lay = _Layout(path, fmt, endian, num(head, 3224, endian + "i2"), start, nt, 0,
+                  0.3048 if num(head, 3254, endian + "i2") == 2 else 1.0, num(head, 3216, endian + "u2") * 1e-6)
+    if nt < 1 or (size - start) % lay.itemsize:
+        return None
+    lay.n_traces = (size - start) // lay.itemsize
+    return lay
+
+
+def _scan_headers(lay: _Layout):
+    """{field: (n_traces,) array} of :data:`TRACE_FIELDS`, read window by window; None if the traces' lengths differ
+    (not a fixed-length file: ObsPy reads it)."""
+    names = list(TRACE_FIELDS)
+    dtype = np.dtype({"names": names, "formats": [lay.endian + TRACE_FIELDS[k][1] for k in names],
+                      "offsets": [TRACE_FIELDS[k][0] for k in names], "itemsize": lay.itemsize})
+    out = {k: np.empty(lay.n_traces, dtype=TRACE_FIELDS[k][1]) for k in names}
+    for a, b in lay.windows():
+        mm = lay.map(dtype, a, b)
+        for k in names:
+            out[k][a:b] = mm[k]
+        del mm
+    if np.any(out["number_of_samples_in_this_trace"] != lay.nt):
+        return None
+    return out
+
+
+def _read_samples(lay: _Layout, traces, out, rows) -> None:
+    """Copy the samples of traces ``traces`` (sorted file indices) of ``lay`` into ``out[rows]``, window by window."""
+    ftype, _ = SAMPLE_FORMATS[lay.code]
+    dtype = np.dtype({"names": ["s"], "formats": [(lay.endian + ftype, (lay.nt,))], "offsets": [240],
+                      "itemsize": lay.itemsize})
+    per = max(1, CHUNK_BYTES // lay.itemsize)
+    i = 0
+    while i < len(traces):
+        a = int(traces[i])
+        j = int(np.searchsorted(traces, a + per, side="left"))
+        mm = lay.map(dtype, a, min(a + per, lay.n_traces))
+        sel = traces[i:j] - a
+        raw = mm["s"][sel[0]:sel[-1] + 1] if np.all(np.diff(sel) == 1) else mm["s"][sel]  # the selected traces only
+        samples = _ibm_to_float32(raw.astype(np.uint32)) if lay.code == 1 else raw
+        r = rows[i:j]
+        if np.all(np.diff(r) == 1):
+            out[r[0]:r[-1] + 1] = samples
+        else:
+            out[r] = samples
+        del mm, raw, samples
+        i = j
+
+
 DEPTH_CONVENTIONS = ("auto", "elevation", "depth")
+ENGINES = ("auto", "stream", "obspy")
 
 
-def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
-                      group_by="source", depth_convention="elevation", model=None) -> ShotGathers:
+def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2, group_by="source",
+                      depth_convention="elevation", model=None, shots=None, receivers=None,
+                      engine="auto") -> ShotGathers:
     """Read SEG-Y or SU file(s) into :class:`ShotGathers` (see its docstring for shapes / units).
 
     paths: one path or a list (traces are taken in file order, then trace order); fmt: "SEGY",
@@ -96,7 +245,18 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
     ``group_by="source"``) or equal field record number (``group_by="record"``), in order of first
     appearance (record numbers are compared across all files, and the traces of one record must
     share one source position); receivers keep their trace order within a shot. Every trace must share one
-    sample interval, length and t0, and every shot the same number of receivers (TraceError).
+    sample interval, length and t0, and every shot the same number of receivers (TraceError);
+    the sample interval is the trace header's, else the binary header's.
+
+    shots: indices of the shots to keep (0-based, in the order above; default all); receivers: indices of the
+    receivers to keep within every shot (default all). Only the kept traces' samples are read.
+
+    engine: "stream" maps the files window by window (numpy memmap of CHUNK_BYTES at a time) and reads the header
+    fields above for every trace and the samples of the kept traces only, so memory stays at a few windows plus
+    ~350 bytes per trace (the header index) plus the kept data whatever the file's size; it reads fixed-length traces in sample
+    formats 1 (IBM float, converted to float32), 2, 3, 5 (IEEE float) and 8, either byte order. "obspy" reads
+    every trace through ObsPy (the whole file in memory); "auto" (default) streams where it can and uses ObsPy
+    otherwise (variable trace lengths, other sample formats, unreadable headers; ObsPy then names the problem).
     """
     if ndim not in (2, 3):
         raise TraceError(f"ndim: {ndim!r} is not 2 or 3")
@@ -104,6 +264,8 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
         raise TraceError(f"group_by: {group_by!r} is not 'source' or 'record'")
     if depth_convention not in DEPTH_CONVENTIONS:
         raise TraceError(f"depth_convention: {depth_convention!r} is not one of {', '.join(DEPTH_CONVENTIONS)}")
+    if engine not in ENGINES:
+        raise TraceError(f"engine: {engine!r} is not one of {', '.join(ENGINES)}")
     if coordinate_scale is not None and not (math.isfinite(float(coordinate_scale))
                                              and float(coordinate_scale) > 0):
         raise TraceError(f"coordinate_scale: {coordinate_scale!r} is not a positive number of "
@@ -111,100 +273,200 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2,
     path_list = [paths] if isinstance(paths, (str, os.PathLike)) else list(paths)
     if not path_list:
         raise TraceError("paths: no files given")
-    labels, samples, src, rec, rec_no, dts, t0s = [], [], [], [], [], [], []
-    src_z_depth, rec_z_depth = [], []  # z of the "depth" convention (elevation fields hold depths)
+    files = []  # per file: (name, layout or None, header dict, samples or None)
     for p in map(pathlib.Path, path_list):
-        stream, f = _read_one(p, fmt)
-        unit = 1.0
-        if f == "SEGY":
-            ms = int(getattr(stream.stats.binary_file_header, "measurement_system", 1) or 1)
-            if ms == 2:
-                unit = 0.3048
-                log.info("%s: binary header measurement_system = 2 (feet): coordinates "
-                         "converted to metres", p.name)
-        for i, tr in enumerate(stream):
-            h = tr.stats.segy.trace_header if f == "SEGY" else tr.stats.su.trace_header
-            rec_id = int(h.original_field_record_number)
-            label = (f"{p.name} trace {i} (0-based; field record {rec_id}, trace "
-                     f"{int(h.trace_number_within_the_original_field_record)})")
-            cu = int(h.coordinate_units)
-            if cu not in (0, 1) and coordinate_scale is None:
-                raise TraceError(f"{label}: coordinate_units = {cu} (2: arc seconds, 3: degrees, "
-                                 f"4: DMS) are geographic; convert the coordinates to metres "
-                                 f"(e.g. UTM) or pass coordinate_scale to force a length scale")
-            if coordinate_scale is None:
-                cs = _scalar(h.scalar_to_be_applied_to_all_coordinates) * unit
-                es = _scalar(h.scalar_to_be_applied_to_all_elevations_and_depths) * unit
-            else:
-                cs = es = float(coordinate_scale)
-            sx, sy = cs * h.source_coordinate_x, cs * h.source_coordinate_y
-            gx, gy = cs * h.group_coordinate_x, cs * h.group_coordinate_y
-            sz = es * (h.source_depth_below_surface - h.surface_elevation_at_source)
-            gz = -es * h.receiver_group_elevation
-            src_z_depth.append(es * (h.surface_elevation_at_source + h.source_depth_below_surface))
-            rec_z_depth.append(es * h.receiver_group_elevation)
-            src.append((sz, sy, sx))
-            rec.append((gz, gy, gx))
-            rec_no.append(rec_id)
-            dts.append((int(h.sample_interval_in_ms_for_this_trace), float(tr.stats.delta)))
-            t0s.append(1e-3 * int(h.delay_recording_time) * _scalar(h.scalar_to_be_applied_to_times))
-            labels.append(label)
-            samples.append(tr.data)
+        f = _file_format(p, fmt)
+        lay = _layout(p, f) if engine != "obspy" else None
+        hdr = _scan_headers(lay) if lay is not None else None
+        if hdr is None:
+            if engine == "stream":
+                raise TraceError(f"{p}: not a file of fixed-length traces in sample format 1, 2, 3, 5 or 8 that the "
+                                 f"streaming reader maps; pass engine='obspy' (reads the whole file into memory)")
+            lay, (hdr, samples) = None, _obspy_headers(p, f)
+        else:
+            samples = None
+            if lay.unit != 1.0:
+                log.info("%s: binary header measurement_system = 2 (feet): coordinates converted to metres", p.name)
+        files.append((p.name, lay, hdr, samples))
+    h = {k: np.concatenate([np.asarray(fh[k]) for _, _, fh, _ in files]) for k in TRACE_FIELDS}
+    n = len(h["source_coordinate_x"])
+    file_of = np.repeat(np.arange(len(files)), [len(fh["source_coordinate_x"]) for _, _, fh, _ in files])
+    first_of = np.concatenate([[0], np.cumsum(np.bincount(file_of, minlength=len(files)))[:-1]])
+    unit = np.array([fh["unit"] if lay is None else lay.unit for _, lay, fh, _ in files])[file_of]
+
+    def label(i):
+        i = int(i)
+        return (f"{files[file_of[i]][0]} trace {i - first_of[file_of[i]]} (0-based; field record "
+                f"{int(h['original_field_record_number'][i])}, trace "
+                f"{int(h['trace_number_within_the_original_field_record'][i])})")
+
+    cu = h["coordinate_units"].astype(np.int64)
+    bad = np.flatnonzero((cu != 0) & (cu != 1))
+    if bad.size and coordinate_scale is None:
+        raise TraceError(f"{label(bad[0])}: coordinate_units = {cu[bad[0]]} (2: arc seconds, 3: degrees, "
+                         f"4: DMS) are geographic; convert the coordinates to metres "
+                         f"(e.g. UTM) or pass coordinate_scale to force a length scale")
+    if coordinate_scale is None:
+        cs = _scalars(h["scalar_to_be_applied_to_all_coordinates"]) * unit
+        es = _scalars(h["scalar_to_be_applied_to_all_elevations_and_depths"]) * unit
+    else:
+        cs = es = np.full(n, float(coordinate_scale))
+    g = {k: h[k].astype(np.float64) for k in ("source_coordinate_x", "source_coordinate_y", "group_coordinate_x",
+                                              "group_coordinate_y", "receiver_group_elevation",
+                                              "surface_elevation_at_source", "source_depth_below_surface")}
+    src = np.stack([es * (g["source_depth_below_surface"] - g["surface_elevation_at_source"]),
+                    cs * g["source_coordinate_y"], cs * g["source_coordinate_x"]], axis=1)
+    rec = np.stack([-es * g["receiver_group_elevation"], cs * g["group_coordinate_y"],
+                    cs * g["group_coordinate_x"]], axis=1)
+    src_z_depth = es * (g["surface_elevation_at_source"] + g["source_depth_below_surface"])
+    rec_z_depth = es * g["receiver_group_elevation"]
+    del g
     # --- one sampling, one length, one t0
-    first = labels[0]
-    for i, lab in enumerate(labels):
-        if dts[i][1] != dts[0][1] and abs(dts[i][1] - dts[0][1]) > 1e-9 * dts[0][1]:
-            raise TraceError(f"{lab}: sample interval {dts[i][1]:g} s differs from "
-                             f"{dts[0][1]:g} s of {first}; resample the traces to one interval")
-        if len(samples[i]) != len(samples[0]):
-            raise TraceError(f"{lab}: {len(samples[i])} samples differ from {len(samples[0])} of "
-                             f"{first}; cut or pad the traces to one length")
-        if abs(t0s[i] - t0s[0]) > 1e-9:
-            raise TraceError(f"{lab}: delay recording time t0 = {t0s[i]:g} s differs from "
-                             f"{t0s[0]:g} s of {first}; shift the traces to one start time")
-    dt = dts[0][1]
+    iv = h["sample_interval_in_ms_for_this_trace"].astype(np.float64) * 1e-6
+    fallback = np.array([fh.get("dt", 0.0) if lay is None else lay.binary_dt for _, lay, fh, _ in files])[file_of]
+    dts = np.where(iv > 0, iv, fallback)
+    bad = np.flatnonzero((dts != dts[0]) & (np.abs(dts - dts[0]) > 1e-9 * dts[0]))
+    if bad.size:
+        raise TraceError(f"{label(bad[0])}: sample interval {dts[bad[0]]:g} s differs from "
+                         f"{dts[0]:g} s of {label(0)}; resample the traces to one interval")
+    lengths = [lay.nt if lay is not None else fh["nt"] for _, lay, fh, _ in files]
+    bad = [k for k, m in enumerate(lengths) if m != lengths[0]]
+    if bad:
+        raise TraceError(f"{label(first_of[bad[0]])}: {lengths[bad[0]]} samples differ from {lengths[0]} of "
+                         f"{label(0)}; cut or pad the traces to one length")
+    t0s = 1e-3 * h["delay_recording_time"] * _scalars(h["scalar_to_be_applied_to_times"])
+    bad = np.flatnonzero(np.abs(t0s - t0s[0]) > 1e-9)
+    if bad.size:
+        raise TraceError(f"{label(bad[0])}: delay recording time t0 = {t0s[bad[0]]:g} s differs from "
+                         f"{t0s[0]:g} s of {label(0)}; shift the traces to one start time")
+    dt = float(dts[0])
     if not dt > 0:
-        raise TraceError(f"{first}: sample interval {dt!r} s is not positive; set "
+        raise TraceError(f"{label(0)}: sample interval {dt!r} s is not positive; set "
                          f"sample_interval_in_ms_for_this_trace (microseconds)")
-    src, rec = np.array(src, dtype=float), np.array(rec, dtype=float)
-    src, rec = _apply_depth_convention(src, rec, np.array(src_z_depth, float), np.array(rec_z_depth, float),
-                                       depth_convention, model, ndim, path_list)
+    src, rec = _apply_depth_convention(src, rec, src_z_depth, rec_z_depth, depth_convention, model, ndim, path_list)
     if ndim == 2:
         ys = np.concatenate([src[:, 1], rec[:, 1]])
         if np.ptp(ys) > 1e-3:
             i = int(np.argmax(np.maximum(np.abs(src[:, 1] - ys[0]), np.abs(rec[:, 1] - ys[0]))))
-            raise TraceError(f"{labels[i]}: y coordinates vary (source y {src[i, 1]:g} m, receiver "
+            raise TraceError(f"{label(i)}: y coordinates vary (source y {src[i, 1]:g} m, receiver "
                              f"y {rec[i, 1]:g} m, first trace y {ys[0]:g} m; range {np.ptp(ys):g} m) "
                              f"but ndim=2 reads x only; pass ndim=3, or rotate the line onto x")
         src, rec = src[:, [0, 2]], rec[:, [0, 2]]
-    # --- group into shots
-    keys = (np.round(src * 1e3).astype(np.int64).tolist() if group_by == "source" else rec_no)
-    order, members = [], {}
-    for i, k in enumerate(map(lambda k: tuple(k) if isinstance(k, list) else k, keys)):
-        if k not in members:
-            members[k] = []
-            order.append(k)
-        members[k].append(i)
-    shots = [members[k] for k in order]
-    counts = [len(m) for m in shots]
-    for s, m in enumerate(shots):
-        if counts[s] != counts[0]:
-            where = ", ".join(f"{a}={v:.3f}" for a, v in zip(AXES[ndim], src[m[0]]))
-            raise TraceError(f"shot {s} (source at {where} m; first trace {labels[m[0]]}): "
-                             f"{counts[s]} receivers, but shot 0 has {counts[0]}; every shot needs "
-                             f"the same number of receivers (pad missing traces with zeros "
-                             f"or drop the shot)")
-        if group_by == "record" and np.ptp(src[m], axis=0).max() > 1e-3:
-            raise TraceError(f"shot {s} (field record {rec_no[m[0]]}): traces have different "
+    # --- group into shots (in order of first appearance), receivers in trace order
+    rec_no = h["original_field_record_number"].astype(np.int64)
+    keys = np.round(src * 1e3).astype(np.int64) if group_by == "source" else rec_no[:, None]
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    shot_of = np.argsort(np.argsort(first))[inverse.reshape(-1)]
+    order = np.argsort(shot_of, kind="stable")
+    counts = np.bincount(shot_of)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    odd = np.flatnonzero(counts != counts[0])
+    if odd.size:
+        s = int(odd[0])
+        m0 = int(order[starts[s]])
+        where = ", ".join(f"{a}={v:.3f}" for a, v in zip(AXES[ndim], src[m0]))
+        raise TraceError(f"shot {s} (source at {where} m; first trace {label(m0)}): "
+                         f"{counts[s]} receivers, but shot 0 has {counts[0]}; every shot needs "
+                         f"the same number of receivers (pad missing traces with zeros "
+                         f"or drop the shot)")
+    grid = order.reshape(len(counts), int(counts[0]))
+    if group_by == "record":
+        spread = (src[grid].max(axis=1) - src[grid].min(axis=1)).max(axis=1)
+        bad = np.flatnonzero(spread > 1e-3)
+        if bad.size:
+            s = int(bad[0])
+            raise TraceError(f"shot {s} (field record {rec_no[grid[s, 0]]}): traces have different "
                              f"source coordinates; group_by='source' instead")
-    data = np.stack([np.stack([samples[i] for i in m]) for m in shots])
-    gathers = ShotGathers(data=data, dt=dt, t0=float(t0s[0]),
-                          sources=np.array([src[m[0]] for m in shots]),
-                          receivers=np.array([[rec[i] for i in m] for m in shots]))
-    check_samples(gathers.data, [labels[i] for m in shots for i in m])
-    log.info("read %d shots x %d receivers x %d samples, dt %g s, t0 %g s from %d file(s)",
-             gathers.n_shots, gathers.n_receivers, gathers.nt, dt, gathers.t0, len(path_list))
+    grid = grid[_selection(shots, grid.shape[0], "shots")][:, _selection(receivers, grid.shape[1], "receivers")]
+    data = _samples(files, grid, file_of, first_of, lengths[0])
+    gathers = ShotGathers(data=data, dt=dt, t0=float(t0s[0]), sources=src[grid[:, 0]], receivers=rec[grid])
+    check_samples(gathers.data, _Labels(label, grid.reshape(-1)))
+    log.info("read %d shots x %d receivers x %d samples, dt %g s, t0 %g s from %d file(s) (%d traces)",
+             gathers.n_shots, gathers.n_receivers, gathers.nt, dt, gathers.t0, len(path_list), n)
     return gathers
+
+
+class _Labels:
+    """names[k] = label(traces[k]), made only when asked for (check_samples names the bad traces only)."""
+
+    def __init__(self, label, traces):
+        self.label, self.traces = label, traces
+
+    def __len__(self):
+        return len(self.traces)
+
+    def __getitem__(self, k):
+        return self.label(self.traces[k])
+
+
+def _scalars(v):
+    """SEG-Y scalar rule, element-wise: positive multiplies, negative divides, zero means 1."""
+    v = np.asarray(v, dtype=np.float64)
+    return np.where(v > 0, v, np.where(v < 0, 1.0 / np.where(v < 0, -v, 1.0), 1.0))
+
+
+def _selection(pick, n, key):
+    """Indices (list) of ``pick`` into range(n), checked; all when None."""
+    if pick is None:
+        return np.arange(n)
+    idx = np.asarray(pick).reshape(-1)
+    if idx.size == 0 or idx.dtype.kind not in "iu" or idx.min() < -n or idx.max() >= n:
+        raise TraceError(f"{key}: {pick!r} is not a non-empty list of indices in 0..{n - 1} ({n} {key} in the data)")
+    return idx % n
+
+
+def _file_format(path: pathlib.Path, fmt) -> str:
+    if fmt is None:
+        fmt = _EXT_FORMATS.get(path.suffix.lower())
+        if fmt is None:
+            raise TraceError(f"fmt: cannot tell the format of {path} from its extension "
+                             f"{path.suffix!r}; pass fmt='SEGY' or fmt='SU'")
+    fmt = str(fmt).upper().replace("-", "")
+    if fmt not in ("SEGY", "SU"):
+        raise TraceError(f"fmt: {fmt!r} is not 'SEGY' or 'SU'")
+    if not path.is_file():
+        raise TraceError(f"paths: {path} does not exist; give existing SEG-Y / SU files")
+    return fmt
+
+
+def _obspy_headers(path: pathlib.Path, fmt: str):
+    """(header dict as :func:`_scan_headers` gives it plus 'nt', 'dt', 'unit'; samples (n, nt) array) of a file read
+    whole through ObsPy (today's reader: variable trace lengths, sample format 4, ...)."""
+    stream, f = _read_one(path, fmt)
+    unit = 1.0
+    if f == "SEGY" and int(getattr(stream.stats.binary_file_header, "measurement_system", 1) or 1) == 2:
+        unit = 0.3048
+        log.info("%s: binary header measurement_system = 2 (feet): coordinates converted to metres", path.name)
+    heads = [tr.stats.segy.trace_header if f == "SEGY" else tr.stats.su.trace_header for tr in stream]
+    hdr = {k: np.array([int(getattr(hh, k)) for hh in heads], dtype=np.int64) for k in TRACE_FIELDS}
+    # ObsPy's delta: the trace header's interval, else its default of 1 s
+    hdr["sample_interval_in_ms_for_this_trace"] = np.array([round(tr.stats.delta * 1e6) for tr in stream], np.int64)
+    lengths = {len(tr.data) for tr in stream}
+    if len(lengths) > 1:
+        i = next(k for k, tr in enumerate(stream) if len(tr.data) != len(stream[0].data))
+        raise TraceError(f"{path.name} trace {i} (0-based; field record {hdr['original_field_record_number'][i]}, trace "
+                         f"{hdr['trace_number_within_the_original_field_record'][i]}): {len(stream[i].data)} samples "
+                         f"differ from {len(stream[0].data)} of {path.name} trace 0; cut or pad the traces to one length")
+    hdr.update(nt=len(stream[0].data), dt=0.0, unit=unit)
+    return hdr, np.stack([tr.data for tr in stream])
+
+
+def _samples(files, grid, file_of, first_of, nt):
+    """(shots, receivers, nt) samples of the traces ``grid`` (global trace indices), read file by file."""
+    flat = grid.reshape(-1)
+    types = {(SAMPLE_FORMATS[lay.code][1] if lay is not None else samples.dtype) for _, lay, _, samples in files}
+    out = np.empty((flat.size, nt), dtype=np.result_type(*types))
+    for k, (_, lay, _, samples) in enumerate(files):
+        rows = np.flatnonzero(file_of[flat] == k)
+        if not rows.size:
+            continue
+        local = flat[rows] - first_of[k]
+        if lay is None:
+            out[rows] = samples[local]
+            continue
+        o = np.argsort(local, kind="stable")
+        _read_samples(lay, local[o], out, rows[o])
+    return out.reshape(*grid.shape, nt)
 
 
 def _apply_depth_convention(src, rec, src_z_depth, rec_z_depth, convention, model, ndim, path_list):
