@@ -124,3 +124,35 @@ def test_a_refusal_inside_a_run_leaves_nothing_behind(tmp_path, capsys, monkeypa
     (tmp_path / "kept" / "notes.txt").write_text("mine")
     assert cli.main(["forward", str(write(tmp_path, TINY_FORWARD)), "-o", str(tmp_path / "kept"), "-q"]) == 2
     assert [p.name for p in (tmp_path / "kept").iterdir()] == ["notes.txt"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_signal_during_fwi_exits_130_and_the_run_resumes(sig, tmp_path):
+    """Also where the process starts with SIGINT ignored (a background job of a script), which Python keeps:
+    the interrupt used to be swallowed and the run ended with exit status 0."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from .test_fwi import TINY
+
+    cfg = write(tmp_path, {**TINY, "inversion": {**TINY["inversion"], "iterations": 6}}, "fwi.yaml")
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "adseismic.cli", "fwi", str(cfg), "-o", str(out), "-q"]
+    p = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    while not (out / "journal_band0.h5").exists() and p.poll() is None:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    os.kill(p.pid, getattr(signal, sig))
+    err = p.communicate(timeout=120)[1]
+    assert p.returncode == 130, err
+    lines = [line for line in err.splitlines() if not line.startswith("Warp")]
+    assert len(lines) == 1 and f"interrupted by {sig}" in lines[0] and "--resume" in lines[0], lines
+    assert not list(out.glob("*.part")) and not (out / "summary.json").exists()
+    r = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert [b["iterations"] for b in json.loads((out / "summary.json").read_text())["bands"]] == [6, 6]

@@ -17,11 +17,14 @@ functions and adding it there.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import math
 import pathlib
+import signal
 import sys
+import threading
 import time
 
 import numpy as np
@@ -137,7 +140,7 @@ def _make_outdir(outdir: pathlib.Path, args) -> None:
         raise CommandError(f"-o: cannot create {outdir} ({e.strerror or e}); choose a directory you can write to") from None
 
 
-PREAMBLE = ("config.yaml", "forward.log", "fwi.log", "locate.log", "observed.h5")  # written before a run's work
+PREAMBLE = ("config.yaml", "forward.log", "fwi.log", "locate.log", "observed.h5", "observed_waveforms.h5")  # written before a run's work
 
 
 def _clean_refused(args) -> None:
@@ -253,7 +256,7 @@ def cmd_forward(args) -> int:
         for w in plan.warnings:
             log.warning("%s", w)
         # outputs of an earlier run would no longer match config.yaml and forward.log
-        stale = [outdir / "data.h5", outdir / "model.png", outdir / "snapshots_shot0.png",
+        stale = [outdir / "data.h5", outdir / "waveforms.h5", outdir / "model.png", outdir / "snapshots_shot0.png",
                  *outdir.glob("gather_shot*.png")]
         stale = [p for p in stale if p.exists()]
         if stale:
@@ -304,6 +307,10 @@ def cmd_forward(args) -> int:
             origin=plan.origin, attrs=attrs, snapshots=result.snapshots,
             snapshot_times=result.snapshot_times, units=units)
         log.info("wrote %s", data_path)
+        from adseismic.data.asdf import write_forward_asdf  # the same traces in ASDF (pyasdf optional: a warning without it)
+
+        write_forward_asdf(outdir / "waveforms.h5", receiver_data=result.receiver_amplitudes.astype(store), dt=result.dt,
+                           source_coordinates=src_world, receiver_coordinates=rec_world, wavelet=scene.wavelet, units=units)
 
         pngs = [plotting.plot_model(outdir / "model.png", scene.model.values, plan.dx,
                                     plan.origin, src_world, rec_world,
@@ -386,7 +393,7 @@ def cmd_fwi(args) -> int:
         except PropagationError as e:
             raise CommandError(f"simulation failed: {e}", EXIT_UNSTABLE) from None
         except KeyboardInterrupt:
-            log.error("interrupted; continue with: adseismic fwi %s -o %s --resume", args.config, outdir)
+            log.info("interrupted; continue with: adseismic fwi %s -o %s --resume", args.config, outdir)  # (the file's record)
             raise
         wrote = _wrote_line(outdir, since)
         log.info("%s (%.0f s)", wrote, res.seconds)
@@ -513,6 +520,49 @@ def cmd_locate(args) -> int:
 # --------------------------------------------------------------------------------- main
 
 #: name -> (help, register(parser), run(args) -> exit code)
+# --------------------------------------------------------------------------------- schema, init
+
+def _register_schema(p: argparse.ArgumentParser) -> None:
+    p.add_argument("workflow", choices=WORKFLOWS, help="the workflow whose config schema to write")
+    p.add_argument("-o", "--output", type=pathlib.Path, help="write the JSON Schema to this file (default: print it)")
+
+
+def cmd_schema(args) -> int:
+    """The JSON Schema of a workflow's config, for YAML editors: put `# yaml-language-server: $schema=FILE` in a config."""
+    from adseismic.config.schema import json_schema
+
+    text = json.dumps(json_schema(args.workflow), indent=2) + "\n"
+    if args.output is None:
+        sys.stdout.write(text)
+    else:
+        write_text_atomic(args.output, text)
+        print(f"wrote {args.output}")
+    return EXIT_OK
+
+
+def _register_init(p: argparse.ArgumentParser) -> None:
+    p.add_argument("workflow", choices=WORKFLOWS, help="the workflow of the config")
+    p.add_argument("-o", "--output", type=pathlib.Path, required=True, help="the YAML file to write (not overwritten)")
+
+
+def cmd_init(args) -> int:
+    """A commented config template that runs as written (locate: the shipped demo event, paths relative to the file)."""
+    import os
+
+    from adseismic.config.schema import template
+
+    out = args.output
+    if out.exists():
+        raise CommandError(f"-o: {out} exists; give a new file name (init never overwrites a config)")
+    demo = pathlib.Path(__file__).resolve().parents[2] / "configs" / "data" / "location_demo"
+    demo_dir = None
+    if args.workflow == "locate" and demo.is_dir():
+        demo_dir = pathlib.Path(os.path.relpath(demo, out.resolve().parent)).as_posix()
+    write_text_atomic(out, template(args.workflow, demo_dir, out.name))
+    print(f"wrote {out}; check it with: adseismic plan {out}")
+    return EXIT_OK
+
+
 COMMANDS = {
     "plan": ("validate a config and print the planned grid, time step and cost",
              _register_plan, cmd_plan),
@@ -524,6 +574,10 @@ COMMANDS = {
                _register_locate, cmd_locate),
     "bench": ("speed, memory and accuracy benchmarks on the standard scenes, beside Deepwave",
               _register_bench, cmd_bench),
+    "schema": ("print (or -o: write) the JSON Schema of a workflow's config, for YAML editors' completion",
+               _register_schema, cmd_schema),
+    "init": ("write a commented config template that runs as written (a small synthetic CPU scene)",
+             _register_init, cmd_init),
 }
 
 
@@ -547,6 +601,32 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return EXIT_INPUT
+    with _interruptible():
+        return _run(args)
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+@contextlib.contextmanager
+def _interruptible():
+    """SIGINT and SIGTERM raise KeyboardInterrupt while a command runs, also where the process was started with
+    SIGINT ignored (a background job of a script: Python keeps the ignore, and Ctrl-C or `kill -INT` used to be
+    swallowed, the run ending with exit status 0) or is stopped by a scheduler's SIGTERM; the handlers before are
+    restored after. Only in the main thread (signal handlers can be set nowhere else)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = {s: signal.signal(s, _raise_interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h)
+
+
+def _run(args) -> int:
     try:
         return args.func(args)
     except CommandError as e:
@@ -558,7 +638,9 @@ def main(argv=None) -> int:
         _clean_refused(args)
         print(f"adseismic {args.command}: error: {e}", file=sys.stderr)
         return EXIT_INPUT
-    except KeyboardInterrupt:
-        resume = " (outputs are complete or absent; fwi: rerun with --resume to continue)" if args.command in ("fwi", "forward", "locate") else ""
-        print(f"adseismic {args.command}: interrupted{resume}", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        resume = {"fwi": f"; continue with: adseismic fwi {args.config} -o {args.outdir} --resume",
+                  "forward": " (no partial outputs: files are complete or absent)",
+                  "locate": " (no partial outputs: files are complete or absent)"}.get(args.command, "")
+        print(f"adseismic {args.command}: interrupted{f' by {e.args[0]}' if e.args else ''}{resume}", file=sys.stderr)
         return EXIT_INTERRUPTED

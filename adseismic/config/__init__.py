@@ -1,10 +1,15 @@
 """YAML run configuration: one schema per workflow, validated before any work is done.
 
+- :mod:`adseismic.config.schema`: the declarative schema (pydantic) of every section: each key's type, unit,
+  default and meaning; the JSON Schema (``adseismic schema``), docs/config.md (docs/gen_config.py) and the
+  templates of ``adseismic init`` come from it. The parsers below validate each section with it, then make
+  the cross-field checks a schema cannot say;
 - :mod:`adseismic.config.common`: :class:`ConfigError` (message starts with the dotted key path,
   says what was found and how to fix it), the shared value validators and YAML reading;
 - :mod:`adseismic.config.forward`: forward runs (:class:`ForwardConfig`, :func:`load_config`);
 - :mod:`adseismic.config.fwi`: inversions (:class:`FWIConfig`, :func:`load_fwi_config`);
-- :mod:`adseismic.config.locate`: event location (:class:`LocateConfig`, :func:`load_locate_config`).
+- :mod:`adseismic.config.locate`: event location (:class:`LocateConfig`, :func:`load_locate_config`);
+- :mod:`adseismic.config.parallel`: the optional ``parallel:`` section of fwi (shots on Dask workers).
 
 Loading or parsing a config imports no workflow (nothing of adseismic.inversion, .location,
 .solve, .cli or .bench); only the data layer (adseismic.data.models) for the velocity models.

@@ -97,11 +97,6 @@ def _choice(value, key: str, choices) -> object:
     return value
 
 
-def _optional(section: dict, name: str, fn, *args):
-    value = section.get(name)
-    return None if value is None else fn(value, *args)
-
-
 class _DuplicateKey(Exception):
     """A key given twice in one YAML mapping (raised by the loader, turned into a ConfigError)."""
 

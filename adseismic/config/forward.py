@@ -5,7 +5,10 @@ A config file has the top-level sections ``model``, ``geometry``, ``wavelet`` (r
 ``simulation`` and ``output`` (optional). Every value is checked before any work is done; a
 problem raises :class:`ConfigError` whose message starts with the dotted key path (for example
 ``simulation.order: 3 is not one of 2, 4, 8; ...``), says what was found and how to fix it.
-Unknown keys are errors, since a typo would otherwise silently fall back to a default.
+Unknown keys are errors, since a typo would otherwise silently fall back to a default. Keys, types, units,
+defaults and ranges of each section are declared in :mod:`adseismic.config.schema` (which checks them); this module
+builds the dataclasses and checks what the schema cannot say: the model (load_model), the geometry against the
+model's axes and extent, the wavelet's delay against its period and its file.
 
 Units: metres, seconds, m/s and Hz everywhere. Coordinates are world metres in the frame of the
 model's ``origin``; arrays use the model axis order (z, [y,] x), z depth positive down.
@@ -16,24 +19,14 @@ any string that ``float()`` parses.
 from __future__ import annotations
 
 import pathlib
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from adseismic.config.common import (
-    ConfigError,
-    _boolean,
-    _check_keys,
-    _choice,
-    _integer,
-    _mapping,
-    _number,
-    _optional,
-    _positive,
-    _read_yaml,
-)
+from adseismic.config import schema
+from adseismic.config.common import ConfigError, _check_keys, _integer, _mapping, _number, _read_yaml
+from adseismic.config.schema import given, validate_section
 from adseismic.data.models import Model, ModelError, load_model
 
 __all__ = [
@@ -122,23 +115,12 @@ class ForwardConfig:
 
 SECTIONS = ("model", "geometry", "wavelet", "simulation", "output")
 REQUIRED_SECTIONS = ("model", "geometry", "wavelet")
-SIMULATION_KEYS = ("order", "accuracy", "free_surface", "device", "precision", "cfl_safety",
-                   "dx", "dt", "duration", "pml_width", "pml_reflection", "margin", "domain",
-                   "memory_budget_gb", "force")
-OUTPUT_KEYS = ("snapshot_interval",)
+SIMULATION_KEYS = tuple(schema.Simulation.model_fields)  # types, units, defaults, ranges: adseismic.config.schema
+OUTPUT_KEYS = tuple(schema.Output.model_fields)
 GEOMETRY_KEYS = ("sources", "receivers")
 SPREAD_FORMS = ("points", "line", "lines")
 LINE_KEYS = ("start", "end", "count")
-WAVELET_KEYS = {
-    "ricker": ("kind", "peak_frequency", "delay"),
-    "gaussian_derivative": ("kind", "peak_frequency", "delay"),
-    "array": ("kind", "file", "dt_in"),
-}
-ORDERS = (2, 4, 8)
-PRECISIONS = ("float32", "float64")
-DOMAINS = ("auto", "model")
-DEVICE_RE = re.compile(r"^cpu$|^cuda(:\d+)?$")
-MIN_PML_WIDTH = 4  # half-width of the sinc source/receiver operator (kernels.acoustic.HICKS_RADIUS)
+WAVELET_KEYS = schema.WAVELET_KEYS  # the keys of each kind
 AXES = {2: ("z", "x"), 3: ("z", "y", "x")}  # model axis order by dimension
 MAX_DELAY_PERIODS = 100.0  # a wavelet delayed by more is a typo (and its sampled band would not fit in memory)
 MAX_LINE_POINTS = 1_000_000  # points on one geometry line: more is a typo (and would not fit in memory)
@@ -146,84 +128,13 @@ MAX_LINE_POINTS = 1_000_000  # points on one geometry line: more is a typo (and 
 # ------------------------------------------------------------------------------ sections
 
 def _parse_simulation(raw, key="simulation") -> SimulationConfig:
-    s = _mapping({} if raw is None else raw, key, "the numerical settings")
-    _check_keys(s, key, SIMULATION_KEYS)
-    d = SimulationConfig()
-    out = {}
-    if s.get("order") is not None:
-        try:
-            order = _integer(s["order"], f"{key}.order")
-        except ConfigError:
-            order = None
-        if order not in ORDERS:
-            raise ConfigError(f"{key}.order: {s['order']!r} is not one of 2, 4, 8; set the "
-                              f"spatial finite-difference order (4 is a good default)")
-        out["order"] = order
-    if s.get("accuracy") is not None:
-        acc = _number(s["accuracy"], f"{key}.accuracy")
-        if not 0 < acc < 0.5:
-            raise ConfigError(f"{key}.accuracy: {s['accuracy']!r} is not in (0, 0.5); give the "
-                              f"target relative group-velocity error, e.g. 0.01 for 1%")
-        out["accuracy"] = acc
-    if s.get("free_surface") is not None:
-        out["free_surface"] = _boolean(s["free_surface"], f"{key}.free_surface")
-    if s.get("device") is not None:
-        dev = s["device"]
-        if not (isinstance(dev, str) and DEVICE_RE.match(dev)):
-            raise ConfigError(f"{key}.device: {dev!r} is not a device; write cpu, cuda or "
-                              f"cuda:N (N = GPU index)")
-        out["device"] = dev
-    if s.get("precision") is not None:
-        out["precision"] = _choice(s["precision"], f"{key}.precision", PRECISIONS)
-    if s.get("cfl_safety") is not None:
-        c = _number(s["cfl_safety"], f"{key}.cfl_safety")
-        if not 0 < c <= 1:
-            raise ConfigError(f"{key}.cfl_safety: {s['cfl_safety']!r} is not in (0, 1]; give "
-                              f"the fraction of the exact stability limit to use, e.g. 0.9")
-        out["cfl_safety"] = c
-    for name, unit in (("dx", "metres"), ("dt", "seconds"), ("duration", "seconds")):
-        v = _optional(s, name, _positive, f"{key}.{name}", unit)
-        if v is not None:
-            out[name] = v
-    if s.get("pml_width") is not None:
-        w = _integer(s["pml_width"], f"{key}.pml_width")
-        if w < MIN_PML_WIDTH:
-            raise ConfigError(f"{key}.pml_width: {s['pml_width']!r} cells is below "
-                              f"{MIN_PML_WIDTH}, the half-width of the source/receiver "
-                              f"operator; use >= {MIN_PML_WIDTH} (10-20 absorbs well) or null")
-        out["pml_width"] = w
-    if s.get("pml_reflection") is not None:
-        r = _number(s["pml_reflection"], f"{key}.pml_reflection")
-        if not 0 < r < 1:
-            raise ConfigError(f"{key}.pml_reflection: {s['pml_reflection']!r} is not in (0, 1); "
-                              f"give the target reflection coefficient, e.g. 1e-3, or null")
-        out["pml_reflection"] = r
-    if s.get("margin") is not None:
-        m = _number(s["margin"], f"{key}.margin", "metres")
-        if m < 0:
-            raise ConfigError(f"{key}.margin: {s['margin']!r} is negative; give the aperture "
-                              f"margin around sources and receivers in metres (>= 0) or null")
-        out["margin"] = m
-    if s.get("domain") is not None:
-        out["domain"] = _choice(s["domain"], f"{key}.domain", DOMAINS)
-    if s.get("memory_budget_gb") is not None:
-        out["memory_budget_gb"] = _positive(s["memory_budget_gb"], f"{key}.memory_budget_gb", "GB")
-    if s.get("force") is not None:
-        out["force"] = _boolean(s["force"], f"{key}.force")
-    return SimulationConfig(**{**d.__dict__, **out})
+    """The simulation section: keys, types and ranges by the schema (:class:`adseismic.config.schema.Simulation`)."""
+    return SimulationConfig(**{**SimulationConfig().__dict__, **given(validate_section(schema.Simulation, raw, key))})
 
 
 def _parse_output(raw, key="output") -> OutputConfig:
-    o = _mapping({} if raw is None else raw, key, "the output settings")
-    _check_keys(o, key, OUTPUT_KEYS)
-    out = OutputConfig()
-    if o.get("snapshot_interval") is not None:
-        v = _number(o["snapshot_interval"], f"{key}.snapshot_interval", "seconds")
-        if v < 0:
-            raise ConfigError(f"{key}.snapshot_interval: {o['snapshot_interval']!r} is negative; "
-                              f"give seconds between snapshots, or 0 for none")
-        out.snapshot_interval = v
-    return out
+    """The output section (:class:`adseismic.config.schema.Output`)."""
+    return OutputConfig(**given(validate_section(schema.Output, raw, key)))
 
 
 def _parse_wavelet(raw, base_dir: Path, key="wavelet") -> WaveletConfig:
@@ -232,17 +143,15 @@ def _parse_wavelet(raw, base_dir: Path, key="wavelet") -> WaveletConfig:
     if not isinstance(kind, str) or kind not in WAVELET_KEYS:
         raise ConfigError(f"{key}.kind: {kind!r} is not one of {', '.join(WAVELET_KEYS)}; "
                           f"set the source time function")
-    _check_keys(w, key, WAVELET_KEYS[kind])
+    _check_keys(w, key, WAVELET_KEYS[kind])  # the keys of this kind (the schema lists those of every kind)
+    v = given(validate_section(schema.Wavelet, w, key))  # types and ranges
     if kind in ("ricker", "gaussian_derivative"):
-        if w.get("peak_frequency") is None:
+        if "peak_frequency" not in v:
             raise ConfigError(f"{key}.peak_frequency: missing; a {kind} wavelet needs its peak "
                               f"frequency in Hz")
-        params = {"peak_frequency": _positive(w["peak_frequency"], f"{key}.peak_frequency", "Hz")}
-        if w.get("delay") is not None:
-            delay = _number(w["delay"], f"{key}.delay", "seconds")
-            if delay < 0:
-                raise ConfigError(f"{key}.delay: {w['delay']!r} is negative; give the time of the "
-                                  f"wavelet's centre in seconds (>= 0) or leave it out")
+        params = {"peak_frequency": v["peak_frequency"]}
+        if "delay" in v:
+            delay = v["delay"]
             most = MAX_DELAY_PERIODS / params["peak_frequency"]
             if delay > most:
                 raise ConfigError(f"{key}.delay: {delay:g} s is more than {MAX_DELAY_PERIODS:g} periods of the "
@@ -255,7 +164,7 @@ def _parse_wavelet(raw, base_dir: Path, key="wavelet") -> WaveletConfig:
                     ("dt_in", "the sample interval of the file in seconds")):
         if w.get(k) is None:
             raise ConfigError(f"{key}.{k}: missing; an array wavelet needs {what}")
-    dt_in = _positive(w["dt_in"], f"{key}.dt_in", "seconds")
+    dt_in = v["dt_in"]
     path = pathlib.Path(str(w["file"])).expanduser()
     path = path if path.is_absolute() else base_dir / path
     if not path.is_file():

@@ -13,20 +13,21 @@ from pathlib import Path
 
 import numpy as np
 
-from adseismic.config.common import ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number, _positive, _read_yaml, _short
+from adseismic.config import schema
+from adseismic.config.common import ConfigError, _check_keys, _choice, _mapping, _positive, _read_yaml, _short
 from adseismic.config.forward import AXES, ForwardConfig, parse_config
+from adseismic.config.parallel import ParallelConfig, parse_parallel
+from adseismic.config.schema import given, validate_section
 from adseismic.data.models import Model, ModelError, load_model
 
 __all__ = ["InversionConfig", "FWIConfig", "parse_fwi_config", "load_fwi_config", "MISFIT_NAMES", "OPTIMIZERS",
            "PRECONDITIONERS"]
 
-INVERSION_KEYS = ("bands", "misfit", "optimizer", "iterations", "evaluations", "rel_decrease", "offsets", "time_window", "bounds", "water_depth",
-                  "source_radius", "smoothing", "preconditioning", "tikhonov", "tv", "wavelet_estimation",
-                  "shots_per_batch", "memory_budget_gb", "step", "lr")
-FWI_SECTIONS = ("true_model", "observed", "inversion")
-OPTIMIZERS = ("lbfgs", "gd", "adam")
-PRECONDITIONERS = ("none", "depth", "pseudo_hessian")
-MISFIT_NAMES = ("l2", "correlation", "traveltime", "envelope")  # adseismic.solve.misfits.MISFITS
+INVERSION_KEYS = tuple(schema.Inversion.model_fields)  # types, units, defaults, ranges: adseismic.config.schema
+FWI_SECTIONS = ("true_model", "observed", "inversion", "parallel")
+OPTIMIZERS = schema.OPTIMIZERS
+PRECONDITIONERS = schema.PRECONDITIONERS
+MISFIT_NAMES = schema.MISFIT_NAMES  # adseismic.solve.misfits.MISFITS (a test keeps them equal)
 OBSERVED_KEYS = ("kind", "path", "paths", "coordinate_scale", "inventory", "reference", "component", "shot_times",
                  "depth_convention")
 DEPTH_CONVENTIONS = ("auto", "elevation", "depth")  # adseismic.data.read.DEPTH_CONVENTIONS
@@ -68,27 +69,13 @@ class InversionConfig:
 @dataclass
 class FWIConfig:
     """An inversion: `forward.model` is the START model; observed data come from `true_model`
-    (a synthetic study) or from `observed` (files: {kind: hdf5|segy|su, path: ...})."""
+    (a synthetic study) or from `observed` (files: {kind: hdf5|segy|su|asdf, path: ...})."""
 
     forward: ForwardConfig
     inversion: InversionConfig
     true_model: Model | None = None
     observed: dict | None = None
-
-
-def _parse_band(b, key: str) -> tuple:
-    if b is None:  # the full band of the wavelet
-        return (None, None)
-    if isinstance(b, (int, float, str)):
-        return (None, _positive(b, key, "Hz"))
-    if isinstance(b, dict):
-        _check_keys(b, key, ("fmin", "fmax"))
-        lo = None if b.get("fmin") is None else _positive(b["fmin"], f"{key}.fmin", "Hz")
-        hi = None if b.get("fmax") is None else _positive(b["fmax"], f"{key}.fmax", "Hz")
-        if lo is not None and hi is not None and lo >= hi:
-            raise ConfigError(f"{key}: fmin {lo:g} Hz >= fmax {hi:g} Hz; give fmin < fmax")
-        return (lo, hi)
-    raise ConfigError(f"{key}: {b!r} is not a band; give fmax in Hz (e.g. 5), {{fmin: 2, fmax: 5}} or null (full band)")
+    parallel: ParallelConfig | None = None  # the shots on Dask workers (config.parallel); None: one process
 
 
 def _check_band_order(bands, key: str) -> None:
@@ -107,63 +94,28 @@ def _check_band_order(bands, key: str) -> None:
 
 
 def _parse_inversion(raw, key="inversion") -> InversionConfig:
-    sec = _mapping(raw or {}, key, "inversion settings")
-    _check_keys(sec, key, INVERSION_KEYS)
+    """The inversion section: keys, types and ranges by the schema (:class:`adseismic.config.schema.Inversion`);
+    here what it cannot say: band order, fmin < fmax, one iteration count per band, v_min < v_max."""
+    v = given(validate_section(schema.Inversion, raw, key))
     out = InversionConfig()
-    if sec.get("bands") is not None:
-        if not isinstance(sec["bands"], list) or not sec["bands"]:
-            raise ConfigError(f"{key}.bands: {sec['bands']!r} is not a non-empty list; e.g. [3, 5, 8] (Hz, low to high)")
-        out.bands = [_parse_band(b, f"{key}.bands[{i}]") for i, b in enumerate(sec["bands"])]
+    if "bands" in v:
+        out.bands = []
+        for i, b in enumerate(v["bands"]):
+            band = (None, None) if b is None else (b.fmin, b.fmax)
+            if None not in band and band[0] >= band[1]:
+                raise ConfigError(f"{key}.bands[{i}]: fmin {band[0]:g} Hz >= fmax {band[1]:g} Hz; give fmin < fmax")
+            out.bands.append(band)
         _check_band_order(out.bands, f"{key}.bands")
-    for name, choices in (("misfit", MISFIT_NAMES), ("optimizer", OPTIMIZERS), ("preconditioning", PRECONDITIONERS)):
-        if sec.get(name) is not None:
-            setattr(out, name, _choice(sec[name], f"{key}.{name}", choices))
-    if sec.get("iterations") is not None:
-        its = sec["iterations"]
-        its = [_integer(n, f"{key}.iterations[{i}]") for i, n in enumerate(its)] if isinstance(its, list) else _integer(its, f"{key}.iterations")
-        if isinstance(its, list) and len(its) != len(out.bands):
-            raise ConfigError(f"{key}.iterations: {len(its)} values for {len(out.bands)} bands; give one per band or a single number")
-        if min(its if isinstance(its, list) else [its]) < 1:
-            raise ConfigError(f"{key}.iterations: {its} has a value < 1; give at least 1 iteration per band")
-        out.iterations = its
-    if sec.get("evaluations") is not None:
-        out.evaluations = _integer(sec["evaluations"], f"{key}.evaluations")
-        if out.evaluations < 1:
-            raise ConfigError(f"{key}.evaluations: {out.evaluations} < 1; give at least 1 gradient evaluation per band")
-    for name in ("rel_decrease", "step", "lr"):
-        if sec.get(name) is not None:
-            setattr(out, name, _positive(sec[name], f"{key}.{name}"))
-    for name, unit in (("water_depth", "m"), ("source_radius", "m"), ("smoothing", "m"), ("tikhonov", ""), ("tv", "")):
-        if sec.get(name) is not None:
-            val = _number(sec[name], f"{key}.{name}", unit)
-            if val < 0:
-                raise ConfigError(f"{key}.{name}: {val:g} is negative; give 0 (off) or a positive value")
-            setattr(out, name, val)
-    if sec.get("bounds") is not None:
-        b = sec["bounds"]
-        if not isinstance(b, list) or len(b) != 2:
-            raise ConfigError(f"{key}.bounds: {b!r} is not [v_min, v_max] in m/s")
-        lo, hi = _positive(b[0], f"{key}.bounds[0]", "m/s"), _positive(b[1], f"{key}.bounds[1]", "m/s")
-        if lo >= hi:
-            raise ConfigError(f"{key}.bounds: v_min {lo:g} >= v_max {hi:g} m/s; give v_min < v_max")
-        out.bounds = (lo, hi)
-    for name, unit in (("offsets", "m"), ("time_window", "s")):
-        if sec.get(name) is not None:
-            r = sec[name]
-            if not isinstance(r, list) or len(r) != 2:
-                raise ConfigError(f"{key}.{name}: {r!r} is not [min, max] in {unit}")
-            lo, hi = _number(r[0], f"{key}.{name}[0]", unit), _number(r[1], f"{key}.{name}[1]", unit)
-            if not 0 <= lo < hi:
-                raise ConfigError(f"{key}.{name}: [{lo:g}, {hi:g}] {unit} is not 0 <= min < max")
-            setattr(out, name, (lo, hi))
-    if sec.get("wavelet_estimation") is not None:
-        out.wavelet_estimation = _boolean(sec["wavelet_estimation"], f"{key}.wavelet_estimation")
-    if sec.get("shots_per_batch") is not None:
-        out.shots_per_batch = _integer(sec["shots_per_batch"], f"{key}.shots_per_batch")
-        if out.shots_per_batch < 1:
-            raise ConfigError(f"{key}.shots_per_batch: {out.shots_per_batch} < 1")
-    if sec.get("memory_budget_gb") is not None:
-        out.memory_budget_gb = _positive(sec["memory_budget_gb"], f"{key}.memory_budget_gb", "GB")
+    its = v.get("iterations")
+    if isinstance(its, list) and len(its) != len(out.bands):
+        raise ConfigError(f"{key}.iterations: {len(its)} values for {len(out.bands)} bands; give one per band or a single number")
+    for name in ("offsets", "time_window"):
+        if name in v and not 0 <= v[name][0]:
+            unit = "m" if name == "offsets" else "s"
+            raise ConfigError(f"{key}.{name}: [{v[name][0]:g}, {v[name][1]:g}] {unit} is not 0 <= min < max")
+    for name, value in v.items():
+        if name != "bands":
+            setattr(out, name, tuple(value) if name in ("bounds", "offsets", "time_window") else value)
     return out
 
 
@@ -173,10 +125,11 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
     base_dir = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
     forward = parse_config(raw, base_dir, path, extra_sections=FWI_SECTIONS)
     inversion = _parse_inversion(raw.get("inversion"))
+    parallel = parse_parallel(raw.get("parallel"), forward.n_shots)
     has_true, has_obs = raw.get("true_model") is not None, raw.get("observed") is not None
     if has_true == has_obs:
         raise ConfigError("true_model/observed: give exactly one: true_model (a model spec, for a synthetic study) "
-                          "or observed (data files: {kind: hdf5|segy|su, path: ...})")
+                          "or observed (data files: {kind: hdf5|segy|su|asdf, path: ...})")
     true_model = None
     if has_true:
         try:
@@ -200,7 +153,12 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
     if has_obs:
         observed = dict(_mapping(raw["observed"], "observed", "observed-data settings"))
         _check_keys(observed, "observed", OBSERVED_KEYS)
-        observed["kind"] = _choice(observed.get("kind"), "observed.kind", ("hdf5", "segy", "su", "mseed", "sac"))
+        observed["kind"] = _choice(observed.get("kind"), "observed.kind", ("hdf5", "segy", "su", "mseed", "sac", "asdf"))
+        if observed["kind"] == "asdf":
+            import importlib.util
+
+            if importlib.util.find_spec("pyasdf") is None:
+                raise ConfigError('observed.kind: asdf needs pyasdf, which is not installed; pip install "adseismic[asdf]"')
         if observed["kind"] in ("mseed", "sac"):  # station traces: one file (or glob) per shot, in geometry order
             paths = observed.get("paths")
             if not isinstance(paths, list) or len(paths) != forward.n_shots or not all(isinstance(p, str) and p for p in paths):
@@ -239,7 +197,7 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
             observed["depth_convention"] = _choice(observed["depth_convention"], "observed.depth_convention", DEPTH_CONVENTIONS)
         elif observed["kind"] in ("segy", "su"):
             observed["depth_convention"] = "auto"
-    return FWIConfig(forward, inversion, true_model, observed)
+    return FWIConfig(forward, inversion, true_model, observed, parallel)
 
 
 def load_fwi_config(path) -> FWIConfig:

@@ -13,19 +13,17 @@ from pathlib import Path
 
 import numpy as np
 
-from adseismic.config.common import ConfigError, _boolean, _check_keys, _choice, _integer, _mapping, _number, _positive, _read_yaml, _short
+from adseismic.config import schema
+from adseismic.config.common import ConfigError, _check_keys, _mapping, _number, _read_yaml, _short
 from adseismic.config.forward import AXES, SimulationConfig, _check_inside, _load_model, _parse_simulation, _point
+from adseismic.config.schema import given, validate_section
 from adseismic.data.models import Model
 
 __all__ = ["LocateConfig", "parse_locate_config", "load_locate_config", "LOCATE_METHODS", "STF_KINDS"]
 
 LOCATE_SECTIONS = ("model", "traces", "preprocess", "source", "search", "simulation", "truth")
-TRACES_KEYS = ("paths", "inventory", "reference", "local_coordinates", "component", "fill_gaps", "align")
-PREPROCESS_KEYS = ("detrend", "taper", "band", "noise_window", "window")
-SOURCE_KEYS = ("stf", "peak_frequency", "frequency_range", "smoothness", "bounds", "start")
-SEARCH_KEYS = ("method", "scaled", "iterations", "multi_start", "grid_spacing")
-LOCATE_METHODS = ("lbfgs", "gauss-newton", "gd", "adam")  # adseismic.location.locate.METHODS
-STF_KINDS = ("ricker", "free")  # adseismic.location.locate.STFS
+LOCATE_METHODS = schema.LOCATE_METHODS  # adseismic.location.locate.METHODS (a test keeps them equal)
+STF_KINDS = schema.STF_KINDS  # adseismic.location.locate.STFS
 
 
 @dataclass
@@ -98,29 +96,19 @@ def _parse_location_bounds(raw, key: str, model: Model):
     return out
 
 
-def _check_trace_options(traces: dict, ndim: int) -> None:
-    """Types of traces.reference, local_coordinates, component and fill_gaps (their values are checked when the
-    traces are read)."""
-    ref = traces["reference"]
-    if ref is not None and not isinstance(ref, (list, dict)):
-        raise ConfigError(f"traces.reference: {_short(ref)} is not [latitude, longitude(, datum, azimuth)] or "
-                          f"{{latitude, longitude, datum, azimuth}} (degrees, m, degrees)")
-    local = traces["local_coordinates"]
-    if local is not None:
-        if not isinstance(local, dict):
-            raise ConfigError(f"traces.local_coordinates: {_short(local)} is not a mapping of station (NET.STA or "
-                              f"NET.STA.LOC.CHA) to [{', '.join(AXES[ndim])}] in metres")
-        for k, v in local.items():
-            pts = list(v.values()) if isinstance(v, dict) else v
-            if not isinstance(k, str) or not isinstance(pts, list) or len(pts) != ndim:
-                raise ConfigError(f"traces.local_coordinates.{k}: {_short(v)} is not [{', '.join(AXES[ndim])}] in metres")
-            for i, x in enumerate(pts):
-                _number(x, f"traces.local_coordinates.{k}[{i}]", "m")
-    if traces["component"] is not None and not isinstance(traces["component"], str):
-        raise ConfigError(f"traces.component: {_short(traces['component'])} is not a component letter, e.g. Z")
-    fill = traces["fill_gaps"]
-    if fill is not None and fill != "interpolate":
-        traces["fill_gaps"] = _number(fill, "traces.fill_gaps")
+def _check_local_coordinates(local, ndim: int) -> None:
+    """traces.local_coordinates: one [z, (y,) x] in metres per station (the schema cannot know the model's dimension)."""
+    if local is None:
+        return
+    if not isinstance(local, dict):
+        raise ConfigError(f"traces.local_coordinates: {_short(local)} is not a mapping of station (NET.STA or "
+                          f"NET.STA.LOC.CHA) to [{', '.join(AXES[ndim])}] in metres")
+    for k, v in local.items():
+        pts = list(v.values()) if isinstance(v, dict) else v
+        if not isinstance(k, str) or not isinstance(pts, list) or len(pts) != ndim:
+            raise ConfigError(f"traces.local_coordinates.{k}: {_short(v)} is not [{', '.join(AXES[ndim])}] in metres")
+        for i, x in enumerate(pts):
+            _number(x, f"traces.local_coordinates.{k}[{i}]", "m")
 
 
 def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None) -> LocateConfig:
@@ -138,81 +126,46 @@ def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Pat
         simulation.precision = "float64"  # the covariance comes from differences of simulations
     model = _load_model(raw["model"], base_dir)
 
-    t = _mapping(raw["traces"], "traces", "paths (MiniSEED, SAC, ...) and station metadata")
-    _check_keys(t, "traces", TRACES_KEYS)
-    paths = t.get("paths")
-    paths = [paths] if isinstance(paths, str) else paths
-    if not isinstance(paths, list) or not paths or not all(isinstance(p, str) for p in paths):
-        raise ConfigError(f"traces.paths: {t.get('paths')!r} is not a file path, glob or list of them (relative to the config)")
-    traces = {"paths": [str(base_dir / p) for p in paths], "inventory": None, "reference": t.get("reference"),
+    t = given(validate_section(schema.Traces, raw["traces"], "traces"))  # keys and types
+    if "paths" not in t:
+        raise ConfigError(f"traces.paths: {raw['traces'].get('paths')!r} is not a file path, glob or list of them "
+                          f"(relative to the config)")
+    traces = {"paths": [str(base_dir / p) for p in t["paths"]], "inventory": None, "reference": t.get("reference"),
               "local_coordinates": t.get("local_coordinates"), "component": t.get("component"),
-              "fill_gaps": t.get("fill_gaps"), "align": False}  # fmt: skip
-    if t.get("inventory") is not None:
-        inv = base_dir / str(t["inventory"])
+              "fill_gaps": t.get("fill_gaps"), "align": t.get("align", False)}  # fmt: skip
+    if "inventory" in t:
+        inv = base_dir / t["inventory"]
         if not inv.exists():
             raise ConfigError(f"traces.inventory: {str(inv)!r} does not exist; give the StationXML file (relative to the config)")
         traces["inventory"] = str(inv)
-    if t.get("align") is not None:
-        traces["align"] = _boolean(t["align"], "traces.align")
-    _check_trace_options(traces, model.ndim)
+    _check_local_coordinates(traces["local_coordinates"], model.ndim)
 
-    p = _mapping(raw.get("preprocess") or {}, "preprocess", "detrend, taper, band, noise_window, window")
-    _check_keys(p, "preprocess", PREPROCESS_KEYS)
+    p = given(validate_section(schema.Preprocess, raw.get("preprocess"), "preprocess"))  # keys, types, ranges
     pre = {"detrend": True, "taper": 0.05, "band": None, "noise_window": None, "window": "auto"}
-    if p.get("detrend") is not None:
-        pre["detrend"] = _boolean(p["detrend"], "preprocess.detrend")
-    if p.get("taper") is not None:
-        pre["taper"] = _number(p["taper"], "preprocess.taper")
-        if not 0 <= pre["taper"] <= 0.5:
-            raise ConfigError(f"preprocess.taper: {pre['taper']:g} is not a fraction in [0, 0.5] of the record at each end")
-    if p.get("band") is not None:
-        pre["band"] = _pair(p["band"], "preprocess.band", "Hz", allow_none=True)
-    if p.get("noise_window") is None:
+    pre.update({k: tuple(v) if isinstance(v, list) else v for k, v in p.items()})
+    if pre["noise_window"] is None:
         raise ConfigError("preprocess.noise_window: missing; give [start, end] s after the record start of a window "
                           "before the first arrival (the data noise that weights the misfit and sets the uncertainty)")
-    pre["noise_window"] = _pair(p["noise_window"], "preprocess.noise_window", "s")
     if pre["noise_window"][0] < 0:
         raise ConfigError(f"preprocess.noise_window: starts at {pre['noise_window'][0]:g} s, before the record; give times >= 0")
-    if p.get("window") is not None and p["window"] != "auto":
-        pre["window"] = _pair(p["window"], "preprocess.window", "s")
 
-    s = _mapping(raw.get("source") or {}, "source", "the source-time function and search region")
-    _check_keys(s, "source", SOURCE_KEYS)
+    s = given(validate_section(schema.Source, raw.get("source"), "source"))  # keys, types
     src = {"stf": "ricker", "peak_frequency": None, "frequency_range": (0.3, 3.0), "smoothness": 0.01, "bounds": None, "start": None}
-    if s.get("stf") is not None:
-        src["stf"] = _choice(s["stf"], "source.stf", STF_KINDS)
-    if s.get("peak_frequency") is not None:
-        src["peak_frequency"] = _positive(s["peak_frequency"], "source.peak_frequency", "Hz")
-    if s.get("frequency_range") is not None:
-        fr = _pair(s["frequency_range"], "source.frequency_range", "(factors of the start peak frequency)")
+    src.update({k: s[k] for k in ("stf", "peak_frequency", "smoothness") if k in s})
+    if "frequency_range" in s:
+        fr = tuple(s["frequency_range"])
         if not 0 < fr[0] < 1 < fr[1]:
             raise ConfigError(f"source.frequency_range: {list(fr)} must bracket 1, e.g. [0.3, 3]")
         src["frequency_range"] = fr
-    if s.get("smoothness") is not None:
-        src["smoothness"] = _number(s["smoothness"], "source.smoothness")
-        if src["smoothness"] < 0:
-            raise ConfigError(f"source.smoothness: {src['smoothness']:g} is negative; give 0 (none) or a positive weight")
-    if s.get("bounds") is not None:
-        src["bounds"] = _parse_location_bounds(s["bounds"], "source.bounds", model)
-    if s.get("start") is not None:
-        src["start"] = _parse_location_point(s["start"], "source.start", model)
+    if "bounds" in s:
+        src["bounds"] = _parse_location_bounds(raw["source"]["bounds"], "source.bounds", model)
+    if "start" in s:
+        src["start"] = _parse_location_point(raw["source"]["start"], "source.start", model)
         if src["start"]["origin_time"] is None:
             raise ConfigError("source.start.origin_time: missing; give it with the start position (or drop source.start)")
 
-    q = _mapping(raw.get("search") or {}, "search", "the optimiser settings")
-    _check_keys(q, "search", SEARCH_KEYS)
     search = {"method": "lbfgs", "scaled": True, "iterations": 60, "multi_start": 1, "grid_spacing": None}
-    if q.get("method") is not None:
-        search["method"] = _choice(q["method"], "search.method", LOCATE_METHODS)
-    if q.get("scaled") is not None:
-        search["scaled"] = _boolean(q["scaled"], "search.scaled")
-    for name in ("iterations", "multi_start"):
-        if q.get(name) is not None:
-            search[name] = _integer(q[name], f"search.{name}")
-            if search[name] < 1:
-                raise ConfigError(f"search.{name}: {search[name]} < 1; give at least 1")
-    if q.get("grid_spacing") is not None:
-        search["grid_spacing"] = _positive(q["grid_spacing"], "search.grid_spacing", "m")
+    search.update(given(validate_section(schema.Search, raw.get("search"), "search")))  # keys, types, ranges
     truth = None if raw.get("truth") is None else _parse_location_point(raw["truth"], "truth", model)
     return LocateConfig(model, traces, pre, src, search, simulation, truth, path, raw)
 

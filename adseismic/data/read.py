@@ -552,9 +552,11 @@ def _local_override(local, tr, ndim):
 def read_station_traces(paths, *, inventory=None, reference=None, ndim=2, local_coordinates=None,
                         component=None, fill_gaps=None, align=False, noise_window=None,
                         starttime=None, endtime=None) -> StationTraces:
-    """Read event traces (MiniSEED, SAC, anything ObsPy reads) into :class:`StationTraces`.
+    """Read event traces (MiniSEED, SAC, ASDF, anything ObsPy reads) into :class:`StationTraces`.
 
-    paths: one path / glob or a list; inventory: an ObsPy Inventory or StationXML path(s)
+    paths: one path / glob or a list; an ASDF file (``FILE`` or ``FILE#tag`` when it holds several waveform tags)
+    brings its StationXML and, for our forward output without a geographic reference, its local coordinates
+    (:mod:`adseismic.data.asdf`); inventory: an ObsPy Inventory or StationXML path(s)
     (read with obspy.read_inventory). Coordinates per trace, first found wins:
     ``local_coordinates`` (dict keyed 'NET.STA.LOC.CHA', 'NET.STA' or 'STA' -> (z,[y,]x) metres
     in model axis order, or a dict with keys 'x', ['y',] 'z'), then the inventory
@@ -573,6 +575,10 @@ def read_station_traces(paths, *, inventory=None, reference=None, ndim=2, local_
     """
     if ndim not in (2, 3):
         raise TraceError(f"ndim: {ndim!r} is not 2 or 3")
+    from adseismic.data.asdf import station_inputs
+
+    # ASDF files (waveforms + StationXML inside, optionally FILE#tag) -> their Stream, inventory and local coordinates
+    paths, inventory, local_coordinates = station_inputs(paths, inventory, local_coordinates, ndim)
     stream = _merged_stream(paths, component, fill_gaps, starttime, endtime)
     names = [tr.id for tr in stream]
     data, delta, t_start, nt = _common_window(stream, align)
@@ -621,7 +627,7 @@ def _merged_stream(paths, component, fill_gaps, starttime, endtime):
         raise TraceError("paths: no files given")
     stream = obspy.Stream()
     for p in path_list:
-        stream += _read_checked(p)
+        stream += p if isinstance(p, obspy.Stream) else _read_checked(p)
     if component is not None:
         stream = stream.select(component=component)
         log.info("kept %d traces of component %s", len(stream), component)

@@ -4,7 +4,8 @@ run_fwi(config, rundir) inverts the velocity model for all shots of the config:
 1. plan the grid for the velocity bounds (every model the optimiser may visit is stable and resolved)
    and resample the start model onto it;
 2. observed data: simulated from `true_model` with the full wavelet (a synthetic study), or read from
-   files; stored in RUNDIR/observed.h5 so that a resumed run uses the same data;
+   files; stored in RUNDIR/observed.h5 so that a resumed run uses the same data (and, with pyasdf, in ASDF as
+   RUNDIR/observed_waveforms.h5 on the simulation's time axis, adseismic.data.asdf's layout);
 3. for each band (low to high), the wavelet and the observed data get the same zero-phase
    Butterworth band-pass (filtering the source filters the synthetics exactly: the data are linear
    in the source), optionally a least-squares wavelet estimate, and the optimiser minimises the
@@ -36,6 +37,7 @@ from adseismic.runs import format_band, format_position
 from adseismic.scene import build_scene, plan_scene
 from adseismic.solve.acoustic import forward, gradient
 from adseismic.solve.batch import shot_slices
+from adseismic.solve.distributed import ShotPool, check_parallel, reduce_in_order
 from adseismic.solve.misfits import misfit as named_misfit
 
 log = logging.getLogger(__name__)
@@ -242,6 +244,8 @@ def prepare_fwi(cfg) -> Prepared:
     observed = read_observed(cfg.observed, scene, fwd.geometry, bands=inv.bands) if cfg.observed is not None else None
     if observed is not None:
         _check_observed_selected(cfg, observed, weights)
+    if getattr(cfg, "parallel", None) is not None:  # scheduler reachable, devices present, not more workers than shots
+        check_parallel(cfg.parallel, plan.device, fwd.n_shots)
     return Prepared(plan, scene, bounds, observed)
 
 
@@ -327,6 +331,10 @@ def _observed(cfg, prep: Prepared, rundir: Path, progress):
                        order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface,
                        device=p.device, precision=p.precision, progress=progress).receiver_amplitudes  # fmt: skip
     write_h5_atomic(path, lambda f: f.create_dataset("data", data=data))
+    from adseismic.data.asdf import write_forward_asdf  # the same data in ASDF for other tools (pyasdf optional)
+
+    write_forward_asdf(rundir / "observed_waveforms.h5", receiver_data=data, dt=p.dt, source_coordinates=cfg.forward.geometry.sources,
+                       receiver_coordinates=cfg.forward.geometry.receivers)
     return data
 
 
@@ -342,7 +350,7 @@ def _check_band_nyquist(bands, dt_in: float, where: str) -> None:
 
 
 def read_observed(spec, scene, geometry, bands=None):
-    """Observed data (n_shots, n_receivers, nt) on the scene's time axis, from our HDF5 or SEG-Y/SU
+    """Observed data (n_shots, n_receivers, nt) on the scene's time axis, from our HDF5, ASDF or SEG-Y/SU
     files; the file's shot/receiver counts and coordinates must match the config's geometry. bands: the inversion's
     (f_low, f_high) Hz bands, refused when a corner is at or above the data's Nyquist frequency."""
     p = scene.plan
@@ -360,6 +368,15 @@ def read_observed(spec, scene, geometry, bands=None):
             raise ValueError(f"observed.path: {spec['path']}: receiver_data of shape {data.shape} with dt = {dt_in:g} s is not "
                              f"(shots, receivers, samples >= 1) data with a positive sample interval; write it with 'adseismic forward'")
         src, rec = d.source_coordinates, np.broadcast_to(d.receiver_coordinates, (len(d.source_coordinates), *d.receiver_coordinates.shape))
+    elif spec["kind"] == "asdf":  # shots = waveform tags shot_<k>, receivers = stations (adseismic.data.asdf)
+        from adseismic.data.asdf import read_shot_gathers_asdf
+
+        try:
+            g = read_shot_gathers_asdf(spec["path"], reference=spec.get("reference"), ndim=scene.model.ndim,
+                                       component=spec.get("component"))
+        except ValueError as e:
+            raise ValueError(f"observed.path: {e}") from None
+        data, dt_in, t0, src, rec = g.data, g.dt, g.t0, g.sources, g.receivers
     else:
         from adseismic.data.read import read_shot_gathers
 
@@ -440,9 +457,18 @@ def data_weights(scene, inv, geometry):
 def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWIResult:
     """Run (or resume, when rundir holds journals) the inversion described by cfg, an FWIConfig
     (config.load_fwi_config), writing model.h5, history.h5, the log and PNGs into the folder rundir. Returns the
-    FWIResult: the inverted model (nz, [ny,] nx) in m/s on the simulation grid (spacing dx m, origin m)."""
+    FWIResult: the inverted model (nz, [ny,] nx) in m/s on the simulation grid (spacing dx m, origin m).
+    With a `parallel:` section (cfg.parallel) the shots of every evaluation run on Dask workers
+    (solve.distributed.ShotPool, one shot per batch unless inversion.shots_per_batch says otherwise)."""
     t_start = time.perf_counter()
     prep = prepared or prepare_fwi(cfg)
+    if getattr(cfg, "parallel", None) is None:
+        return _run_fwi(cfg, rundir, progress, prep, t_start, None)
+    with ShotPool(cfg.parallel, prep.plan.device, cfg.forward.n_shots) as pool:
+        return _run_fwi(cfg, rundir, progress, prep, t_start, pool)
+
+
+def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     rundir = Path(rundir)
     rundir.mkdir(parents=True, exist_ok=True)
     inv, fwd = cfg.inversion, cfg.forward
@@ -453,7 +479,7 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
     region_mask = conditioning.mask(shape, p.dx, p.origin, inv.water_depth, fwd.geometry.sources, inv.source_radius)
     depth = (p.origin[0] + p.dx * np.arange(shape[0])).reshape((-1,) + (1,) * (len(shape) - 1)) * np.ones(shape) + p.dx
     history = _History(rundir / "history.h5", p.dx, p.origin)
-    batches = shot_slices(len(scene.source_amplitudes), inv.shots_per_batch)
+    batches = shot_slices(len(scene.source_amplitudes), inv.shots_per_batch or (1 if pool is not None else None))
     budget = None if inv.memory_budget_gb is None else inv.memory_budget_gb * 1e9
     kw = dict(order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, pml_velocity=bounds[1],
               free_surface=p.free_surface, device=p.device, precision=p.precision, memory_budget=budget)  # fmt: skip
@@ -475,6 +501,9 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
         # because a resumed run replays the first evaluations from the journal without calling us.
         scale_path = rundir / f"band{b}_scale.json"
         scale = json.loads(scale_path.read_text()) if scale_path.exists() else {}
+        if pool is not None:  # each batch's data stay on a worker for the band; an evaluation sends only the model
+            pool.keep([{"amplitudes": amp[sl], "sources": scene.source_locations[sl], "receivers": scene.receiver_locations[sl],
+                        "weights": weights[sl], "observed": weights[sl] * obs_b[sl], "first": sl.start} for sl in batches])  # fmt: skip
 
         timing = _EvaluationTimes(b, history)
 
@@ -482,7 +511,13 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
             tm.start()
             v = xv.reshape(shape) * V_REF
             loss, grad, illum = 0.0, np.zeros(shape), np.zeros(shape) if inv.preconditioning == "pseudo_hessian" else None
-            for sl in batches:
+            if pool is not None:  # the batches on the Dask workers, summed here in batch order (float64) as below
+                t = time.perf_counter()
+                rs = pool.evaluate(v, {"dx": p.dx, "dt": p.dt, "misfit": inv.misfit, "illumination": illum is not None, "kw": kw})
+                tm.now["gradient"] += time.perf_counter() - t  # (the workers' misfits counted as simulation)
+                loss, grad, illum = reduce_in_order(rs, shape)
+                last["residual"] = weights[0] * (obs_b[0] - rs[0]["synthetic0"])
+            for sl in batches if pool is None else ():
                 w_sl, o_sl = weights[sl], weights[sl] * obs_b[sl]
 
                 def weighted(syn, w_sl=w_sl, o_sl=o_sl):  # misfit of the muted, windowed data

@@ -1,0 +1,184 @@
+"""Shot parallelism on Dask (issue 25, adseismic.solve.distributed): a LocalCluster of 2 CPU workers gives the
+gradient and misfit of one process (float64), the same FWI iterates, the fault-free gradient when a worker is
+killed during an evaluation, and bad `parallel:` input is refused before work with exit 2."""
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+pytest.importorskip("distributed")
+
+from adseismic.cli import main
+from adseismic.config import load_fwi_config
+from adseismic.config.parallel import ParallelConfig
+from adseismic.inversion.fwi import _observed, band_pass, data_weights, prepare_fwi
+from adseismic.solve import distributed
+from adseismic.solve.acoustic import gradient
+from adseismic.solve.batch import shot_slices
+from adseismic.solve.misfits import misfit as named_misfit
+
+from .test_fwi import TINY
+
+PARALLEL = {"engine": "dask", "scheduler": "local", "devices": ["cpu", "cpu"]}
+
+
+def write(tmp_path, cfg, name="fwi.yaml"):
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+class Problem:
+    """TINY's gradient problem (with n_shots shots) as inversion.fwi builds it: the band-passed wavelet and observed
+    data, the weights, the gradient keywords; `one_process` is fwi's single-process loop over shot batches."""
+
+    def __init__(self, tmp_path, n_shots=3):
+        raw = dict(TINY, geometry=dict(TINY["geometry"], sources={"line": dict(TINY["geometry"]["sources"]["line"], count=n_shots)}))
+        self.cfg = load_fwi_config(write(tmp_path, raw, "problem.yaml"))
+        prep = prepare_fwi(self.cfg)
+        self.scene, p = prep.scene, prep.plan
+        band = self.cfg.inversion.bands[0]
+        self.obs = band_pass(_observed(self.cfg, prep, tmp_path, False), p.dt, band)
+        wavelet = band_pass(self.scene.wavelet, p.dt, band)
+        self.amp = np.broadcast_to(wavelet, self.scene.source_amplitudes.shape).copy()
+        self.weights = data_weights(self.scene, self.cfg.inversion, self.cfg.forward.geometry)
+        self.kw = dict(order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, pml_velocity=prep.bounds[1],
+                       free_surface=p.free_surface, device=p.device, precision=p.precision, memory_budget=None, pml_frequency=band[1] / 2)  # fmt: skip
+        self.p, self.n_shots = p, n_shots
+        self.model = self.scene.model.values * 1.02  # away from the start model: every term of the gradient non-zero
+
+    def batches(self, per_batch=1):
+        s = self.scene
+        return [{"amplitudes": self.amp[sl], "sources": s.source_locations[sl], "receivers": s.receiver_locations[sl],
+                 "weights": self.weights[sl], "observed": self.weights[sl] * self.obs[sl], "first": sl.start}
+                for sl in shot_slices(self.n_shots, per_batch)]  # fmt: skip
+
+    def params(self):
+        return {"dx": self.p.dx, "dt": self.p.dt, "misfit": "l2", "illumination": False, "kw": self.kw}
+
+    def one_process(self, per_batch=None):
+        s, p = self.scene, self.p
+        loss, grad = 0.0, np.zeros(self.model.shape)
+        for sl in shot_slices(self.n_shots, per_batch):
+            w_sl, o_sl = self.weights[sl], self.weights[sl] * self.obs[sl]
+
+            def weighted(syn, w_sl=w_sl, o_sl=o_sl):
+                j, adj = named_misfit("l2", w_sl * syn, o_sl, p.dt)
+                return j, w_sl * adj
+
+            r = gradient(self.model, p.dx, p.dt, self.amp[sl], s.source_locations[sl], s.receiver_locations[sl], misfit=weighted, **self.kw)
+            loss += r.loss
+            grad += r.velocity
+        return loss, grad
+
+
+@pytest.fixture(scope="module")
+def problem(tmp_path_factory):
+    return Problem(tmp_path_factory.mktemp("problem"))
+
+
+@pytest.fixture(scope="module")
+def pool(problem):
+    with distributed.ShotPool(ParallelConfig(devices=["cpu", "cpu"]), "cpu", problem.n_shots) as pool:
+        yield pool
+
+
+def test_two_workers_give_the_gradient_of_one_process(problem, pool):
+    assert len(pool.workers()) == 2
+    pool.keep(problem.batches())
+    rs = pool.evaluate(problem.model, problem.params())
+    assert [r["first"] for r in rs] == [0, 1, 2]  # batch order
+    assert len({r["pid"] for r in rs}) == 2 and os.getpid() not in {r["pid"] for r in rs}  # both workers, not this process
+    loss, grad, _ = distributed.reduce_in_order(rs, problem.model.shape)
+    one_loss, one_grad = problem.one_process()  # one batch of all shots: equal to round-off
+    assert abs(loss - one_loss) <= 1e-12 * abs(one_loss)
+    assert np.linalg.norm(grad - one_grad) <= 1e-12 * np.linalg.norm(one_grad)
+    # the same batches in one process: the same gradient bit for bit; the misfit to the last bit or so (its dot
+    # product runs on one BLAS thread in a worker, on all of them here)
+    per_shot_loss, per_shot_grad = problem.one_process(per_batch=1)
+    assert abs(loss - per_shot_loss) <= 1e-14 * abs(per_shot_loss)
+    np.testing.assert_array_equal(grad, per_shot_grad)
+    again = distributed.reduce_in_order(pool.evaluate(problem.model, problem.params()), problem.model.shape)
+    assert again[0] == loss and np.array_equal(again[1], grad)  # the data stayed on the workers: only the model went out
+
+
+def test_a_worker_killed_during_an_evaluation_still_gives_the_gradient(problem, pool):
+    pool.keep(problem.batches())
+    clean = distributed.reduce_in_order(pool.evaluate(problem.model, problem.params()), problem.model.shape)
+    pids = pool.client.run(os.getpid)  # {worker address: pid}, processes this test's pool started
+    victim = max(pids)
+    out = {}
+    runner = threading.Thread(target=lambda: out.setdefault("rs", pool.evaluate(problem.model, problem.params())))
+    runner.start()
+    deadline = time.time() + 30
+    while not pool.client.processing().get(victim) and time.time() < deadline:  # the victim holds a task of this evaluation
+        time.sleep(0.002)
+    assert pool.client.processing().get(victim) and runner.is_alive(), "no task reached the worker to kill"
+    os.kill(pids[victim], signal.SIGKILL)
+    runner.join(120)
+    assert not runner.is_alive() and "rs" in out
+    assert pids[victim] not in {r["pid"] for r in out["rs"]}  # its shots ran elsewhere (or on the restarted worker)
+    loss, grad, _ = distributed.reduce_in_order(out["rs"], problem.model.shape)
+    assert loss == clean[0]
+    np.testing.assert_array_equal(grad, clean[1])
+
+
+def test_fwi_iterates_do_not_depend_on_the_workers(tmp_path):
+    cfg = dict(TINY, inversion=dict(TINY["inversion"], iterations=2, bands=[4.0], shots_per_batch=1))
+    one, two = tmp_path / "one", tmp_path / "two"
+    assert main(["fwi", str(write(tmp_path, cfg, "one.yaml")), "-o", str(one), "-q"]) == 0
+    assert main(["fwi", str(write(tmp_path, dict(cfg, parallel=PARALLEL), "two.yaml")), "-o", str(two), "-q"]) == 0
+    assert "2 Dask worker(s)" in (two / "fwi.log").read_text()
+    with h5py.File(one / "history.h5") as a, h5py.File(two / "history.h5") as b:
+        assert sorted(a["band0"]) == sorted(b["band0"]) == ["iter0001", "iter0002"]
+        for it in a["band0"]:
+            np.testing.assert_allclose(b[f"band0/{it}/model"][...], a[f"band0/{it}/model"][...], rtol=1e-12, atol=0)
+            assert b[f"band0/{it}"].attrs["misfit"] == pytest.approx(a[f"band0/{it}"].attrs["misfit"], rel=1e-12)
+    with h5py.File(one / "model.h5") as a, h5py.File(two / "model.h5") as b:
+        np.testing.assert_allclose(b["model"][...], a["model"][...], rtol=1e-12, atol=0)
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("parallel, key, words", [
+    ({"scheduler": f"tcp://127.0.0.1:{free_port()}"}, "parallel.scheduler", ["no Dask scheduler answers", "scheduler: local"]),
+    ({"devices": ["cuda:7"]}, "parallel.devices[0]", ["cuda:7", "not available"]),
+    ({"devices": ["cpu", "cpu", "cpu", "cpu"]}, "parallel.devices", ["4 devices for 3 shot(s)", "at most 3"]),
+    ({"workers": 5}, "parallel.workers", ["5 workers for 3 shot(s)"]),
+    ({"engine": "mpi"}, "parallel.engine", ["dask"]),
+    ({"scheduler": "my-cluster"}, "parallel.scheduler", ["tcp://"]),
+    ({"devices": ["gpu0"]}, "parallel.devices[0]", ["cuda:N"]),
+    ({"shedular": "local"}, "parallel.shedular", ["unknown key"]),
+])  # fmt: skip
+def test_bad_parallel_input_exits_2_before_work(tmp_path, capsys, monkeypatch, parallel, key, words):
+    monkeypatch.setattr(distributed, "CONNECT_TIMEOUT", 1.0)
+    out = tmp_path / "run"
+    assert main(["fwi", str(write(tmp_path, dict(TINY, parallel=parallel))), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {key}:" in err, err
+    assert all(w in err for w in words), err
+    assert not out.exists()
+
+
+def test_runs_without_dask_when_there_is_no_parallel_section(tmp_path):
+    # dask hidden: the package imports, and a parallel section is refused with the install line
+    code = ("import sys; sys.modules['distributed'] = None; sys.modules['dask'] = None\n"
+            "from adseismic.inversion.fwi import run_fwi; from adseismic.solve import distributed as d\n"
+            "from adseismic.config.parallel import ParallelConfig\n"
+            "try:\n    d.check_parallel(ParallelConfig(), 'cpu', 3)\nexcept ValueError as e:\n    print(e)\n")  # fmt: skip
+    out = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "parallel.engine: dask is not installed" in out.stdout and "adseismic[dask]" in out.stdout
