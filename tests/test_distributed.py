@@ -132,6 +132,7 @@ def test_a_worker_killed_during_an_evaluation_still_gives_the_gradient(problem, 
     np.testing.assert_array_equal(grad, clean[1])
 
 
+@pytest.mark.slow
 def test_fwi_iterates_do_not_depend_on_the_workers(tmp_path):
     cfg = dict(TINY, inversion=dict(TINY["inversion"], iterations=2, bands=[4.0], shots_per_batch=1))
     one, two = tmp_path / "one", tmp_path / "two"

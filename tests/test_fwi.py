@@ -48,7 +48,13 @@ def test_tiny_inversion_end_to_end(tmp_path, capsys):
     assert len(wrote) == 1  # the final line names every file of the run directory, journals included
     assert all(p.name in wrote[0] for p in out.iterdir() if p.is_file()), wrote[0]
     log = (out / "fwi.log").read_text()
-    assert log.splitlines()[0].endswith(f"fwi {cfg} -> {out}")  # the banner first, then the checks made before OUTDIR existed
+    assert log.splitlines()[0].endswith(f"fwi {cfg} -> {out}")
+    import pyasdf  # observed and final synthetic data in ASDF for other tools (issue 27)
+
+    for name in ("observed_waveforms.h5", "synthetic_waveforms.h5"):
+        with pyasdf.ASDFDataSet(str(out / name), mode="r") as ds:
+            assert len(ds.waveforms) == 42 and sorted(ds.waveforms.list()[0:1]) == ["XX.R0000"]
+            assert ds.waveforms["XX.R0000"].get_waveform_tags() == ["shot_0000", "shot_0001", "shot_0002"]  # the banner first, then the checks made before OUTDIR existed
     assert not list(out.glob("*.part"))
     summary = json.loads((out / "summary.json").read_text())
     assert [b["iterations"] for b in summary["bands"]] == [3, 3]

@@ -56,6 +56,7 @@ def config(directory, mseed, xml=None, **sections):
     return path
 
 
+@pytest.mark.slow  # two locations (the command's and the in-memory one): 50 s on 2 cores
 def test_miniseed_stationxml_round_trip_gives_the_in_memory_location(tmp_path, capsys):
     from obspy import UTCDateTime, read_events
 
@@ -89,6 +90,12 @@ def test_miniseed_stationxml_round_trip_gives_the_in_memory_location(tmp_path, c
     q = read_quakeml_origin(out / "event.xml")
     back = project(q["latitude"], q["longitude"], -q["depth"], Reference(**REF), ndim=2)
     assert np.linalg.norm(np.asarray(back) - pos) < 1e-2
+    import pyasdf  # the event's traces, its stations and the located event in one ASDF file (issue 27)
+
+    with pyasdf.ASDFDataSet(str(out / "waveforms.h5"), mode="r") as ds:
+        assert len(ds.events) == 1 and len(ds.waveforms) == len(rec)
+        sta = ds.waveforms[ds.waveforms.list()[0]]
+        assert sorted(sta.get_waveform_tags()) == ["observed_processed", "synthetic"] and "StationXML" in sta
     printed = capsys.readouterr().out
     assert "event at z =" in printed
     wrote = [line for line in printed.splitlines() if line.startswith("wrote ")]

@@ -27,6 +27,9 @@ Layout written by :func:`write_waveforms_asdf` (``adseismic forward`` -> ``wavef
 * ``SourceTimeFunctions/wavelet`` (nt,): the wavelet injected at every shot (when given);
 * QuakeML events when given (``events``: an ObsPy Catalog or a QuakeML path), e.g. a located earthquake.
 
+:func:`write_event_asdf` (``adseismic locate`` -> ``waveforms.h5``) keeps the stations' own trace ids and StationXML,
+with the tags ``observed_processed`` and ``synthetic`` and the located event's QuakeML inside.
+
 Readers: :func:`read_shot_gathers_asdf` (fwi ``observed: {kind: asdf, path}``) and :func:`station_streams` /
 :func:`is_asdf` (``adseismic locate``: a ``traces.paths`` entry that is an ASDF file, optionally ``FILE#tag``),
 which :func:`adseismic.data.read.read_station_traces` uses.
@@ -43,7 +46,7 @@ import numpy as np
 from adseismic.data.traces import ShotGathers, TraceError
 
 __all__ = ["NETWORK", "PIP", "is_asdf", "read_shot_gathers_asdf", "receiver_code", "shot_tag", "station_inputs", "station_streams",
-           "write_forward_asdf", "write_waveforms_asdf"]
+           "write_event_asdf", "write_forward_asdf", "write_waveforms_asdf"]
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +154,43 @@ def write_waveforms_asdf(path, receiver_data, dt, source_coordinates, receiver_c
             if wavelet is not None:
                 ds.add_auxiliary_data(data=np.asarray(wavelet), data_type="SourceTimeFunctions", path="wavelet",
                                       parameters={"dt": float(dt), "units": units})
+    return path
+
+
+def write_event_asdf(path, names, observed, synthetic, dt, starttime, *, inventory=None, events=None):
+    """Write an event's traces to the ASDF file ``path`` atomically (``adseismic locate`` -> ``waveforms.h5``):
+    observed and synthetic (n_traces, nt) at sample interval dt (s) from ``starttime`` (UTCDateTime of sample 0)
+    under their own trace ids ``names`` ('NET.STA.LOC.CHA'), tagged ``observed_processed`` (the preprocessed data the
+    location fitted) and ``synthetic``; inventory: the StationXML path or Inventory of the stations (or None);
+    events: the located event (ObsPy Catalog or QuakeML path). Without pyasdf: an INFO line and None."""
+    import importlib.util
+
+    if importlib.util.find_spec("pyasdf") is None:
+        log.info("%s not written: ASDF needs pyasdf; %s (location.h5 holds the same traces)", pathlib.Path(path).name, PIP)
+        return None
+    pyasdf = _pyasdf()
+    import obspy
+
+    from adseismic.data.atomic import atomic_write
+
+    def stream(data):
+        traces = []
+        for name, row in zip(names, np.asarray(data)):
+            net, sta, loc, cha = (name.split(".") + ["", "", "", ""])[:4]
+            traces.append(obspy.Trace(data=np.ascontiguousarray(row), header={"network": net, "station": sta, "location": loc,
+                                                                              "channel": cha, "starttime": starttime, "delta": float(dt)}))
+        return obspy.Stream(traces)
+
+    path = pathlib.Path(path)
+    with atomic_write(path) as part:
+        part.unlink(missing_ok=True)
+        with pyasdf.ASDFDataSet(str(part), mode="w", compression=None) as ds:
+            if events is not None:
+                ds.add_quakeml(events if isinstance(events, obspy.Catalog) else obspy.read_events(str(events)))
+            if inventory is not None:
+                ds.add_stationxml(inventory if isinstance(inventory, obspy.Inventory) else obspy.read_inventory(str(inventory)))
+            ds.add_waveforms(stream(observed), tag="observed_processed")
+            ds.add_waveforms(stream(synthetic), tag="synthetic")
     return path
 
 

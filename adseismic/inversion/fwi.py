@@ -5,7 +5,8 @@ run_fwi(config, rundir) inverts the velocity model for all shots of the config:
    and resample the start model onto it;
 2. observed data: simulated from `true_model` with the full wavelet (a synthetic study), or read from
    files; stored in RUNDIR/observed.h5 so that a resumed run uses the same data (and, with pyasdf, in ASDF as
-   RUNDIR/observed_waveforms.h5 on the simulation's time axis, adseismic.data.asdf's layout);
+   RUNDIR/observed_waveforms.h5 on the simulation's time axis, adseismic.data.asdf's layout; the final model's
+   synthetics go to RUNDIR/synthetic_waveforms.h5 at the end);
 3. for each band (low to high), the wavelet and the observed data get the same zero-phase
    Butterworth band-pass (filtering the source filters the synthetics exactly: the data are linear
    in the source), optionally a least-squares wavelet estimate, and the optimiser minimises the
@@ -580,8 +581,25 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
             "start_anomaly": relative_error(out.start_model, v_true, region), "final_anomaly": relative_error(v, v_true, region),
             "start_below_water": relative_error(out.start_model, v_true, below), "final_below_water": relative_error(v, v_true, below),
         }  # fmt: skip
+    _write_synthetic_asdf(rundir, fwd, scene, p, v, progress)
     _write_result(rundir, out, fwd)
     return out
+
+
+def _write_synthetic_asdf(rundir: Path, fwd, scene, p, model, progress):
+    """The final model's synthetics (the full wavelet, every shot) in ASDF, RUNDIR/synthetic_waveforms.h5 beside
+    observed_waveforms.h5, for other tools: one forward run, made only where pyasdf is installed."""
+    import importlib.util
+
+    if importlib.util.find_spec("pyasdf") is None:
+        return
+    from adseismic.data.asdf import write_forward_asdf
+
+    syn = forward(model, p.dx, p.dt, scene.source_amplitudes, scene.source_locations, scene.receiver_locations, order=p.order,
+                  pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface, device=p.device,
+                  precision=p.precision, progress=progress).receiver_amplitudes  # fmt: skip
+    write_forward_asdf(rundir / "synthetic_waveforms.h5", receiver_data=syn, dt=p.dt, source_coordinates=fwd.geometry.sources,
+                       receiver_coordinates=fwd.geometry.receivers, wavelet=scene.wavelet)
 
 
 def _write_result(rundir: Path, res: FWIResult, fwd):

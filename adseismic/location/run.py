@@ -263,6 +263,13 @@ def write_outputs(outdir: Path, prep: PreparedEvent, res: LocationResult, mmap: 
 
     write_h5_atomic(outdir / "location.h5", fill)
     written.append(outdir / "location.h5")
+    from adseismic.data.asdf import write_event_asdf
+
+    asdf = write_event_asdf(outdir / "waveforms.h5", prep.traces.names, prep.observed, res.synthetic, prep.plan.dt,
+                            prep.traces.starttime + prep.t_shift, inventory=prep.config.traces["inventory"],
+                            events=outdir / "event.xml" if (outdir / "event.xml").exists() else None)  # fmt: skip
+    if asdf is not None:
+        written.append(asdf)
     written.append(plot_station_traces(outdir / "traces.png", prep.observed, res.synthetic, prep.plan.dt, prep.traces.names, t0=prep.t_shift))
     truth = None if prep.truth is None else prep.truth["position"]
     written.append(plot_location(outdir / "location.png", prep.model, prep.stations, res.position, res.covariance[[0, ndim - 1]][:, [0, ndim - 1]],
