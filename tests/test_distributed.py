@@ -88,8 +88,12 @@ def problem(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def pool(problem):
+    environ = dict(os.environ)
     with distributed.ShotPool(ParallelConfig(devices=["cpu", "cpu"]), "cpu", problem.n_shots) as pool:
         yield pool
+    # distributed's nanny leaves OMP/MKL/OPENBLAS_NUM_THREADS=1 in os.environ: later processes would sum with one BLAS
+    # thread and differ in the last bit (a kill -9/resume run in a subprocess did); the pool puts them back
+    assert dict(os.environ) == environ
 
 
 def test_two_workers_give_the_gradient_of_one_process(problem, pool):

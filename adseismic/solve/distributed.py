@@ -196,6 +196,11 @@ class ShotPool:
     def __init__(self, par, sim_device: str, n_shots: int):
         distributed = _import_dask()
         self.par, self.cluster, self.token = par, None, uuid.uuid4().hex[:12]
+        # distributed's nanny writes its workers' settings (OMP/MKL/OPENBLAS_NUM_THREADS=1, MALLOC_TRIM_THRESHOLD_) into
+        # this process's os.environ and leaves them there: every process started later (a forward, a resumed fwi in a
+        # subprocess) would then run one BLAS thread where it ran several, and its sums would differ in the last bit.
+        # close() puts the environment back.
+        self.environ = dict(os.environ)
         self.generation, self.evaluations, self.futures = 0, 0, []
         if par.scheduler == "local":
             devices = local_devices(par, sim_device, n_shots)
@@ -223,6 +228,8 @@ class ShotPool:
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
+        os.environ.clear()
+        os.environ.update(self.environ)
 
     def workers(self) -> list[str]:
         """The addresses of the workers now connected."""
