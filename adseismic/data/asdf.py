@@ -36,6 +36,7 @@ which :func:`adseismic.data.read.read_station_traces` uses.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import pathlib
@@ -84,6 +85,34 @@ def band_code(sampling_rate: float) -> str:
     return "L"
 
 
+def _skipped(path, holder: str) -> bool:
+    """Whether an optional ASDF copy at ``path`` is skipped for want of pyasdf (an INFO line with the pip command:
+    ``holder``, our own file, has the same traces)."""
+    import importlib.util
+
+    if importlib.util.find_spec("pyasdf") is not None:
+        return False
+    log.info("%s not written: ASDF needs pyasdf; %s (%s holds the same traces)", pathlib.Path(path).name, PIP, holder)
+    return True
+
+
+@contextlib.contextmanager
+def _new_dataset(path: pathlib.Path, events=None):
+    """A new ASDF file at ``path``, written as ``<path>.part`` and renamed into place when the block ends without an
+    error; with ``events`` (an ObsPy Catalog or a QuakeML path) inside."""
+    pyasdf = _pyasdf()
+    import obspy
+
+    from adseismic.data.atomic import atomic_write
+
+    with atomic_write(path) as part:
+        part.unlink(missing_ok=True)
+        with pyasdf.ASDFDataSet(str(part), mode="w", compression=None) as ds:
+            if events is not None:
+                ds.add_quakeml(events if isinstance(events, obspy.Catalog) else obspy.read_events(str(events)))
+            yield ds
+
+
 def write_waveforms_asdf(path, receiver_data, dt, source_coordinates, receiver_coordinates, *, starttime=None,
                          reference=None, wavelet=None, events=None, channel=None, units="units of source_wavelet"):
     """Write shot gathers receiver_data (n_shots, n_receivers, nt) at sample interval dt (s) to the ASDF file
@@ -92,12 +121,10 @@ def write_waveforms_asdf(path, receiver_data, dt, source_coordinates, receiver_c
     sample 0 of every shot (UTCDateTime or ISO text; default 1970-01-01T00:00:00). reference: a geographic
     :class:`~adseismic.data.geometry.Reference` (or [lat, lon] / dict) for the StationXML latitude / longitude.
     wavelet (nt,): stored as auxiliary data. events: ObsPy Catalog or QuakeML path. Returns ``path``."""
-    pyasdf = _pyasdf()
+    _pyasdf()  # without it: one line with the pip command, before any work
     import obspy
     from obspy import UTCDateTime
     from obspy.core.inventory import Channel, Inventory, Network, Station
-
-    from adseismic.data.atomic import atomic_write
 
     data = np.asarray(receiver_data)
     src = np.asarray(source_coordinates, dtype=float)
@@ -132,28 +159,24 @@ def write_waveforms_asdf(path, receiver_data, dt, source_coordinates, receiver_c
     inv = Inventory(networks=[Network(code=NETWORK, stations=stations, description="adseismic synthetic receivers")],
                     source="adseismic")
     path = pathlib.Path(path)
-    with atomic_write(path) as part:
-        part.unlink(missing_ok=True)
-        with pyasdf.ASDFDataSet(str(part), mode="w", compression=None) as ds:
-            if events is not None:
-                ds.add_quakeml(events if isinstance(events, obspy.Catalog) else obspy.read_events(str(events)))
-            ds.add_stationxml(inv)
-            for k in range(data.shape[0]):
-                st = obspy.Stream([obspy.Trace(data=np.ascontiguousarray(data[k, i]),
-                                               header={"network": NETWORK, "station": receiver_code(i), "location": "",
-                                                       "channel": cha, "starttime": t0, "delta": float(dt)})
-                                   for i in range(data.shape[1])])
-                ds.add_waveforms(st, tag=shot_tag(k))
-            params = {"units": "m", "axes": _AXES[ndim], "geographic": geo is not None, "origin_time": str(t0),
-                      "data_units": units}
-            if geo is not None:
-                params.update(reference_latitude=reference.latitude, reference_longitude=reference.longitude,
-                              reference_datum=reference.datum, reference_azimuth=reference.azimuth)
-            ds.add_auxiliary_data(data=rec, data_type="Coordinates", path="Receivers", parameters=params)
-            ds.add_auxiliary_data(data=src, data_type="Coordinates", path="Sources", parameters=params)
-            if wavelet is not None:
-                ds.add_auxiliary_data(data=np.asarray(wavelet), data_type="SourceTimeFunctions", path="wavelet",
-                                      parameters={"dt": float(dt), "units": units})
+    with _new_dataset(path, events) as ds:
+        ds.add_stationxml(inv)
+        for k in range(data.shape[0]):
+            st = obspy.Stream([obspy.Trace(data=np.ascontiguousarray(data[k, i]),
+                                           header={"network": NETWORK, "station": receiver_code(i), "location": "",
+                                                   "channel": cha, "starttime": t0, "delta": float(dt)})
+                               for i in range(data.shape[1])])
+            ds.add_waveforms(st, tag=shot_tag(k))
+        params = {"units": "m", "axes": _AXES[ndim], "geographic": geo is not None, "origin_time": str(t0),
+                  "data_units": units}
+        if geo is not None:
+            params.update(reference_latitude=reference.latitude, reference_longitude=reference.longitude,
+                          reference_datum=reference.datum, reference_azimuth=reference.azimuth)
+        ds.add_auxiliary_data(data=rec, data_type="Coordinates", path="Receivers", parameters=params)
+        ds.add_auxiliary_data(data=src, data_type="Coordinates", path="Sources", parameters=params)
+        if wavelet is not None:
+            ds.add_auxiliary_data(data=np.asarray(wavelet), data_type="SourceTimeFunctions", path="wavelet",
+                                  parameters={"dt": float(dt), "units": units})
     return path
 
 
@@ -163,15 +186,9 @@ def write_event_asdf(path, names, observed, synthetic, dt, starttime, *, invento
     under their own trace ids ``names`` ('NET.STA.LOC.CHA'), tagged ``observed_processed`` (the preprocessed data the
     location fitted) and ``synthetic``; inventory: the StationXML path or Inventory of the stations (or None);
     events: the located event (ObsPy Catalog or QuakeML path). Without pyasdf: an INFO line and None."""
-    import importlib.util
-
-    if importlib.util.find_spec("pyasdf") is None:
-        log.info("%s not written: ASDF needs pyasdf; %s (location.h5 holds the same traces)", pathlib.Path(path).name, PIP)
+    if _skipped(path, "location.h5"):
         return None
-    pyasdf = _pyasdf()
     import obspy
-
-    from adseismic.data.atomic import atomic_write
 
     def stream(data):
         traces = []
@@ -182,15 +199,11 @@ def write_event_asdf(path, names, observed, synthetic, dt, starttime, *, invento
         return obspy.Stream(traces)
 
     path = pathlib.Path(path)
-    with atomic_write(path) as part:
-        part.unlink(missing_ok=True)
-        with pyasdf.ASDFDataSet(str(part), mode="w", compression=None) as ds:
-            if events is not None:
-                ds.add_quakeml(events if isinstance(events, obspy.Catalog) else obspy.read_events(str(events)))
-            if inventory is not None:
-                ds.add_stationxml(inventory if isinstance(inventory, obspy.Inventory) else obspy.read_inventory(str(inventory)))
-            ds.add_waveforms(stream(observed), tag="observed_processed")
-            ds.add_waveforms(stream(synthetic), tag="synthetic")
+    with _new_dataset(path, events) as ds:
+        if inventory is not None:
+            ds.add_stationxml(inventory if isinstance(inventory, obspy.Inventory) else obspy.read_inventory(str(inventory)))
+        ds.add_waveforms(stream(observed), tag="observed_processed")
+        ds.add_waveforms(stream(synthetic), tag="synthetic")
     return path
 
 
@@ -396,10 +409,7 @@ def station_inputs(paths, inventory, local_coordinates, ndim):
 def write_forward_asdf(path, **kw):
     """:func:`write_waveforms_asdf` for ``adseismic forward``: without pyasdf (optional), an INFO line with the pip
     command and None instead of the file (data.h5 holds the same samples)."""
-    import importlib.util
-
-    if importlib.util.find_spec("pyasdf") is None:
-        log.info("%s not written: ASDF needs pyasdf; %s (data.h5 holds the same data)", pathlib.Path(path).name, PIP)
+    if _skipped(path, "data.h5"):
         return None
     out = write_waveforms_asdf(path, **kw)
     log.info("wrote %s (ASDF: tags shot_<k>, stations %s.R<i>)", out, NETWORK)

@@ -42,16 +42,7 @@ def _scalar(value) -> float:
 def _read_one(path: pathlib.Path, fmt: str | None):
     import obspy
 
-    if fmt is None:
-        fmt = _EXT_FORMATS.get(path.suffix.lower())
-        if fmt is None:
-            raise TraceError(f"fmt: cannot tell the format of {path} from its extension "
-                             f"{path.suffix!r}; pass fmt='SEGY' or fmt='SU'")
-    fmt = str(fmt).upper().replace("-", "")
-    if fmt not in ("SEGY", "SU"):
-        raise TraceError(f"fmt: {fmt!r} is not 'SEGY' or 'SU'")
-    if not path.is_file():
-        raise TraceError(f"paths: {path} does not exist; give existing SEG-Y / SU files")
+    fmt = _file_format(path, fmt)
     try:
         stream = obspy.read(str(path), format=fmt, unpack_trace_headers=True)
     except Exception as e:  # ObsPy raises assorted types for unreadable files
@@ -210,6 +201,64 @@ DEPTH_CONVENTIONS = ("auto", "elevation", "depth")
 ENGINES = ("auto", "stream", "obspy")
 
 
+def _one_sampling(files, h, file_of, first_of, label):
+    """(dt s, t0 s, nt) shared by every trace of read_shot_gathers' files (TraceError naming the first trace that
+    differs): the trace header's sample interval, else the binary header's; one length; one delay recording time."""
+    iv = h["sample_interval_in_ms_for_this_trace"].astype(np.float64) * 1e-6
+    fallback = np.array([fh.get("dt", 0.0) if lay is None else lay.binary_dt for _, lay, fh, _ in files])[file_of]
+    dts = np.where(iv > 0, iv, fallback)
+    bad = np.flatnonzero((dts != dts[0]) & (np.abs(dts - dts[0]) > 1e-9 * dts[0]))
+    if bad.size:
+        raise TraceError(f"{label(bad[0])}: sample interval {dts[bad[0]]:g} s differs from "
+                         f"{dts[0]:g} s of {label(0)}; resample the traces to one interval")
+    lengths = [lay.nt if lay is not None else fh["nt"] for _, lay, fh, _ in files]
+    bad = [k for k, m in enumerate(lengths) if m != lengths[0]]
+    if bad:
+        raise TraceError(f"{label(first_of[bad[0]])}: {lengths[bad[0]]} samples differ from {lengths[0]} of "
+                         f"{label(0)}; cut or pad the traces to one length")
+    t0s = 1e-3 * h["delay_recording_time"] * _scalars(h["scalar_to_be_applied_to_times"])
+    bad = np.flatnonzero(np.abs(t0s - t0s[0]) > 1e-9)
+    if bad.size:
+        raise TraceError(f"{label(bad[0])}: delay recording time t0 = {t0s[bad[0]]:g} s differs from "
+                         f"{t0s[0]:g} s of {label(0)}; shift the traces to one start time")
+    dt = float(dts[0])
+    if not dt > 0:
+        raise TraceError(f"{label(0)}: sample interval {dt!r} s is not positive; set "
+                         f"sample_interval_in_ms_for_this_trace (microseconds)")
+    return dt, float(t0s[0]), lengths[0]
+
+
+def _group_shots(src, h, group_by, ndim, label):
+    """(n_shots, n_receivers) trace indices of read_shot_gathers: shots by equal source position (to 1 mm) or field
+    record number, in order of first appearance, receivers in trace order (TraceError: unequal shots, or a record
+    with several source positions)."""
+    rec_no = h["original_field_record_number"].astype(np.int64)
+    keys = np.round(src * 1e3).astype(np.int64) if group_by == "source" else rec_no[:, None]
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    shot_of = np.argsort(np.argsort(first))[inverse.reshape(-1)]
+    order = np.argsort(shot_of, kind="stable")
+    counts = np.bincount(shot_of)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    odd = np.flatnonzero(counts != counts[0])
+    if odd.size:
+        s = int(odd[0])
+        m0 = int(order[starts[s]])
+        where = ", ".join(f"{a}={v:.3f}" for a, v in zip(AXES[ndim], src[m0]))
+        raise TraceError(f"shot {s} (source at {where} m; first trace {label(m0)}): "
+                         f"{counts[s]} receivers, but shot 0 has {counts[0]}; every shot needs "
+                         f"the same number of receivers (pad missing traces with zeros "
+                         f"or drop the shot)")
+    grid = order.reshape(len(counts), int(counts[0]))
+    if group_by == "record":
+        spread = (src[grid].max(axis=1) - src[grid].min(axis=1)).max(axis=1)
+        bad = np.flatnonzero(spread > 1e-3)
+        if bad.size:
+            s = int(bad[0])
+            raise TraceError(f"shot {s} (field record {rec_no[grid[s, 0]]}): traces have different "
+                             f"source coordinates; group_by='source' instead")
+    return grid
+
+
 def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2, group_by="source",
                       depth_convention="elevation", model=None, shots=None, receivers=None,
                       engine="auto") -> ShotGathers:
@@ -321,28 +370,7 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2, group_b
     src_z_depth = es * (g["surface_elevation_at_source"] + g["source_depth_below_surface"])
     rec_z_depth = es * g["receiver_group_elevation"]
     del g
-    # --- one sampling, one length, one t0
-    iv = h["sample_interval_in_ms_for_this_trace"].astype(np.float64) * 1e-6
-    fallback = np.array([fh.get("dt", 0.0) if lay is None else lay.binary_dt for _, lay, fh, _ in files])[file_of]
-    dts = np.where(iv > 0, iv, fallback)
-    bad = np.flatnonzero((dts != dts[0]) & (np.abs(dts - dts[0]) > 1e-9 * dts[0]))
-    if bad.size:
-        raise TraceError(f"{label(bad[0])}: sample interval {dts[bad[0]]:g} s differs from "
-                         f"{dts[0]:g} s of {label(0)}; resample the traces to one interval")
-    lengths = [lay.nt if lay is not None else fh["nt"] for _, lay, fh, _ in files]
-    bad = [k for k, m in enumerate(lengths) if m != lengths[0]]
-    if bad:
-        raise TraceError(f"{label(first_of[bad[0]])}: {lengths[bad[0]]} samples differ from {lengths[0]} of "
-                         f"{label(0)}; cut or pad the traces to one length")
-    t0s = 1e-3 * h["delay_recording_time"] * _scalars(h["scalar_to_be_applied_to_times"])
-    bad = np.flatnonzero(np.abs(t0s - t0s[0]) > 1e-9)
-    if bad.size:
-        raise TraceError(f"{label(bad[0])}: delay recording time t0 = {t0s[bad[0]]:g} s differs from "
-                         f"{t0s[0]:g} s of {label(0)}; shift the traces to one start time")
-    dt = float(dts[0])
-    if not dt > 0:
-        raise TraceError(f"{label(0)}: sample interval {dt!r} s is not positive; set "
-                         f"sample_interval_in_ms_for_this_trace (microseconds)")
+    dt, t0, nt = _one_sampling(files, h, file_of, first_of, label)
     src, rec = _apply_depth_convention(src, rec, src_z_depth, rec_z_depth, depth_convention, model, ndim, path_list)
     if ndim == 2:
         ys = np.concatenate([src[:, 1], rec[:, 1]])
@@ -352,34 +380,10 @@ def read_shot_gathers(paths, fmt=None, *, coordinate_scale=None, ndim=2, group_b
                              f"y {rec[i, 1]:g} m, first trace y {ys[0]:g} m; range {np.ptp(ys):g} m) "
                              f"but ndim=2 reads x only; pass ndim=3, or rotate the line onto x")
         src, rec = src[:, [0, 2]], rec[:, [0, 2]]
-    # --- group into shots (in order of first appearance), receivers in trace order
-    rec_no = h["original_field_record_number"].astype(np.int64)
-    keys = np.round(src * 1e3).astype(np.int64) if group_by == "source" else rec_no[:, None]
-    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    shot_of = np.argsort(np.argsort(first))[inverse.reshape(-1)]
-    order = np.argsort(shot_of, kind="stable")
-    counts = np.bincount(shot_of)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    odd = np.flatnonzero(counts != counts[0])
-    if odd.size:
-        s = int(odd[0])
-        m0 = int(order[starts[s]])
-        where = ", ".join(f"{a}={v:.3f}" for a, v in zip(AXES[ndim], src[m0]))
-        raise TraceError(f"shot {s} (source at {where} m; first trace {label(m0)}): "
-                         f"{counts[s]} receivers, but shot 0 has {counts[0]}; every shot needs "
-                         f"the same number of receivers (pad missing traces with zeros "
-                         f"or drop the shot)")
-    grid = order.reshape(len(counts), int(counts[0]))
-    if group_by == "record":
-        spread = (src[grid].max(axis=1) - src[grid].min(axis=1)).max(axis=1)
-        bad = np.flatnonzero(spread > 1e-3)
-        if bad.size:
-            s = int(bad[0])
-            raise TraceError(f"shot {s} (field record {rec_no[grid[s, 0]]}): traces have different "
-                             f"source coordinates; group_by='source' instead")
+    grid = _group_shots(src, h, group_by, ndim, label)
     grid = grid[_selection(shots, grid.shape[0], "shots")][:, _selection(receivers, grid.shape[1], "receivers")]
-    data = _samples(files, grid, file_of, first_of, lengths[0])
-    gathers = ShotGathers(data=data, dt=dt, t0=float(t0s[0]), sources=src[grid[:, 0]], receivers=rec[grid])
+    data = _samples(files, grid, file_of, first_of, nt)
+    gathers = ShotGathers(data=data, dt=dt, t0=t0, sources=src[grid[:, 0]], receivers=rec[grid])
     check_samples(gathers.data, _Labels(label, grid.reshape(-1)))
     log.info("read %d shots x %d receivers x %d samples, dt %g s, t0 %g s from %d file(s) (%d traces)",
              gathers.n_shots, gathers.n_receivers, gathers.nt, dt, gathers.t0, len(path_list), n)
