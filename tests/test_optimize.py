@@ -341,11 +341,49 @@ def test_save_interrupted_midway_leaves_previous_file(tmp_path, monkeypatch):
 
     monkeypatch.setattr(h5py.Group, "create_dataset", failing)
     with pytest.raises(KeyboardInterrupt):
-        j.save(path)
+        j.save(path, compact=True)  # the whole-file rewrite (a plain save would append to the tail)
     monkeypatch.setattr(h5py.Group, "create_dataset", original)
     assert not os.path.exists(str(path) + ".part")
     k = Journal.load(path)
     assert len(k) == 3 and k.g(2).tobytes() == (np.arange(10.0) * 2).tobytes()
+
+
+def test_saves_append_a_record_each_and_a_torn_record_is_dropped(tmp_path):
+    path, tail = tmp_path / "j.h5", tmp_path / "j.h5.append"
+    j = Journal()
+    gs = [np.sin(np.arange(5000.0) * (i + 1)) for i in range(6)]
+    j.append(hash_x(gs[0]), 0.0, gs[0])
+    j.save(path)
+    base = path.read_bytes()
+    sizes = []
+    for i in range(1, 6):
+        j.append(hash_x(gs[i]), float(i), gs[i])
+        j.save(path)
+        sizes.append(tail.stat().st_size)
+    assert path.read_bytes() == base  # the HDF5 file is never rewritten during the run
+    steps = np.diff([0, *sizes])
+    assert steps.max() - steps.min() < 0.05 * steps.mean()  # one record per save: constant cost
+    k = Journal.load(path)
+    assert len(k) == 6 and all(k.g(i).tobytes() == gs[i].tobytes() and k.f(i) == i for i in range(6))
+    with open(tail, "r+b") as fh:  # a kill while writing record 5: half of it on disk
+        fh.truncate(sizes[3] + (sizes[4] - sizes[3]) // 2)
+    k = Journal.load(path)
+    assert len(k) == 5 and k.g(4).tobytes() == gs[4].tobytes()
+    k.append(hash_x(gs[5]), 5.0, gs[5])  # the resumed run appends over the torn record
+    k.save(path)
+    assert tail.stat().st_size == sizes[4]
+    k.save(path, compact=True)  # the end of a run: one plain HDF5 file
+    assert not tail.exists()
+    with h5py.File(path, "r") as h:
+        assert h["g"].shape == (6, 5000) and h["g"][5].tobytes() == gs[5].tobytes()
+
+
+def test_a_finished_run_leaves_one_hdf5_journal(tmp_path):
+    path = tmp_path / "j.h5"
+    a = minimize(rosen, X0_ROSEN, method="lbfgs", max_iterations=8, rel_decrease=0, journal_path=path)
+    assert not (tmp_path / "j.h5.append").exists()
+    with h5py.File(path, "r") as h:
+        assert h["f"].shape == (a.evaluations,)
 
 
 def test_kill_during_save_in_a_run_then_resume(tmp_path, monkeypatch):

@@ -47,6 +47,7 @@ import hashlib
 import math
 import os
 import pathlib
+import struct
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -65,6 +66,7 @@ STOP_REASONS = ("grad_tol", "rel_decrease", "max_iterations", "max_evaluations",
 
 _TINY = np.finfo(np.float64).tiny
 _FORMAT = "adseismic-optimize-journal"
+_TAIL_MAGIC = b"ADSJ"
 _FORMAT_VERSION = 1
 
 
@@ -100,17 +102,22 @@ class Journal:
     """The evaluations of one optimisation run, in call order: the sha256 of each requested x
     (32 bytes; x itself is not kept), f (float64) and g (float64, shape (n,)).
 
-    ``save(path)`` / ``Journal.load(path)`` use one HDF5 file, replaced atomically (``<path>.part``
-    is written, fsynced and ``os.replace``-d; a crash at any point leaves the previous complete
-    file).
-    Layout: ``sha256`` uint8 (N, 32); ``f`` float64 (N,); ``g`` float64 (N, n), chunked (1, c) with
-    c = min(n, ``chunk_elements``), shuffle + gzip; root attrs ``format``, ``format_version``, ``n``
-    and any ``meta`` given by the caller.
+    On disk (``save(path)`` / ``Journal.load(path)``): one HDF5 file plus, while a run goes on, an
+    append-only tail ``<path>.append``.
+    HDF5 layout: ``sha256`` uint8 (N, 32); ``f`` float64 (N,); ``g`` float64 (N, n), chunked (1, c)
+    with c = min(n, ``chunk_elements``), shuffle + gzip; root attrs ``format``, ``format_version``,
+    ``n`` and any ``meta`` given by the caller. It is replaced atomically (``<path>.part`` written,
+    fsynced, ``os.replace``-d).
+    The first save of a journal to a path writes the HDF5 file; each later save of the same journal
+    appends only the new evaluations to the tail, one record each (magic, length, crc32, then the
+    index, hash, f and the compressed gradient chunks), fsynced: constant cost per evaluation
+    instead of a rewrite of every gradient so far. A record torn by a kill fails its length or
+    crc32 and is dropped by ``load`` (with every record after it), so a killed run resumes from its
+    last complete evaluation. ``save(path, compact=True)`` (the end of a run) folds the tail into
+    one HDF5 file again, readable by plain HDF5 tools.
 
-    Large gradients (say 1e6 floats x 100 evaluations) are kept *compressed in memory* and written
-    with HDF5 direct chunk writes, so each save re-writes bytes but never re-compresses; ``g(i)``
-    decompresses one entry on demand. Each save still rewrites the whole file (an atomic replace of
-    one file cannot append), i.e. O(N) bytes per save.
+    Gradients are kept *compressed in memory* and written with HDF5 direct chunk writes, so a save
+    never re-compresses; ``g(i)`` decompresses one entry on demand.
     """
 
     def __init__(self, compression_level: int = 4, chunk_elements: int = 1 << 17):
@@ -121,6 +128,7 @@ class Journal:
         self._f: list[float] = []
         self._g_chunks: list[list[bytes]] = []  # per entry: compressed (shuffle+deflate) chunks
         self._n: int | None = None
+        self._disk: tuple | None = None  # (path, entries, tail bytes): what path and its tail hold of us
 
     # ---- contents --------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -177,13 +185,46 @@ class Journal:
         del self._hashes[length:], self._f[length:], self._g_chunks[length:]
         if not self._hashes:
             self._n = None
+        if self._disk is not None and self._disk[1] > length:  # the file holds more: rewrite it
+            self._disk = None
 
     # ---- file --------------------------------------------------------------------------------
-    def save(self, path) -> pathlib.Path:
-        """Write the journal to ``path`` atomically (``<path>.part``, fsync, ``os.replace``)."""
+    def save(self, path, compact: bool = False) -> pathlib.Path:
+        """Write the journal to ``path``: the new evaluations appended to ``<path>.append`` when
+        this journal was saved to (or loaded from) ``path`` before, else (or with ``compact``) the
+        whole journal as one HDF5 file, atomically."""
+        path = pathlib.Path(path)
+        disk = self._disk
+        if not compact and disk is not None and disk[0] == path.resolve():
+            self._append_tail(path, disk[1], disk[2])
+        else:
+            self._write_hdf5(path)
+        return path
+
+    def has_tail(self, path) -> bool:
+        """Whether part of this journal sits in the append-only tail of ``path``."""
+        return self._disk is not None and self._disk[0] == pathlib.Path(path).resolve() and self._disk[2] > 0
+
+    def _append_tail(self, path: pathlib.Path, saved: int, tail_bytes: int) -> None:
+        tail = _tail_path(path)
+        records = b"".join(self._record(i) for i in range(saved, len(self)))
+        with open(tail, "r+b" if tail.exists() else "wb") as fh:
+            fh.truncate(tail_bytes)  # drop a record torn by an earlier kill
+            fh.seek(tail_bytes)
+            fh.write(records)
+            fh.flush()
+            os.fsync(fh.fileno())
+        self._disk = (path.resolve(), len(self), tail_bytes + len(records))
+
+    def _record(self, i: int) -> bytes:
+        chunks = self._g_chunks[i]
+        payload = b"".join([struct.pack("<Q32sdI", i, self._hashes[i], self._f[i], len(chunks)),
+                            *(struct.pack("<I", len(c)) + c for c in chunks)])
+        return _TAIL_MAGIC + struct.pack("<II", len(payload), zlib.crc32(payload)) + payload
+
+    def _write_hdf5(self, path: pathlib.Path) -> None:
         import h5py
 
-        path = pathlib.Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         part = atomic_path(path)
         N, n = len(self), (self._n or 0)
@@ -211,19 +252,15 @@ class Journal:
                 d.attrs["description"] = "gradient df/dx of each evaluation, in call order"
             with open(part, "rb+") as fh:
                 os.fsync(fh.fileno())
+            # the old tail goes first: a kill between the two steps leaves the old file without
+            # its tail (a shorter journal, re-evaluated on resume), never a tail on the new file
+            _tail_path(path).unlink(missing_ok=True)
             os.replace(part, path)
         except BaseException:
             part.unlink(missing_ok=True)
             raise
-        try:  # make the rename itself durable
-            dfd = os.open(path.parent, os.O_RDONLY)
-            try:
-                os.fsync(dfd)
-            finally:
-                os.close(dfd)
-        except OSError:
-            pass
-        return path
+        _fsync_dir(path.parent)
+        self._disk = (path.resolve(), N, 0)
 
     @classmethod
     def load(cls, path) -> "Journal":
@@ -264,7 +301,34 @@ class Journal:
                         j._n = n
                         continue
                 j.append(hashes[i].tobytes(), float(fs[i]), dg[i])
+        j._n = j._n if j._n is not None or not n else n
+        tail_bytes = j._read_tail(_tail_path(path))
+        j._disk = (path.resolve(), len(j), tail_bytes)
         return j
+
+    def _read_tail(self, tail: pathlib.Path) -> int:
+        """Append the complete records of ``tail`` that continue this journal; returns the bytes
+        they take (a torn or foreign record ends the tail)."""
+        raw = tail.read_bytes() if tail.exists() else b""
+        pos, head = 0, len(_TAIL_MAGIC) + 8
+        while pos + head <= len(raw) and raw[pos:pos + len(_TAIL_MAGIC)] == _TAIL_MAGIC:
+            size, crc = struct.unpack_from("<II", raw, pos + len(_TAIL_MAGIC))
+            payload = raw[pos + head:pos + head + size]
+            if len(payload) != size or zlib.crc32(payload) != crc:
+                break
+            i, x_hash, f, n_chunks = struct.unpack_from("<Q32sdI", payload)
+            if i != len(self):
+                break
+            chunks, at = [], struct.calcsize("<Q32sdI")
+            for _ in range(n_chunks):
+                (length,) = struct.unpack_from("<I", payload, at)
+                chunks.append(payload[at + 4:at + 4 + length])
+                at += 4 + length
+            self._hashes.append(x_hash)
+            self._f.append(f)
+            self._g_chunks.append(chunks)
+            pos += head + size
+        return pos
 
 
 @dataclass
@@ -297,6 +361,23 @@ def projected_gradient_norm(x, g, lower, upper) -> float:
     if g.size == 0:
         return 0.0
     return float(np.max(np.abs(np.clip(x - g, lower, upper) - x)))
+
+
+def _tail_path(path: pathlib.Path) -> pathlib.Path:
+    """The append-only tail of a journal file (see :class:`Journal`)."""
+    return path.with_name(path.name + ".append")
+
+
+def _fsync_dir(directory: pathlib.Path) -> None:
+    """Make a rename in ``directory`` durable (where the system allows)."""
+    try:
+        dfd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass
 
 
 class _Evaluator:
@@ -505,18 +586,22 @@ def minimize(fun: Callable, x0, *, method: str = "lbfgs", bounds=None, max_itera
     x = np.clip(x0, lo, hi)
     f, g = ev(x)
     reason = run.start(x, f, g)
-    if reason is not None:
-        return run.result(reason)
+    if reason is None:
+        reason = _iterate(method, run, ev, x, lo, hi, options)
+    if path is not None and journal.has_tail(path):  # a finished run leaves one plain HDF5 journal
+        journal.save(path, compact=True)
+    return run.result(reason)
+
+
+def _iterate(method, run, ev, x, lo, hi, options):
     if method == "lbfgs":
         _check_options(options, ("maxcor", "maxls"), method)
-        reason = _lbfgs(run, ev, x, lo, hi, options)
-    elif method == "gd":
+        return _lbfgs(run, ev, x, lo, hi, options)
+    if method == "gd":
         _check_options(options, ("step", "max_line_search"), method)
-        reason = _gd(run, ev, options)
-    else:
-        _check_options(options, ("lr", "beta1", "beta2", "eps"), method)
-        reason = _adam(run, ev, options)
-    return run.result(reason)
+        return _gd(run, ev, options)
+    _check_options(options, ("lr", "beta1", "beta2", "eps"), method)
+    return _adam(run, ev, options)
 
 
 # ---- L-BFGS-B ------------------------------------------------------------------------------------
