@@ -46,6 +46,7 @@ speed_accuracy.md, speed_accuracy_<device>.png).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import logging
@@ -61,6 +62,7 @@ from dataclasses import asdict, dataclass, field, replace
 from types import SimpleNamespace
 
 import numpy as np
+import yaml
 
 from adseismic.data.atomic import write_text_atomic
 from adseismic.runs import EXIT_ERROR, EXIT_OK, CommandError, RunLog, version
@@ -747,6 +749,14 @@ def register(p: argparse.ArgumentParser) -> None:
                    help="sweep: precisions")
     p.add_argument("--sweep-cfl", nargs="+", type=float, metavar="FRACTION", default=[0.9, 0.4],
                    help="sweep: time steps as fractions of the CFL limit (default 0.9 0.4)")
+    p.add_argument("--fwi", action="store_true",
+                   help="instead of the scenes: the FWI race (adseismic against Deepwave + torch LBFGS on a Marmousi-II section)")
+    p.add_argument("--fwi-shots", type=int, default=32, metavar="N", help="FWI race: shots (default 32)")
+    p.add_argument("--fwi-iterations", type=int, default=20, metavar="N", help="FWI race: iterations a band (default 20)")
+    p.add_argument("--fwi-inversion", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="FWI race: our inversion settings over the defaults, e.g. water_depth=450 preconditioning=depth")
+    p.add_argument("--fwi-small", action="store_true",
+                   help="FWI race on a 2 km x 1 km crop at 40 m, 1.5 s records, bands 3 and 5 Hz (a CPU check of the race)")
     p.add_argument("-o", "--output", "--outdir", dest="outdir", type=pathlib.Path, required=True, help="output directory")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar, log only warnings to stderr")
 
@@ -812,6 +822,8 @@ def cmd_bench(args) -> int:
     failed reference, Deepwave, is reported in the table as "reference failed: <reason>" only)."""
     from tqdm.auto import tqdm
 
+    if getattr(args, "fwi", False):
+        return _cmd_fwi_race(args)
     devices, jobs = _check_args(args)
     outdir = args.outdir
     if outdir.exists() and not outdir.is_dir():
@@ -858,6 +870,53 @@ def cmd_bench(args) -> int:
     if failed:
         print(f"adseismic bench: {len(failed)} measurement(s) failed; see {outdir / 'bench.log'}", file=sys.stderr)
         return EXIT_ERROR
+    return EXIT_OK
+
+
+def _cmd_fwi_race(args) -> int:
+    """``adseismic bench --fwi``: the FWI race (bench/fwi_race.py); exit 1 only if our run failed."""
+    from adseismic.bench import fwi_race
+    from adseismic.solve.common import resolve_device
+
+    try:
+        device = resolve_device(args.device[0])
+    except ValueError as e:
+        raise CommandError(f"--device: {e}") from None
+    for opt, val in (("--fwi-shots", args.fwi_shots), ("--fwi-iterations", args.fwi_iterations)):
+        if val < 1:
+            raise CommandError(f"{opt}: {val} is invalid; use 1 or more")
+    overrides = {}
+    for item in args.fwi_inversion:
+        key, eq, value = item.partition("=")
+        if not eq or not key:
+            raise CommandError(f"--fwi-inversion: {item!r} is not KEY=VALUE; e.g. water_depth=450")
+        overrides[key] = yaml.safe_load(value)
+    sc = fwi_race.RaceScene(shots=args.fwi_shots, iterations=args.fwi_iterations, device=device, inversion=overrides)
+    if args.fwi_small:
+        sc = dataclasses.replace(sc, x_range=(5000.0, 7000.0), depth=1000.0, dx=40.0, duration=1.5, bands=(3.0, 5.0))
+    from adseismic.config import ConfigError, parse_fwi_config
+
+    try:  # our settings checked before anything runs
+        parse_fwi_config(fwi_race.fwi_config(sc))
+    except ConfigError as e:
+        raise CommandError(f"--fwi-inversion: {e}") from None
+    outdir = args.outdir
+    if outdir.exists() and not outdir.is_dir():
+        raise CommandError(f"-o: {outdir} exists and is not a directory; choose another output directory")
+    outdir.mkdir(parents=True, exist_ok=True)
+    with RunLog(outdir / "bench.log", args.quiet):
+        log.info("adseismic %s bench %s -> %s; machine %s", version(), " ".join(sys.argv[1:]), outdir, json.dumps(machine_info([device])))
+        try:
+            report = fwi_race.race(sc, outdir / "runs", deepwave=not args.no_deepwave and deepwave_available())
+        except Exception as exc:
+            log.exception("the FWI race failed on our side")
+            print(f"adseismic bench --fwi: our run failed ({type(exc).__name__}: {exc}); see {outdir / 'bench.log'}", file=sys.stderr)
+            return EXIT_ERROR
+        report["machine"] = machine_info([device])
+        written = fwi_race.write(outdir, report)
+        if not args.quiet:
+            print(fwi_race.markdown(report))
+    print(f"wrote {outdir}/: {', '.join(p.name for p in written)}, bench.log, runs/")
     return EXIT_OK
 
 
