@@ -201,3 +201,24 @@ def test_hand_adjoint_matches_warp_generated(order, shape, free_surface):
     for k in G.WRT:
         a, b = getattr(ref, k), getattr(ours, k)
         assert np.abs(a - b).max() <= 1e-12 * np.abs(a).max()
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_l2_formed_on_the_device_equals_the_host_misfit(weighted):
+    """observed (and weights) given as device arrays: the "l2" residual and loss are formed by a kernel where the data
+    are; the same float64 operations as misfits.weighted_l2 / _l2 on the host, so the residual, hence the gradient,
+    is bitwise the host's; the loss is a sum in another order (float64: 1e-13 relative)."""
+    v, s, src, rec, obs = problem()
+    rng = np.random.default_rng(5)
+    w = rng.random(obs.shape) * (rng.random(obs.shape[:2]) > 0.3)[..., None] if weighted else None
+    host = gradient(v, DX, DT, s, src, rec, obs, weights=w)
+    dev = DEVICE if DEVICE != "cpu" else "cpu"
+    obs_d = wp.array(obs, dtype=wp.float64, device=dev)
+    w_d = None if w is None else wp.array(w, dtype=wp.float64, device=dev)
+    on_device = gradient(v, DX, DT, s, src, rec, obs_d, weights=w_d)
+    assert isinstance(on_device.synthetic, wp.array)
+    np.testing.assert_array_equal(on_device.synthetic.numpy(), host.synthetic)
+    np.testing.assert_array_equal(on_device.velocity, host.velocity)
+    assert on_device.loss == pytest.approx(host.loss, rel=1e-13)
+    if weighted:  # the weights are applied: the unweighted misfit differs
+        assert abs(gradient(v, DX, DT, s, src, rec, obs).loss - host.loss) > 0.05 * host.loss

@@ -133,3 +133,26 @@ def l2_residual_kernel(dtype):
         wp.atomic_add(total, 0, acc)
 
     return l2_residual
+
+
+@functools.lru_cache(maxsize=None)
+def weighted_l2_residual_kernel(dtype):
+    """Kernel of the weighted "l2" misfit on the device (misfits.weighted_l2's, see there), a thread per trace (s, r)
+    of synthetic data (S, n_rec, >= nt samples) against observed and weights (S, n_rec, nt) float64:
+    e = w (synthetic - observed) in float64, residual[s, r, t] = (e dt) w rounded to dtype for t < nt;
+    total[0] += sum over t of e^2 (float64)."""
+    arr3 = wp.array3d(dtype=dtype)
+    f64 = wp.array3d(dtype=wp.float64)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def weighted_l2_residual(syn: arr3, obs: f64, w: f64, nt: int, dt: wp.float64, res: arr3, total: wp.array(dtype=wp.float64)):
+        s, r = wp.tid()
+        acc = wp.float64(0.0)
+        for t in range(nt):
+            ws = w[s, r, t]
+            e = ws * (wp.float64(syn[s, r, t]) - obs[s, r, t])
+            acc += e * e
+            res[s, r, t] = dtype((e * dt) * ws)
+        wp.atomic_add(total, 0, acc)
+
+    return weighted_l2_residual

@@ -23,13 +23,14 @@ from typing import Callable
 import numpy as np
 import warp as wp
 
-from adseismic.accel.reductions import value_range
+from adseismic.accel.reductions import l2_residual_kernel, value_range, weighted_l2_residual_kernel
 from adseismic.kernels.acoustic import DESCRIPTION, Acoustic, State
 from adseismic.kernels.common import operator_shape
 from adseismic.kernels.numerics import check_order
 from adseismic.runs import progress_bar
 from adseismic.solve import common, loop, sweep
 from adseismic.solve.misfits import misfit as named_misfit
+from adseismic.solve.misfits import weighted_l2
 
 WRT = ("velocity", "source_amplitudes", "source_locations")
 
@@ -307,12 +308,16 @@ def plan_segments(prop, nt: int, memory_budget: float | None = None, segment_len
 def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
              misfit="l2", wrt=("velocity",), parameterization=None, order=4, pml_width=None, pml_reflection=None,
              pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu", precision="float32",
-             memory_budget=None, segment_length=None, adjoint="hand", illumination=False,
+             memory_budget=None, segment_length=None, adjoint="hand", illumination=False, weights=None,
              progress=False) -> GradientResult:  # fmt: skip
     """Misfit between simulated and observed data and its gradient for a batch of shots.
 
     Arguments as in forward; observed (n_shots, n_receivers, nt). misfit: a name in
-    misfits.MISFITS, or a callable synthetic -> (J, dJ/dsynthetic). wrt: any of "velocity",
+    misfits.MISFITS, or a callable synthetic -> (J, dJ/dsynthetic). weights (n_shots, n_receivers, nt), 0 to 1
+    (mutes, windows): the named misfit of the weighted data w d against w o, its adjoint times w ("l2":
+    misfits.weighted_l2). observed (and weights) given as float64 Warp arrays on the run's device, kept there by the
+    caller across calls: with "l2" and adjoint="hand" the residual and the loss are formed on the device (no copy of
+    the data either way) and the synthetic is returned as a Warp array there. wrt: any of "velocity",
     "source_amplitudes", "source_locations". parameterization: an object with `parameters`
     (numpy array theta) and `velocity(theta: wp.array) -> wp.array` (nz, [ny,] nx) written with Warp
     kernels; velocity is then ignored except for its shape and the gradient is returned for theta.
@@ -337,11 +342,12 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
                pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
                free_surface=free_surface, device=device, precision=precision, requires_grad=want)  # fmt: skip
     prop, nt = su.prop, su.nt
-    if callable(misfit):
-        loss_fn = misfit
+    device_l2 = None
+    if not callable(misfit) and misfit == "l2" and adjoint == "hand" and isinstance(observed, wp.array):
+        device_l2 = _device_arrays(su, observed, weights)
+        loss_fn = None
     else:
-        obs = np.asarray(observed, dtype=float)
-        loss_fn = lambda d: named_misfit(misfit, d, obs, dt)  # noqa: E731
+        loss_fn = _host_misfit(misfit, observed, weights, dt)
     theta = None
     if parameterization is not None:
         theta = wp.array(parameterization.parameters, dtype=prop.dtype, device=prop.device, requires_grad=True)
@@ -358,7 +364,7 @@ def gradient(velocity, dx, dt, source_amplitudes, source_locations, receiver_loc
         model_tape = wp.Tape()
         with model_tape:
             vpad = model_on_tape()
-        synthetic, loss, amplitudes_grad = _hand_sweep(su, vpad, seg, n_seg, loss_fn, energy, bar)
+        synthetic, loss, amplitudes_grad = _hand_sweep(su, vpad, seg, n_seg, loss_fn, energy, bar, device_l2)
         model_tape.backward(grads={vpad: vpad.grad})
         del model_tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
     else:
@@ -400,9 +406,44 @@ def _host_loss(loss_fn, synthetic):
     return loss, (adj,)
 
 
-def _hand_sweep(su, vpad, seg: int, n_seg: int, loss_fn, energy, bar):
+def _host_misfit(misfit, observed, weights, dt):
+    """The misfit as a host function synthetic (float64) -> (J, dJ/dsynthetic)."""
+    if callable(misfit):
+        return misfit
+    obs = np.asarray(observed.numpy() if isinstance(observed, wp.array) else observed, dtype=float)
+    if weights is None:
+        return lambda d: named_misfit(misfit, d, obs, dt)
+    w = np.asarray(weights.numpy() if isinstance(weights, wp.array) else weights, dtype=float)
+    if misfit == "l2":
+        return lambda d: weighted_l2(d, obs, w, dt)
+
+    def weighted(d):
+        j, adj = named_misfit(misfit, w * d, w * obs, dt)
+        return j, adj * w
+
+    return weighted
+
+
+def _device_arrays(su, observed: wp.array, weights) -> tuple:
+    """(observed, weights or None) as float64 Warp arrays (n_shots, n_receivers, nt) on the run's device."""
+    shape = (su.prop.n_shots, su.receivers.shape[1], su.nt)
+
+    def on_device(a, name):
+        if isinstance(a, wp.array) and a.dtype == wp.float64 and str(a.device) == str(su.prop.device):
+            out = a
+        else:
+            out = wp.array(np.asarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float), dtype=wp.float64, device=su.prop.device)
+        if out.shape != shape:
+            raise ValueError(f"{name} has shape {out.shape} but the synthetics have {shape} (n_shots, n_receivers, nt)")
+        return out
+
+    return on_device(observed, "observed"), None if weights is None else on_device(weights, "weights")
+
+
+def _hand_sweep(su, vpad, seg: int, n_seg: int, loss_fn, energy, bar, device_l2=None):
     """The hand-written adjoint time loop (Levels in a sweep.Sweep). vpad: the padded model (requires_grad; its .grad
-    gets dJ/dvpad). Returns (synthetic, loss, the padded source amplitudes, whose .grad is dJ/ds)."""
+    gets dJ/dvpad). loss_fn: the misfit on the host, or device_l2 = (observed, weights or None) on the device for the
+    (weighted) "l2" misfit. Returns (synthetic, loss, the padded source amplitudes, whose .grad is dJ/ds)."""
     prop, nt = su.prop, su.nt
     illumination = energy is not None
     key = ("gradient", *su.key()[1:], seg, n_seg, su.amplitudes.requires_grad, illumination)
@@ -410,11 +451,20 @@ def _hand_sweep(su, vpad, seg: int, n_seg: int, loss_fn, energy, bar):
     lv = sw.levels
     lv.refill(su, vpad)
     sw.forward_sweep(bar)
-    synthetic = lv.data.numpy()[:, :, :nt].astype(float)
-    loss, adj = loss_fn(synthetic)
-    lv.residual.assign(common.padded_samples(np.asarray(adj), seg * n_seg, prop.dtype))
+    if device_l2 is None:
+        synthetic = lv.data.numpy()[:, :, :nt].astype(float)
+        loss, adj = loss_fn(synthetic)
+        lv.residual.assign(common.padded_samples(np.asarray(adj), seg * n_seg, prop.dtype))
+    else:  # samples from nt on stay zero (zeros since allocation, and the host path writes zeros there)
+        synthetic = loop.traces(lv.data, nt, True, True)
+        total = wp.zeros(1, dtype=wp.float64, device=prop.device)
+        obs, w = device_l2
+        kernel, inputs = (l2_residual_kernel, [lv.data, obs]) if w is None else (weighted_l2_residual_kernel, [lv.data, obs, w])
+        wp.launch(kernel(lv.data.dtype), dim=lv.data.shape[:2], inputs=[*inputs, nt, prop.dt, lv.residual, total], device=prop.device)
     sw.backward_sweep(bar)
     lv.collect(su, vpad, energy)
+    if device_l2 is not None:  # read after the backward sweep is queued: the one wait of the call
+        loss = 0.5 * float(total.numpy()[0]) * prop.dt
     return synthetic, loss, lv.amplitudes.grad
 
 

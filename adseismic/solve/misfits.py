@@ -100,3 +100,16 @@ def misfit(name: str, synthetic: np.ndarray, observed: np.ndarray, dt: float):
     if d.shape != o.shape:
         raise ValueError(f"observed data has shape {o.shape} but the synthetics have {d.shape} (n_shots, n_receivers, nt)")
     return _FUNCS[name](d, o, float(dt))
+
+
+def weighted_l2(d, o, w, dt):
+    """The "l2" misfit of weighted data, J = 1/2 sum (w (d - o))^2 dt, and dJ/dd = w^2 (d - o) dt (formed as
+    (e dt) w, e = w (d - o), in float64, as accel.reductions.weighted_l2_residual_kernel forms it on the device);
+    d, o, w: arrays of one shape (w: 1 keeps a sample, 0 mutes it)."""
+    e = np.subtract(d, o, dtype=float)
+    e *= w
+    flat = e.ravel()
+    loss = 0.5 * float(flat @ flat) * dt
+    e *= dt
+    e *= w
+    return loss, e
