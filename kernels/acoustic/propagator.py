@@ -44,7 +44,7 @@ from adseismic.kernels.common import (
     aligned,
     as_vectors,
     block_rows,
-    hicks_weight,
+    hicks_axis,
     unique_kernel,
     vector_access,
 )
@@ -1034,7 +1034,7 @@ def _points(ns):
             i = idx[s, rec, q]
             wp.atomic_add(data, s, rec, n + clock[0], wq * u[s, i[0], i[1], i[2]])
 
-    hicks = hicks_weight(dtype)
+    hicks = hicks_axis(dtype)
 
     @wp.func
     def point(loc: arr3, s: int, n: int, q: int, origin: wp.vec3i, inv_dx: dtype, top: int):
@@ -1045,12 +1045,12 @@ def _points(ns):
         qx = q % wp.static(W)
         iz = int(wp.floor(zc)) - wp.static(HR - 1) + qz
         ix = int(wp.floor(xc)) - wp.static(HR - 1) + qx
-        w = hicks(dtype(iz) - zc) * hicks(dtype(ix) - xc)
+        w = hicks(dtype(iz) - zc, zc) * hicks(dtype(ix) - xc, xc)
         iy = int(0)
         if wp.static(three):
             yc = loc[s, n, 1] * inv_dx + dtype(origin[1])
             iy = int(wp.floor(yc)) - wp.static(HR - 1) + (q // wp.static(W)) % wp.static(W)
-            w = w * hicks(dtype(iy) - yc)
+            w = w * hicks(dtype(iy) - yc, yc)
         if wp.static(fs):
             if iz == top:
                 w = dtype(0.0)

@@ -68,7 +68,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, hicks_weight, unique_kernel, vector_access
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, hicks_axis, unique_kernel, vector_access
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 
 
@@ -1651,7 +1651,7 @@ def make_point(ns, hicks, oz: float, ox: float, odd: bool):
         xc = loc[s, n, 1] * inv_dx + dtype(origin[1]) - dtype(wp.static(ox))
         iz = int(wp.floor(zc)) - wp.static(HR - 1) + q // wp.static(W)
         ix = int(wp.floor(xc)) - wp.static(HR - 1) + q % wp.static(W)
-        w = hicks(dtype(iz) - zc) * hicks(dtype(ix) - xc)
+        w = hicks(dtype(iz) - zc, zc) * hicks(dtype(ix) - xc, xc)
         if wp.static(fs):
             if wp.static(odd and fold == 0):
                 if iz == top:
@@ -1668,7 +1668,7 @@ def make_point(ns, hicks, oz: float, ox: float, odd: bool):
 def _sources(ns):
     """The sources' injection, at their locations or through fixed operators, and the fixed operators (weights)."""
     dtype, arr2, arr3, arr4, iarr1 = ns.dtype, ns.arr2, ns.arr3, ns.arr4, ns.iarr1
-    hicks = hicks_weight(dtype)
+    hicks = hicks_axis(dtype)
     pt_vx = make_point(ns, hicks, 0.0, 0.5, False)
     pt_vz = make_point(ns, hicks, 0.5, 0.0, False)
     pt_sxx = make_point(ns, hicks, 0.0, 0.0, False)
