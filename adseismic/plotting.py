@@ -103,9 +103,9 @@ def plot_model(path, velocity, spacing: float, origin, sources=None, receivers=N
     return save_figure(fig, path)
 
 
-def plot_misfit(path, rows, title: str = "", labels=None) -> pathlib.Path:
+def plot_misfit(path, rows, title: str = "", labels=None, ylabel: str = "misfit / misfit at the band's start") -> pathlib.Path:
     """Misfit (normalised by each band's start value) against iteration; rows: (band, iteration, misfit);
-    labels: {band: text} for the legend (e.g. format_band's "<= 4 Hz")."""
+    labels: {band: text} for the legend (e.g. format_band's "<= 4 Hz"); ylabel: what the misfit is."""
     fig = _figure(7.0, 4.5)
     ax = fig.add_subplot()
     labels = labels or {}
@@ -117,7 +117,7 @@ def plot_misfit(path, rows, title: str = "", labels=None) -> pathlib.Path:
 
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("iteration")
-    ax.set_ylabel("misfit / misfit at the band's start")
+    ax.set_ylabel(ylabel)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     ax.set_title(title or "misfit per band")
@@ -307,23 +307,30 @@ def plot_snapshots(path, snapshots, times, spacing: float, origin, sources=None,
     return save_figure(fig, path)
 
 
-def plot_station_traces(path, observed, synthetic, dt: float, names, t0: float = 0.0, title: str = "") -> pathlib.Path:
+def plot_station_traces(path, observed, synthetic, dt: float, names, t0: float = 0.0, title: str = "",
+                        components=None) -> pathlib.Path:
     """Observed (black) against synthetic (red) traces (n_traces, nt), one row per trace, each
-    normalised by its observed peak; time axis t0 + k dt (s)."""
+    normalised by its observed peak; time axis t0 + k dt (s). components (n_traces,) e.g. "vz", "vx":
+    one column per component (rows in trace order within each)."""
     obs, syn = np.asarray(observed, float), np.asarray(synthetic, float)
-    n, nt = obs.shape
-    t = t0 + dt * np.arange(nt)
-    fig = _figure(9.0, 1.0 + 0.45 * n)
-    ax = fig.add_subplot()
-    for i in range(n):
-        norm = 0.45 / (np.abs(obs[i]).max() or 1.0)
-        ax.plot(t, i + norm * obs[i], color="k", lw=0.8, label="observed" if i == 0 else None)
-        ax.plot(t, i + norm * syn[i], color="tab:red", lw=0.8, label="synthetic" if i == 0 else None)
-    ax.set_yticks(range(n), [str(s) for s in names], fontsize=7)
-    ax.set_ylim(n - 0.4, -0.6)
-    ax.set_xlabel("time after the record start (s)")
-    ax.legend(loc="upper right", fontsize=8)
-    ax.set_title(title or "observed and synthetic traces (each scaled by its observed peak)")
+    groups = {None: list(range(len(obs)))} if components is None else {}
+    for i, c in enumerate(components or ()):
+        groups.setdefault(c, []).append(i)
+    n = max(len(g) for g in groups.values())
+    t = t0 + dt * np.arange(obs.shape[1])
+    fig = _figure(9.0 if components is None else 5.0 * len(groups), 1.0 + 0.45 * n)
+    for col, (comp, rows) in enumerate(groups.items()):
+        ax = fig.add_subplot(1, len(groups), col + 1)
+        for j, i in enumerate(rows):
+            norm = 0.45 / (np.abs(obs[i]).max() or 1.0)
+            ax.plot(t, j + norm * obs[i], color="k", lw=0.8, label="observed" if j == 0 else None)
+            ax.plot(t, j + norm * syn[i], color="tab:red", lw=0.8, label="synthetic" if j == 0 else None)
+        ax.set_yticks(range(len(rows)), [str(names[i]) for i in rows], fontsize=7)
+        ax.set_ylim(len(rows) - 0.4, -0.6)
+        ax.set_xlabel("time after the record start (s)")
+        ax.legend(loc="upper right", fontsize=8)
+        ax.set_title(f"{comp}: observed and synthetic (each scaled by its observed peak)" if comp else
+                     (title or "observed and synthetic traces (each scaled by its observed peak)"), **({"fontsize": 9} if comp else {}))  # fmt: skip
     return save_figure(fig, path)
 
 

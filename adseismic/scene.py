@@ -13,6 +13,10 @@ the planner chooses (each value can be pinned in the config's `simulation` secti
 - domain: the source/receiver box plus an aperture margin of v_max T / 2 (nothing farther can send
   energy back to a receiver within the record), cut to the model, plus the PML;
 and resamples the model onto that grid.
+
+With ``physics: elastic`` (config.model an ElasticModel, 2D) dx and dt come from :func:`plan_elastic_grid`: dx from
+the slowest wave (S, or with a free surface the Rayleigh wave) and dt from the staggered scheme's CFL limit at vp_max;
+the record length from the S-wave straight-ray times (Rayleigh with a free surface).
 """
 
 from __future__ import annotations
@@ -24,7 +28,9 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from adseismic.data.model import Model
+from adseismic.data.models import ElasticModel
 from adseismic.kernels.acoustic import DESCRIPTION as ACOUSTIC
+from adseismic.kernels.elastic import DESCRIPTION as ELASTIC
 from adseismic.kernels.numerics import (
     cfl_limit,
     dispersion_error,
@@ -33,13 +39,16 @@ from adseismic.kernels.numerics import (
     staggered_cfl_limit,
     staggered_dispersion_error,
 )
-from adseismic.solve.acoustic import ForwardResult, forward
+from adseismic.solve.acoustic import forward
 from adseismic.solve.common import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH, check_courant
 from adseismic.wavelets import duration, make_wavelet, spectral_fmax
 
 # Padded-grid cell updates per second used for the time estimate (forward): the rates measured in
 # docs/benchmarks.md (2-core CPU VM: 30 M/s on one core; H200: 35 G/s on large grids), rounded down.
 EST_RATE = {"cpu": 5.0e7, "cuda": 3.0e10}
+ELASTIC_STEP_COST = 4.0  # an elastic cell update (5 fields, staggered) costs ~3-4 acoustic ones (2-core CPU, float32:
+# configs/elastic_forward.yaml 7.2e6 padded cell updates/s beside configs/example_2d.yaml's 2.3e7/s, docs/elastic.md)
+ELASTIC_CPU_STEP_SECONDS = 2e-3  # and a CPU time step of it ~2 ms more (its ~15 launches; 84 x 84 cells: 2.6 ms a step)
 SAFETY_STEPS = tuple(np.linspace(1.0, 0.1, 37))  # fractions of cfl_safety searched for the cheapest (dx, dt)
 
 
@@ -69,11 +78,15 @@ class Plan:
     n_shots: int = 1
     reasons: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+    physics: str = "acoustic"  # acoustic or elastic
 
     def describe(self) -> str:
         grid = " x ".join(str(n) for n in self.shape)
         axes = "z, y, x" if self.ndim == 3 else "z, x"
         lines = [
+            f"physics   {self.physics}" + (" (2D velocity-stress, staggered grid; dx for the wave that needs the finest grid, "
+                                          "dt from vp_max)"
+                                          if self.physics == "elastic" else " (pressure wave equation)"),
             f"grid      {grid} cells ({axes}), dx = {self.dx:g} m, origin {tuple(round(o, 3) for o in self.origin)} m",
             f"          why: {self.reasons['dx']}",
             f"dt        {self.dt:.6g} s (Courant {self.courant:.3f}, limit {self.cfl_limit:.3f} for order {self.order} in {self.ndim}D)",
@@ -97,15 +110,21 @@ class Scene:
     """A planned simulation: locations in metres relative to grid node 0 (axis order z,[y,]x).
 
     source_locations (n_shots, 1, ndim); receiver_locations (n_shots, n_receivers, ndim);
-    source_amplitudes (n_shots, 1, nt); wavelet (nt,).
+    source_amplitudes (n_shots, 1, nt); wavelet (nt,). Physics elastic: model an ElasticModel; source_type
+    "force" or "moment" with source_components (n_shots, 1, 2 or 3) (adseismic.solve.elastic); recording says
+    what the receivers record, and receiver_locations are its recording.locations (the points, then the DAS
+    gauges' ends).
     """
 
     plan: Plan
-    model: Model
+    model: Model | ElasticModel
     source_locations: np.ndarray
     receiver_locations: np.ndarray
     source_amplitudes: np.ndarray
     wavelet: np.ndarray
+    source_type: str | None = None
+    source_components: np.ndarray | None = None
+    recording: object = None  # adseismic.solve.receivers.Recording (physics elastic)
 
 
 def _nice_floor(x: float, digits: int = 2) -> float:
@@ -143,9 +162,14 @@ def check_velocity_units(vmin: float, vmax: float, key: str = "model") -> list:
     return []
 
 
-def forward_memory_bytes(padded: int, n_shots: int, n_receivers: int, nt: int, itemsize: int) -> int:
-    """Estimated peak bytes of a forward run of every shot at once: per shot u_prev, u and the CPML strips
-    (~3 padded grids), one padded model, and the receiver data on the device and on the host."""
+def forward_memory_bytes(padded: int, n_shots: int, n_receivers: int, nt: int, itemsize: int,
+                         physics: str = "acoustic") -> int:
+    """Estimated peak bytes of a forward run of every shot at once: acoustic, per shot u_prev, u and the CPML strips
+    (~3 padded grids), one padded model, and the receiver data on the device and on the host; elastic, per shot two
+    states of 5 fields and their CPML memory (bounded by 16 padded grids), 6 padded material grids, three
+    components' data."""
+    if physics == "elastic":
+        return int(itemsize * (16 * padded * n_shots + 6 * padded) + 6 * itemsize * n_shots * n_receivers * nt)
     return int(itemsize * (3 * padded * n_shots + padded) + 2 * itemsize * n_shots * n_receivers * nt)
 
 
@@ -282,7 +306,7 @@ def _choose_dx_dt(order, ndim, vmin, vmax, f_max, accuracy, safety, pins, extent
     return best[1:]
 
 
-def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory_of_run=True) -> Plan:
+def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory_of_run=True, vs_range=None) -> Plan:
     """Plan the simulation grid, time step, record and domain for a ForwardConfig (see config.py).
 
     velocity_range: (v_min, v_max) m/s to plan for instead of the model's own range (an inversion
@@ -295,6 +319,9 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     budget, the device's free memory (adseismic.data.memory.available_bytes) -- unless ``force`` (default:
     config.simulation.force; the CLI's --force sets it) is true. check_memory_of_run=False skips that comparison
     (callers that run something else than this forward run, e.g. an inversion, check their own estimate).
+
+    Physics elastic (config.model an ElasticModel): velocity_range is vp's, vs_range (vs_min, vs_max) m/s the shear
+    speeds to plan for (default the model's); dx and dt by :func:`plan_elastic_grid` (dx, dt pins honoured).
     """
     model, geo, sim = config.model, config.geometry, config.simulation
     if force is not None and bool(force) != bool(getattr(sim, "force", False)):
@@ -314,7 +341,13 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     f_wavelet, w_len = wavelet_band(config.wavelet.kind, config.wavelet.params)
     f_max = f_wavelet if f_max is None else min(float(f_max), f_wavelet)
 
-    t_direct = float(straight_ray_times(model, src, rec).max())
+    elastic = isinstance(model, ElasticModel)
+    if elastic:  # the slowest direct wave arrives last: S, or the Rayleigh wave along a free surface
+        i = np.unravel_index(int(np.argmin(model.vs.values)), model.shape)
+        slowdown = rayleigh_speed(model.vp.values[i], model.vs.values[i]) / model.vs.values[i] if sim.free_surface else 1.0
+        t_direct = float(straight_ray_times(model.vs, src, rec).max()) / slowdown
+    else:
+        t_direct = float(straight_ray_times(model, src, rec).max())
     if sim.duration is not None:
         t_record = float(sim.duration)
         why_nt = "pinned by the config"
@@ -322,7 +355,8 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
             warnings.append(f"record length {t_record:g} s is shorter than the longest direct arrival ({t_direct:.3g} s)")
     else:
         t_record = t_direct + w_len
-        why_nt = f"longest straight-ray source-receiver time {t_direct:.3g} s + wavelet duration {w_len:.3g} s"
+        wave = ("Rayleigh-wave " if sim.free_surface else "S-wave ") if elastic else ""
+        why_nt = f"longest straight-ray {wave}source-receiver time {t_direct:.3g} s + wavelet duration {w_len:.3g} s"
 
     pts = np.vstack([src, rec])
     lo_m = np.array([e[0] for e in model.extent])
@@ -349,9 +383,16 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
         return float(np.prod(n))
 
     pins = {"dx": sim.dx, "dt": sim.dt}
-    dx, dt, why_dx, why_dt = _choose_dx_dt(order, ndim, vmin, vmax, f_max, float(sim.accuracy), float(sim.cfl_safety), pins, cells, t_record)
+    if elastic:
+        vs_box = model.vs.values[tuple(slice(a, b) for a, b in zip(i0, i1))]
+        vs_min = float(vs_box.min()) if vs_range is None else float(vs_range[0])
+        grid = plan_elastic_grid((vmin, vmax), vs_min, f_max, order, float(sim.accuracy), float(sim.cfl_safety),
+                                 bool(sim.free_surface), dx=sim.dx, dt=sim.dt)
+        dx, dt, why_dx, why_dt = grid.dx, grid.dt, grid.reasons["dx"], grid.reasons["dt"]
+    else:
+        dx, dt, why_dx, why_dt = _choose_dx_dt(order, ndim, vmin, vmax, f_max, float(sim.accuracy), float(sim.cfl_safety), pins, cells, t_record)
     try:
-        check_courant(ACOUSTIC, order, ndim, vmax, dx, dt)
+        check_courant(ELASTIC if elastic else ACOUSTIC, order, ndim, vmax, dx, dt)
     except ValueError as e:
         raise ValueError(f"simulation.{e}") from None
     n_cells, n_steps = cells(dx), t_record / dt + 1  # floats: inf for absurd grids, where ints would overflow later
@@ -360,13 +401,14 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
                          f"dt = {dt:g} s, a {t_record:.4g} s record over {' x '.join(f'{e:.4g}' for e in hi - lo)} m), beyond any "
                          f"machine even with simulation.force; check the units of dx, dt, duration, the model's spacing and "
                          f"velocities (m, s, m/s) and the wavelet's frequency (Hz)")
-    limit = cfl_limit(order, ndim)
+    limit = grid.cfl_limit if elastic else cfl_limit(order, ndim)
     courant = vmax * dt / dx
-    err = _group_error(order, ndim, vmin, vmax, f_max, dx, dt)
+    err = grid.expected_error if elastic else _group_error(order, ndim, vmin, vmax, f_max, dx, dt)
+    v_slow = vs_min if elastic else vmin
     if err > float(sim.accuracy):
         warnings.append(
             f"under-resolved: expected group-velocity error {100 * err:.2f}% at f_max {f_max:.3g} Hz exceeds the target "
-            f"{100 * sim.accuracy:g}% ({vmin / (f_max * dx):.1f} points per minimum wavelength at dx = {dx:g} m); "
+            f"{100 * sim.accuracy:g}% ({v_slow / (f_max * dx):.1f} points per minimum wavelength at dx = {dx:g} m); "
             f"over the longest path ({t_direct:.3g} s) that is ~{err * t_direct * 1e3:.1f} ms of travel-time error"
         )
     if courant < 0.2 * limit:
@@ -377,9 +419,11 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     refl = DEFAULT_PML_REFLECTION[order] if sim.pml_reflection is None else float(sim.pml_reflection)
     padded = math.prod(int(n) + 2 * pml + order for n in shape)  # Python ints: no int64 overflow for absurd grids
     itemsize = 4 if sim.precision == "float32" else 8
-    memory = forward_memory_bytes(padded, len(src), len(rec), nt, itemsize)
+    memory = forward_memory_bytes(padded, len(src), len(rec), nt, itemsize, "elastic" if elastic else "acoustic")
     device_kind = "cuda" if str(sim.device).startswith("cuda") else "cpu"
-    seconds = padded * nt / EST_RATE[device_kind]
+    seconds = padded * nt / EST_RATE[device_kind] * (ELASTIC_STEP_COST if elastic else 1.0)
+    if elastic and device_kind == "cpu":
+        seconds += nt * ELASTIC_CPU_STEP_SECONDS
     if seconds * len(src) > LONG_RUN_SECONDS:
         warnings.append(f"long run: an estimated {seconds * len(src) / 3600:.3g} h on {sim.device} for {len(src)} shot(s) "
                         f"({padded:,} padded cells x {nt:,} steps each); check the velocities, the wavelet's frequency and "
@@ -396,7 +440,7 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
         pml_width=pml, pml_reflection=refl, free_surface=bool(sim.free_surface), device=str(sim.device),
         precision=str(sim.precision), f_max=float(f_max), expected_error=float(err), courant=float(courant),
         cfl_limit=float(limit), padded_cells=padded, memory_bytes=int(memory),
-        seconds_per_shot=seconds, n_shots=len(src),
+        seconds_per_shot=seconds, n_shots=len(src), physics="elastic" if elastic else "acoustic",
         reasons={"dx": why_dx, "dt": why_dt, "nt": why_nt, "domain": why_domain,
                  **({"memory": reasons_memory} if reasons_memory else {})}, warnings=warnings,
     )  # fmt: skip
@@ -412,6 +456,18 @@ def build_scene(config, plan: Plan | None = None, model: Model | None = None) ->
     rec = np.asarray(config.geometry.receivers, float) - origin
     n_shots = len(src)
     wavelet = make_wavelet(config.wavelet.kind, plan.nt, plan.dt, **config.wavelet.params)
+    elastic = {}
+    if isinstance(model, ElasticModel):
+        from adseismic.solve.receivers import DasOperator, Recording
+
+        das = config.geometry.das  # a config built in Python may leave out what parse_config fills in: its defaults
+        components = tuple(config.geometry.components) or (() if das else ("vx", "vz", "pressure"))
+        recording = Recording(components, das and DasOperator(das.gauge_length, das.direction))
+        rec = recording.locations(rec)
+        source = config.source
+        kind, comp = ("moment", np.array([1.0, 1.0, 0.0])) if source is None else (source.solver_type, np.asarray(source.components, float))
+        elastic = {"source_type": kind, "recording": recording,
+                   "source_components": np.broadcast_to(comp, (n_shots, 1, comp.size)).copy()}
     return Scene(
         plan=plan,
         model=model,
@@ -419,12 +475,24 @@ def build_scene(config, plan: Plan | None = None, model: Model | None = None) ->
         receiver_locations=np.broadcast_to(rec, (n_shots, *rec.shape)).copy(),
         source_amplitudes=np.broadcast_to(wavelet, (n_shots, 1, plan.nt)).copy(),
         wavelet=wavelet,
+        **elastic,
     )
 
 
-def run_forward(scene: Scene, snapshot_every: int = 0, progress: bool = False) -> ForwardResult:
-    """Run the planned forward simulation for every shot of the scene at once."""
+def run_forward(scene: Scene, snapshot_every: int = 0, progress: bool = False):
+    """Run the planned forward simulation for every shot of the scene at once: a ForwardResult (acoustic) or, for an
+    ElasticModel, adseismic.solve.elastic's ElasticResult at scene.receiver_locations (no snapshots)."""
     p = scene.plan
+    if isinstance(scene.model, ElasticModel):
+        from adseismic.solve.elastic import forward_elastic
+
+        m = scene.model
+        return forward_elastic(
+            m.vp.values, m.vs.values, m.rho.values, p.dx, p.dt, scene.source_amplitudes, scene.source_locations,
+            scene.receiver_locations, source_type=scene.source_type, source_components=scene.source_components,
+            order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface,
+            device=p.device, precision=p.precision, progress=progress,
+        )  # fmt: skip
     return forward(
         scene.model.values, p.dx, p.dt, scene.source_amplitudes, scene.source_locations, scene.receiver_locations,
         order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface,
@@ -452,7 +520,8 @@ class ElasticGridPlan:
 
 
 def plan_elastic_grid(vp_range, vs_min: float, f_max: float, order: int = 4, accuracy: float = 0.01,
-                      cfl_safety: float = 0.9, free_surface: bool = False) -> ElasticGridPlan:  # fmt: skip
+                      cfl_safety: float = 0.9, free_surface: bool = False, dx: float | None = None,
+                      dt: float | None = None) -> ElasticGridPlan:  # fmt: skip
     """Coarsest dx and its dt for the staggered elastic scheme (kernels/elastic/).
 
     vp_range (vp_min, vp_max) m/s; vs_min m/s (0 for a fluid somewhere: the slowest wave is then vp_min);
@@ -460,8 +529,10 @@ def plan_elastic_grid(vp_range, vs_min: float, f_max: float, order: int = 4, acc
     also needs RAYLEIGH_PPW points per wavelength (its error is set by the free-surface stencils, not by
     the interior dispersion). dt = cfl_safety x the staggered CFL limit for vp_max; dx meets the
     worst-direction group-velocity `accuracy` at f_max (numerics.staggered_dispersion_error) for the
-    slowest and the fastest wave.
+    slowest and the fastest wave. dx (m) and dt (s), when given, are pins: a pinned dt alone gets the planned dx or
+    the smallest dx for which it is stable (cfl_safety x the limit), whichever is larger; a pinned dx alone its dt.
     """
+    pin_dx, pin_dt = dx, dt
     vp_min, vp_max = (float(v) for v in vp_range)
     limit = staggered_cfl_limit(order, 2)
     c_max = cfl_safety * limit
@@ -483,13 +554,22 @@ def plan_elastic_grid(vp_range, vs_min: float, f_max: float, order: int = 4, acc
     def error(dx, dt):
         return max(staggered_dispersion_error(order, 2, v / (f_max * dx), v * dt / dx)["group"][0] for v in (slow, vp_max))
 
-    dt = _nice_floor(c_max * dx / vp_max)
-    while error(dx, dt) > accuracy:  # rounding moves the Courant number, and the error is not monotonic in it
-        dx = _nice_floor(0.98 * dx)
+    why_dt = f"{cfl_safety:g} x the staggered CFL limit {limit:.4f} (order {order}) for vp_max {vp_max:.0f} m/s"
+    if pin_dx is not None or pin_dt is not None:
+        if pin_dx is not None:
+            dx, why = float(pin_dx), "pinned by the config"
+        elif vp_max * pin_dt / dx > c_max:
+            dx = _nice_ceil(vp_max * pin_dt / c_max)
+            why = f"the smallest dx for which the pinned dt = {pin_dt:g} s is stable ({why_dt}); {why} would need a smaller dt"
+        dt, why_dt = (float(pin_dt), "pinned by the config") if pin_dt is not None else (_nice_floor(c_max * dx / vp_max), why_dt)
+    else:
         dt = _nice_floor(c_max * dx / vp_max)
+        while error(dx, dt) > accuracy:  # rounding moves the Courant number, and the error is not monotonic in it
+            dx = _nice_floor(0.98 * dx)
+            dt = _nice_floor(c_max * dx / vp_max)
     courant, err = vp_max * dt / dx, error(dx, dt)
     return ElasticGridPlan(dx=dx, dt=dt, courant=courant, cfl_limit=limit, slowest=name, expected_error=float(err),
-                           reasons={"dx": why, "dt": f"{cfl_safety:g} x the staggered CFL limit {limit:.4f} (order {order}) for vp_max {vp_max:.0f} m/s"})  # fmt: skip
+                           reasons={"dx": why, "dt": why_dt})  # fmt: skip
 
 
 def _staggered_ppw(order: int, courant: float, target: float) -> float:

@@ -22,7 +22,7 @@ import os
 import pkgutil
 from functools import lru_cache
 
-WORKFLOWS = ("adseismic.inversion", "adseismic.location", "adseismic.cli", "adseismic.bench", "adseismic.config")
+WORKFLOWS = ("adseismic.inversion", "adseismic.location", "adseismic.imaging", "adseismic.cli", "adseismic.bench", "adseismic.config")
 # Subpackages kept outside adseismic/ in the repository (pyproject's package-dir); an editable install maps them by
 # name, so a walk of adseismic's __path__ does not reach them and they are walked as roots of their own.
 ROOTS = ("adseismic", "adseismic.kernels", "adseismic.data_synthetic")

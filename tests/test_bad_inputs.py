@@ -96,6 +96,16 @@ def stations_off_line(d: Path, name: str):
     write_station_traces(d, st, latitude=lat, longitude=lon, elevation=[0.0] * 4, stem=Path(name).stem)
 
 
+def two_component(d: Path, name: str, lacking_x=("S2",)):
+    """MiniSEED of three stations XX.S0..S2 with channels HHZ and HHX (noise), but no HHX at the stations in lacking_x."""
+    import obspy
+
+    rng = np.random.default_rng(3)
+    traces = [obspy.Trace(rng.standard_normal(400), {"network": "XX", "station": f"S{i}", "channel": f"HH{c}", "delta": 0.005})
+              for i in range(3) for c in "ZX" if not (c == "X" and f"S{i}" in lacking_x)]  # fmt: skip
+    obspy.Stream(traces).write(str(d / name), format="MSEED", encoding="FLOAT64")
+
+
 def judi_segy(d: Path, name: str):
     """A SEG-Y shot file written the way JUDI.jl writes one: positive depths (m) x 1000 in the elevation fields with
     scalar -1000, for the FWI geometry above (sources z = 20 m, receivers z = 10 m)."""
@@ -142,8 +152,28 @@ def C(name, files, argv, status, *fragments, absent=()):  # noqa: N802 - a table
 
 
 PLAN = ["plan", "{d}/c.yaml"]
+FWD = ["forward", "{d}/c.yaml", "-o", "{out}"]
+
+
+def elastic(vp="{kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.0}", vs="{vp_ratio: 1.8}",
+            rho="{gardner: true}", receivers="{line: {start: {x: 0, z: 10}, end: {x: 300, z: 10}, count: 16}}") -> str:
+    """A forward config with physics elastic (the FORWARD scene's geometry, wavelet and simulation)."""
+    return (f"physics: elastic\nmodel:\n  vp: {vp}\n  vs: {vs}\n  rho: {rho}\n"
+            + GEOMETRY.replace("{line: {start: {x: 0, z: 10}, end: {x: 300, z: 10}, count: 16}}", receivers) + WAVELET + SIM)
 FWI = ["fwi", "{d}/c.yaml", "-o", "{out}"]
+ETRUE = "true_model:\n  vp: {kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2100.0}\n  vs: {vp_ratio: 1.8}\n  rho: {gardner: true}\n"
 LOC = ["locate", "{d}/c.yaml", "-o", "{out}"]
+IMAGE = ["image", "{d}/c.yaml", "-o", "{out}"]
+ELOCATE = ("physics: elastic\npreprocess: {noise_window: [0.0, 0.3]}\nmodel:\n"
+           "  vp: {kind: constant, shape: [41, 61], spacing: 10.0, velocity: 2000.0, origin: [0, -300]}\n  vs: {vp_ratio: 1.8}\n"
+           "  rho: {gardner: true}\ntraces: {paths: [ev.mseed], local_coordinates: {XX.S0: [10, -100], XX.S1: [10, 0], XX.S2: [10, 100]}}\n")
+ACOUSTIC_TRACES = "traces: {paths: [ev.mseed], local_coordinates: {XX.A: [10, 0]}}\n"
+
+
+def image(settings: str, data: str = TRUE) -> str:
+    """An `adseismic image` config of the FORWARD scene with the image section `settings`."""
+    return FORWARD + data + f"image: {settings}\n"
+
 
 CATALOGUE = [
     # --- 1. the config loader
@@ -266,6 +296,118 @@ CATALOGUE = [
       "simulation.memory_budget_gb", "inversion: gradients of 2 shot(s)"),
     C("fwi velocities in km/s", {"c.yaml": fwi("{bands: [null], iterations: 1, bounds: [1.0, 3.0]}", data=TRUE,
                                                model=MODEL.replace("2000.0", "2.0"))}, FWI, 2, "km/s? multiply by 1000"),
+    # --- physics elastic (issue 23): bad combinations refused before any work
+    C("elastic vs > vp / sqrt(2)", {"c.yaml": elastic(vs="{kind: constant, velocity: 1500.0}")}, FWD, 2,
+      "model.vs: vs = 1500 m/s > vp / sqrt(2) = 1414.21 m/s", "negative Lame lambda", "vp/vs >= 1.414"),
+    C("elastic vs >= vp", {"c.yaml": elastic(vs="{kind: constant, velocity: 2500.0}")}, FWD, 2,
+      "model.vs: vs = 2500 m/s", "S faster than P"),
+    C("elastic vp_ratio below sqrt(2)", {"c.yaml": elastic(vs="{vp_ratio: 1.2}")}, FWD, 2,
+      "model.vs.vp_ratio: 1.2 is below sqrt(2)", "1.732"),
+    C("elastic vs = 0 everywhere", {"c.yaml": elastic(vs="{kind: constant, velocity: 0.0}")}, FWD, 2,
+      "model.vs.velocity: 0", "use physics: acoustic"),
+    C("elastic vs in km/s", {"c.yaml": elastic(vs="{kind: constant, velocity: 1.1}")}, FWD, 2,
+      "model.vs: shear speeds down to 1.1 m/s", "km/s? multiply by 1000"),
+    C("elastic zero density", {"c.yaml": elastic(rho="{kind: constant, velocity: 0.0}")}, FWD, 2,
+      "model.rho.velocity: 0.0 is not a positive density", "kg/m^3"),
+    C("elastic negative density", {"c.yaml": elastic(rho="{kind: constant, velocity: -2000.0}")}, FWD, 2,
+      "model.rho.velocity: -2000", "kg/m^3"),
+    C("elastic density in g/cm^3", {"c.yaml": elastic(rho="{kind: constant, velocity: 2.2}")}, FWD, 2,
+      "model.rho: densities down to 2.2 kg/m^3", "multiply by 1000"),
+    C("elastic 3D model", {"c.yaml": elastic(vp="{kind: constant, shape: [11, 11, 11], spacing: 10.0, velocity: 2000.0}")},
+      FWD, 2, "model.vp: a 3D model", "2D", "physics: acoustic in 3D"),
+    C("elastic physics with one velocity model", {"c.yaml": "physics: elastic\n" + FORWARD}, FWD, 2,
+      "model: ", "physics elastic needs three", "vp_ratio", "set physics: acoustic"),
+    C("elastic model keys with acoustic physics", {"c.yaml": elastic().replace("physics: elastic\n", "")}, FWD, 2,
+      "model: vp, vs, rho are the keys of an elastic model", "set physics: elastic"),
+    C("DAS with acoustic physics", {"c.yaml": FORWARD.replace("count: 16}", "count: 16}, das: {gauge_length: 10}")}, FWD, 2,
+      "geometry.receivers.das: {'gauge_length': 10} needs physics: elastic"),
+    C("components with acoustic physics", {"c.yaml": FORWARD.replace("count: 16}", "count: 16}, components: [vx]")}, FWD, 2,
+      "geometry.receivers.components: ['vx'] needs physics: elastic"),
+    C("moment tensor with acoustic physics", {"c.yaml": FORWARD + "source: {type: moment, components: [1, 1, 0]}\n"}, FWD, 2,
+      "source: {'type': 'moment'", "needs physics: elastic", "drop the source section"),
+    C("force source with acoustic physics", {"c.yaml": FORWARD + "source: {type: force, components: [1, 0]}\n"}, PLAN, 2,
+      "source: {'type': 'force'", "needs physics: elastic"),
+    C("elastic moment tensor of 2 components", {"c.yaml": elastic() + "source: {type: moment, components: [1, 1]}\n"}, FWD, 2,
+      "source.components: [1, 1] is not [m_xx, m_zz, m_xz] in N m/m"),
+    C("elastic unknown physics", {"c.yaml": "physics: elastik\n" + FORWARD}, FWD, 2,
+      "physics: 'elastik' is not one of acoustic, elastic"),
+    C("DAS gauge outside the model", {"c.yaml": elastic(receivers="{line: {start: {x: 0, z: 10}, end: {x: 300, z: 10}, count: 16}, "
+                                                                 "das: {gauge_length: 20}}")}, FWD, 2,
+      "geometry.receivers.das (the gauges' starts", "x=-10", "outside the model"),
+    C("elastic snapshots", {"c.yaml": elastic() + "output: {snapshot_interval: 0.05}\n"}, FWD, 2,
+      "output.snapshot_interval: 0.05 s", "set it to 0"),
+    C("elastic fwi true model with acoustic keys", {"c.yaml": elastic() + TRUE + "inversion: {bands: [null], iterations: 1}\n"},
+      FWI, 2, "true_model: ", "physics elastic needs three"),
+    # --- fwi: inverted quantities, parameterisation and bounds against the physics (issue 23)
+    C("fwi vs with acoustic physics", {"c.yaml": fwi("{bands: [null], iterations: 1, parameters: [vs]}")}, FWI, 2,
+      "inversion.parameters: vs is not a quantity here (physics acoustic has the one parameter vp)"),
+    C("fwi lambda-mu-rho with acoustic physics", {"c.yaml": fwi("{bands: [null], iterations: 1, parameterization: lambda-mu-rho}")},
+      FWI, 2, "inversion.parameterization: lambda-mu-rho needs physics: elastic"),
+    C("fwi vp with lambda-mu-rho", {"c.yaml": elastic() + ETRUE + "inversion: {iterations: 1, parameterization: lambda-mu-rho, parameters: [vp]}\n"},
+      FWI, 2, "inversion.parameters: vp is not a quantity here (parameterization lambda-mu-rho moves lambda, mu, rho)"),
+    C("fwi bounds for a quantity not inverted", {"c.yaml": elastic() + ETRUE + "inversion: {iterations: 1, parameters: [vp], bounds: {vs: [900, 1400]}}\n"},
+      FWI, 2, "inversion.bounds.vs: [900.0, 1400.0] bounds a quantity that is not inverted (inverted: vp)", "add vs to inversion.parameters"),
+    C("fwi bounds min >= max", {"c.yaml": elastic() + ETRUE + "inversion: {iterations: 1, bounds: {vp: [2400, 1700]}}\n"}, FWI, 2,
+      "inversion.bounds: vp: [2400, 1700] m/s has min >= max", "min < max"),
+    C("fwi one bounds pair for elastic", {"c.yaml": elastic() + ETRUE + "inversion: {iterations: 1, bounds: [1500, 2500]}\n"}, FWI, 2,
+      "inversion.bounds: [1500.0, 2500.0] is one [min, max] pair but physics elastic inverts vp, vs, rho", "{vp: [1500, 3500]"),
+    C("fwi negative lambda bound", {"c.yaml": elastic() + ETRUE + "inversion: {iterations: 1, parameterization: lambda-mu-rho, "
+                                                                  "bounds: {lambda: [-1e9, 9e9]}}\n"}, FWI, 2,
+      "inversion.bounds.lambda: [-1e+09, 9e+09] Pa allows lambda < 0", "lower bound >= 0"),
+    C("fwi elastic bounds not containing the start", {"c.yaml": elastic() + ETRUE + "inversion: {iterations: 1, bounds: {vs: [500, 900]}}\n"},
+      FWI, 2, "inversion.bounds.vs: [500, 900] m/s do not contain the start model's range [1111.11, 1111.11] m/s"),
+    C("fwi nn model with elastic physics", {"c.yaml": fwi(model="physics: elastic\nmodel: {kind: nn, shape: [21, 31], spacing: 10.0, v0: 2000.0, scale: 200.0}\n")},
+      FWI, 2, "model.kind: nn with physics elastic: a network represents the acoustic velocity only"),
+    C("fwi nn model without v0", {"c.yaml": fwi(model="model: {kind: nn, shape: [21, 31], spacing: 10.0, scale: 200.0}\n")}, FWI, 2,
+      "model.v0"),
+    C("fwi elastic pseudo_hessian", {"c.yaml": elastic() + ETRUE + "inversion: {iterations: 1, preconditioning: pseudo_hessian}\n"}, FWI, 2,
+      "inversion.preconditioning: pseudo_hessian is acoustic only", "use none or depth"),
+    C("fwi elastic observed files", {"c.yaml": elastic() + "observed: {kind: hdf5, path: obs.h5}\ninversion: {iterations: 1}\n"}, FWI, 2,
+      "observed: given with physics elastic", "use true_model"),
+    # --- adseismic image
+    C("image lsrtm with elastic physics", {"c.yaml": elastic() + ETRUE + "image: {method: lsrtm}\n"}, IMAGE, 2,
+      "image.method: lsrtm with physics: elastic", "use method: rtm"),
+    C("image illumination with elastic physics", {"c.yaml": elastic() + ETRUE + "image: {illumination: true}\n"}, IMAGE, 2,
+      "image.illumination: true with physics: elastic", "drop the key"),
+    C("image with a network model", {"c.yaml": image("{method: rtm}").replace(MODEL, "model: {kind: nn, shape: [21, 31], spacing: 10.0, v0: 2000.0, scale: 200.0}\n")},
+      IMAGE, 2, "model.kind: nn is a parameterisation for fwi"),
+    C("image iterations 0", {"c.yaml": image("{method: lsrtm, iterations: 0}")}, IMAGE, 2, "image.iterations: 0 < 1", "at least 1"),
+    C("image iterations with rtm", {"c.yaml": image("{iterations: 5}")}, IMAGE, 2,
+      "image.iterations: 5 with method: rtm", "set method: lsrtm"),
+    C("image negative smoothing", {"c.yaml": image("{smoothing: -50}")}, IMAGE, 2, "image.smoothing: -50 is negative"),
+    C("image smoothing wider than the model", {"c.yaml": image("{smoothing: 5000}")}, IMAGE, 2,
+      "image.smoothing: 5000 m is larger than the model"),
+    C("image water below the model", {"c.yaml": image("{water_depth: 400}")}, IMAGE, 2,
+      "image.water_depth: 400 m is at or below the model's bottom (200 m)"),
+    C("image laplacian with lsrtm", {"c.yaml": image("{method: lsrtm, laplacian: true}")}, IMAGE, 2,
+      "image.laplacian: true with method: lsrtm"),
+    C("image method misspelt", {"c.yaml": image("{method: kirchhoff}")}, IMAGE, 2, "image.method: 'kirchhoff' is not one of rtm, lsrtm"),
+    C("image epsilon 0", {"c.yaml": image("{epsilon: 0}")}, IMAGE, 2, "image.epsilon: 0"),
+    C("image without data", {"c.yaml": image("{method: rtm}", data="")}, IMAGE, 2, "true_model/observed: give exactly one"),
+    C("image with an inversion section", {"c.yaml": image("{method: rtm}") + "inversion: {iterations: 1}\n"}, IMAGE, 2,
+      "inversion: unknown key", "image, true_model, observed"),
+    C("image all-zero observed data", {"obs.h5": forward_data(zero=True), "c.yaml": image("{method: rtm}", data="observed: {kind: hdf5, path: obs.h5}\n")},
+      IMAGE, 2, "every sample of the observed data is zero"),
+    # --- locate: moment-tensor sources (physics elastic)
+    C("locate moment tensor with acoustic physics", {"ev.mseed": miniseed, "c.yaml": LOCATE + ACOUSTIC_TRACES + "source: {type: moment}\n"},
+      LOC, 2, "source.type: 'moment'", "needs elastic physics", "set physics: elastic"),
+    C("locate mt constraint with acoustic physics", {"ev.mseed": miniseed,
+                                                     "c.yaml": LOCATE + ACOUSTIC_TRACES + "source: {constraint: double_couple}\n"},
+      LOC, 2, "source.constraint: 'double_couple'", "needs physics: elastic"),
+    C("locate mt constraint misspelt", {"ev.mseed": two_component, "c.yaml": ELOCATE + "source: {constraint: dc}\n"}, LOC, 2,
+      "source.constraint", "'dc'", "none, deviatoric, double_couple"),
+    C("locate elastic pressure source", {"ev.mseed": two_component, "c.yaml": ELOCATE + "source: {type: pressure}\n"}, LOC, 2,
+      "source.type: 'pressure' with physics elastic", "source.type: moment"),
+    C("locate double couple with a 3D model", {"ev.mseed": two_component, "c.yaml": ELOCATE.replace("shape: [41, 61]", "shape: [41, 11, 61]").replace("origin: [0, -300]", "origin: [0, 0, -300]")
+                                               + "source: {constraint: double_couple}\n"},
+      LOC, 2, "model.vp: a 3D model", "give a 2D model"),
+    C("locate elastic traces lacking X", {"ev.mseed": two_component, "c.yaml": ELOCATE}, LOC, 2,
+      "station XX.S2.", "lacks its X component", "add the missing channel"),
+    C("locate elastic one component kept", {"ev.mseed": lambda d, n: two_component(d, n, ()),
+                                            "c.yaml": ELOCATE.replace("local_coordinates", "component: Z, local_coordinates")},
+      LOC, 2, "traces.component: 'Z'", "physics elastic fits Z and X", "drop traces.component"),
+    C("locate elastic optimiser study", {"ev.mseed": lambda d, n: two_component(d, n, ()), "c.yaml": ELOCATE},
+      LOC + ["--compare-optimizers"], 2, "--compare-optimizers", "acoustic physics only", "physics is elastic"),
 ]
 
 

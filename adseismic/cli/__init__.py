@@ -4,9 +4,10 @@
     adseismic forward CONFIG -o OUTDIR         plan, simulate every shot, write data.h5 + PNGs
     adseismic fwi CONFIG -o OUTDIR             full-waveform inversion (adseismic.inversion.fwi)
     adseismic locate CONFIG -o OUTDIR          locate an event from its traces (adseismic.location.run)
+    adseismic image CONFIG -o OUTDIR           RTM or least-squares RTM image (adseismic.imaging.run)
     adseismic bench [--device cpu cuda:0] -o DIR   speed/memory on the standard scenes (adseismic.bench)
 
-forward, fwi and locate share -o/--output/--outdir, --dry-run (what ``plan`` runs), --force and -q.
+forward, fwi, locate and image share -o/--output/--outdir, --dry-run (what ``plan`` runs), --force and -q.
 Exit codes: 0 success; 2 invalid input (config, model, refused plan, output directory: the message says
 which key and how to fix it, no traceback); 3 the simulation blew up (PropagationError; no data.h5 is
 written); 130 interrupted (one line); 1 anything unexpected (with traceback).
@@ -140,7 +141,7 @@ def _make_outdir(outdir: pathlib.Path, args) -> None:
         raise CommandError(f"-o: cannot create {outdir} ({e.strerror or e}); choose a directory you can write to") from None
 
 
-PREAMBLE = ("config.yaml", "forward.log", "fwi.log", "locate.log", "observed.h5", "observed_waveforms.h5")  # written before a run's work
+PREAMBLE = ("config.yaml", "forward.log", "fwi.log", "locate.log", "image.log", "observed.h5", "observed_waveforms.h5")  # written before a run's work
 
 
 def _clean_refused(args) -> None:
@@ -184,22 +185,24 @@ GRADIENT_COST = 6.0
 
 # --------------------------------------------------------------------------------- plan
 
-WORKFLOWS = ("forward", "fwi", "locate")
+WORKFLOWS = ("forward", "fwi", "locate", "image")
 
 
 def workflow_of(path: pathlib.Path) -> str:
-    """Which workflow a config is for, from its top-level keys: `inversion` (or `true_model`, `observed`) -> fwi,
-    `traces` -> locate, otherwise forward."""
+    """Which workflow a config is for, from its top-level keys: `image` -> image, `inversion` (or `true_model`,
+    `observed`) -> fwi, `traces` -> locate, otherwise forward."""
     from adseismic.config.common import _read_yaml
 
     raw, _ = _read_yaml(path)
+    if "image" in raw:
+        return "image"
     if any(k in raw for k in ("inversion", "true_model", "observed")):
         return "fwi"
     return "locate" if "traces" in raw else "forward"
 
 
 def _register_plan(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", type=pathlib.Path, help="YAML config of any workflow (forward, fwi, locate)")
+    p.add_argument("config", type=pathlib.Path, help="YAML config of any workflow (forward, fwi, locate, image)")
     p.add_argument("--workflow", choices=WORKFLOWS, help="the workflow to plan (default: read from the config's keys)")
     p.add_argument("--force", action="store_true", help="plan although the estimate is above the budget")
 
@@ -226,6 +229,16 @@ def _register_forward(p: argparse.ArgumentParser) -> None:
     _register_run(p, "forward")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
                    help="show a progress bar over time steps (default: on)")
+
+
+def _elastic_traces(scene, result, store, n_receivers: int) -> dict:
+    """{name: (data (n_shots, n_receivers, nt) as ``store``, units, sample times)} of what the elastic receivers record
+    (scene.recording: components and DAS strain rate) from forward_elastic's result (store.write_forward's components)."""
+    from adseismic.solve.receivers import SAMPLE_TIMES, UNITS
+
+    recorded = {c: getattr(result, c) for c in ("vx", "vz", "pressure")}
+    data = scene.recording.data(recorded, n_receivers)
+    return {name: (a.astype(store), UNITS[name], f"t = {SAMPLE_TIMES[name]}") for name, a in data.items()}
 
 
 def cmd_forward(args) -> int:
@@ -257,7 +270,7 @@ def cmd_forward(args) -> int:
             log.warning("%s", w)
         # outputs of an earlier run would no longer match config.yaml and forward.log
         stale = [outdir / "data.h5", outdir / "waveforms.h5", outdir / "model.png", outdir / "snapshots_shot0.png",
-                 *outdir.glob("gather_shot*.png")]
+                 *outdir.glob("gather_shot*.png"), *outdir.glob("model_*.png")]
         stale = [p for p in stale if p.exists()]
         if stale:
             log.info("replacing the outputs of an earlier run in %s: %s", outdir,
@@ -295,34 +308,46 @@ def cmd_forward(args) -> int:
             "adseismic_version": version(),
             "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "config_yaml": text, "config_path": str(pathlib.Path(args.config).resolve()),
-            "plan": plan.describe(), "seconds": seconds,
+            "plan": plan.describe(), "seconds": seconds, "physics": config.physics,
         }
+        if config.physics == "elastic":  # the mechanism (N/m or N m/m per unit of the wavelet) and the fibre
+            das = config.geometry.das
+            attrs.update(source_type=config.source.type, source_components=config.source.components,
+                         **({"das_gauge_length": das.gauge_length, "das_direction": das.direction} if das else {}))
         ndim = config.model.ndim
         units = "units of source_wavelet" + (" x m" if ndim == 3 else "")
         store = np.float32 if plan.precision == "float32" else np.float64  # as simulated
+        traces = _elastic_traces(scene, result, store, len(rec_world)) if config.physics == "elastic" else None
         data_path = io.write_forward(
-            outdir / "data.h5", receiver_data=result.receiver_amplitudes.astype(store),
+            outdir / "data.h5", receiver_data=None if traces else result.receiver_amplitudes.astype(store),
             source_wavelet=scene.wavelet, dt=result.dt, source_coordinates=src_world,
             receiver_coordinates=rec_world, velocity=scene.model.values, spacing=plan.dx,
-            origin=plan.origin, attrs=attrs, snapshots=result.snapshots,
-            snapshot_times=result.snapshot_times, units=units)
+            origin=plan.origin, attrs=attrs, snapshots=getattr(result, "snapshots", None),
+            snapshot_times=getattr(result, "snapshot_times", None), units=units, components=traces)
         log.info("wrote %s", data_path)
         from adseismic.data.asdf import write_forward_asdf  # the same traces in ASDF (pyasdf optional: a warning without it)
 
-        write_forward_asdf(outdir / "waveforms.h5", receiver_data=result.receiver_amplitudes.astype(store), dt=result.dt,
-                           source_coordinates=src_world, receiver_coordinates=rec_world, wavelet=scene.wavelet, units=units)
+        if traces:
+            log.info("no waveforms.h5 (ASDF) for physics elastic: data.h5 holds %s", ", ".join(traces))
+        else:
+            write_forward_asdf(outdir / "waveforms.h5", receiver_data=result.receiver_amplitudes.astype(store), dt=result.dt,
+                               source_coordinates=src_world, receiver_coordinates=rec_world, wavelet=scene.wavelet, units=units)
 
         pngs = [plotting.plot_model(outdir / "model.png", scene.model.values, plan.dx,
                                     plan.origin, src_world, rec_world,
                                     title=config.model.name or "velocity model")]
+        if config.physics == "elastic":  # model.png is vp
+            pngs += [plotting.plot_model(outdir / f"model_{name}.png", getattr(scene.model, name).values, plan.dx, plan.origin,
+                                         src_world, rec_world, title=f"{name} on the simulation grid", label=label)
+                     for name, label in (("vs", "S velocity (m/s)"), ("rho", "density (kg/m^3)"))]
         for k in range(n_shots):
             where = ", ".join(f"{a}={v:g}" for a, v in zip("zyx" if ndim == 3 else "zx",
                                                             src_world[k]))
-            pngs.append(plotting.plot_gather(outdir / f"gather_shot{k}.png",
-                                             result.receiver_amplitudes[k], result.dt,
-                                             rec_world[:, -1],
-                                             title=f"shot {k} (source {where} m)"))
-        if result.snapshots is not None:
+            for name, (data, unit, _) in (traces or {"": (result.receiver_amplitudes, None, None)}).items():
+                pngs.append(plotting.plot_gather(outdir / f"gather_shot{k}{'_' + name if name else ''}.png",
+                                                 data[k], result.dt, rec_world if traces else rec_world[:, -1], units=unit,
+                                                 title=f"shot {k} (source {where} m){' ' + name if name else ''}"))
+        if getattr(result, "snapshots", None) is not None:
             pngs.append(plotting.plot_snapshots(
                 outdir / "snapshots_shot0.png", result.snapshots[:, 0], result.snapshot_times,
                 plan.dx, plan.origin, src_world[:1], title="shot 0 wavefield u"))
@@ -432,8 +457,9 @@ def _register_locate(p: argparse.ArgumentParser) -> None:
                    help="also run the optimiser study (GD, Adam, L-BFGS-B, Gauss-Newton; scaled and raw units) on this event")
     p.add_argument("--study-evaluations", type=int, default=30, metavar="N",
                    help="evaluations per optimiser in --compare-optimizers (default 30)")
-    p.add_argument("--misfit-map", type=int, default=11, metavar="N",
-                   help="positions per axis of the misfit map around the event (one batched simulation; default 11)")
+    p.add_argument("--misfit-map", type=int, default=None, metavar="N",
+                   help="positions per axis of the misfit map around the event (one batched simulation; default 11, "
+                        "physics elastic 7)")
 
 
 def _locate_costs(config, prep, args) -> list[str]:
@@ -461,9 +487,14 @@ def cmd_locate(args) -> int:
 
     if args.study_evaluations < 1:
         raise CommandError(f"--study-evaluations: {args.study_evaluations} < 1; give at least 1")
-    if args.misfit_map < 3:
+    if args.misfit_map is not None and args.misfit_map < 3:
         raise CommandError(f"--misfit-map: {args.misfit_map} < 3; give at least 3 positions per axis")
     config = _force(load_locate_config(args.config), args.force)
+    if args.misfit_map is None:  # an elastic shot costs ~4 acoustic ones
+        args.misfit_map = 7 if config.physics == "elastic" else 11
+    if args.compare_optimizers and config.physics != "acoustic":
+        raise CommandError(f"--compare-optimizers: the optimiser study runs acoustic physics only, but physics is {config.physics}; "
+                           f"drop --compare-optimizers (or locate with physics: acoustic)")
     _check_device(config.simulation.device, args.dry_run)
     if not args.dry_run:
         outdir = _outdir(args)
@@ -511,8 +542,65 @@ def cmd_locate(args) -> int:
         print(f"latitude {s['latitude']:.5f}, longitude {s['longitude']:.5f}, depth {s['depth_m']:.0f} m")
     if "truth_position_error_m" in s:
         print(f"distance to the true position: {s['truth_position_error_m']:.2f} m")
+    if "moment_tensor" in s:
+        mt = s["moment_tensor"]
+        comp = ", ".join(f"{k} {v:.3g}" for k, v in mt["local_xyz"].items() if v is not None)
+        planes = "; ".join(f"{p['strike']:.0f}/{p['dip']:.0f}/{p['rake']:.0f}" for p in mt["nodal_planes"])
+        print(f"moment tensor ({mt['constraint']}, {mt['units']}): {comp}; unresolved in 2D: {', '.join(mt['unresolved'])}; "
+              f"scalar moment {mt['scalar_moment']:.3g}; nodal planes (strike/dip/rake) {planes}")
     if study is not None:
         print(optimizer_table(study))
+    print(wrote)
+    return EXIT_OK
+
+
+# --------------------------------------------------------------------------------- image
+
+def _register_image(p: argparse.ArgumentParser) -> None:
+    _register_run(p, "imaging (forward sections + image + true_model or observed)")
+
+
+def _image_costs(config, prep) -> list[str]:
+    im, plan = config.image, prep.plan
+    # a gradient (background forward, its checkpointed re-run, the adjoint) ~ GRADIENT_COST forward runs; a Born
+    # run two (background and scattered wavefields) and the observed data one
+    runs = GRADIENT_COST + (im.iterations * (GRADIENT_COST + 2) if im.method == "lsrtm" else 0)
+    runs += 1 if prep.observed is None else 0
+    what = "RTM: one migration" if im.method == "rtm" else f"LSRTM: {im.iterations} CG iterations (one Born + one migration each)"
+    source = "simulated from true_model" if prep.observed is None else "read from files"
+    return [f"image     {what} of {plan.n_shots} shot(s); observed data {source}",
+            f"          wall time ~{_hms(runs * plan.seconds_per_shot * plan.n_shots)} on {plan.device} (estimate)"]
+
+
+def cmd_image(args) -> int:
+    from adseismic.config.image import load_image_config
+    from adseismic.imaging.run import prepare_image, run_image
+    from adseismic.solve.common import PropagationError
+
+    config = _force(load_image_config(args.config), args.force)
+    _check_device(config.forward.simulation.device, args.dry_run)
+    with RunLog(None, args.quiet or args.dry_run) as early:
+        log.info("adseismic %s image %s -> %s", version(), args.config, args.outdir)
+        prep = prepare_image(config)  # plans, makes the background and reads observed files before OUTDIR is touched
+    c = config.forward
+    if args.dry_run:
+        _print_plan(f"image plan for {args.config} ({c.model.ndim}D, {c.n_shots} shot(s), {len(c.geometry.receivers)} receivers)",
+                    prep.plan, _image_costs(config, prep))
+        return EXIT_OK
+    outdir = _outdir(args)
+    since = time.time()
+    _make_outdir(outdir, args)
+    with RunLog(outdir / "image.log", args.quiet, earlier=early.records):
+        write_text_atomic(outdir / "config.yaml", _config_text(c))
+        try:
+            res = run_image(config, outdir, progress=not args.quiet, prepared=prep)
+        except PropagationError as e:
+            raise CommandError(f"simulation failed: {e}; no image.h5 was written", EXIT_UNSTABLE) from None
+        wrote = _wrote_line(outdir, since)
+        log.info("%s", wrote)
+    n = res.residual_norms
+    if len(n) > 1:
+        print(f"lsrtm: data residual {n[-1] / n[0]:.4g} of the reflection data's norm after {len(n) - 1} iterations")
     print(wrote)
     return EXIT_OK
 
@@ -572,6 +660,8 @@ COMMANDS = {
             _register_fwi, cmd_fwi),
     "locate": ("locate an earthquake from its traces: position, origin time, source-time function, uncertainty",
                _register_locate, cmd_locate),
+    "image": ("image the reflectors: reverse-time migration (RTM) or least-squares RTM, written as image.h5 and PNGs",
+              _register_image, cmd_image),
     "bench": ("speed, memory and accuracy benchmarks on the standard scenes, beside Deepwave",
               _register_bench, cmd_bench),
     "schema": ("print (or -o: write) the JSON Schema of a workflow's config, for YAML editors' completion",
@@ -641,6 +731,7 @@ def _run(args) -> int:
     except KeyboardInterrupt as e:
         resume = {"fwi": f"; continue with: adseismic fwi {args.config} -o {args.outdir} --resume",
                   "forward": " (no partial outputs: files are complete or absent)",
-                  "locate": " (no partial outputs: files are complete or absent)"}.get(args.command, "")
+                  "locate": " (no partial outputs: files are complete or absent)",
+                  "image": " (no partial outputs: files are complete or absent)"}.get(args.command, "")
         print(f"adseismic {args.command}: interrupted{f' by {e.args[0]}' if e.args else ''}{resume}", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -9,6 +9,7 @@
 - :mod:`adseismic.config.forward`: forward runs (:class:`ForwardConfig`, :func:`load_config`);
 - :mod:`adseismic.config.fwi`: inversions (:class:`FWIConfig`, :func:`load_fwi_config`);
 - :mod:`adseismic.config.locate`: event location (:class:`LocateConfig`, :func:`load_locate_config`);
+- :mod:`adseismic.config.image`: imaging, RTM and LSRTM (:class:`ImageConfig`, :func:`load_image_config`);
 - :mod:`adseismic.config.parallel`: the optional ``parallel:`` section of fwi (shots on Dask workers).
 
 Loading or parsing a config imports no workflow (nothing of adseismic.inversion, .location,
@@ -17,6 +18,7 @@ Loading or parsing a config imports no workflow (nothing of adseismic.inversion,
 from adseismic.config.common import ConfigError
 from adseismic.config.forward import ForwardConfig, GeometryConfig, OutputConfig, SimulationConfig, WaveletConfig, load_config, parse_config
 from adseismic.config.fwi import FWIConfig, InversionConfig, load_fwi_config, parse_fwi_config
+from adseismic.config.image import ImageConfig, load_image_config, parse_image_config
 from adseismic.config.locate import LocateConfig, load_locate_config, parse_locate_config
 
 __all__ = [
@@ -24,6 +26,7 @@ __all__ = [
     "ForwardConfig",
     "FWIConfig",
     "LocateConfig",
+    "ImageConfig",
     "GeometryConfig",
     "OutputConfig",
     "WaveletConfig",
@@ -35,4 +38,6 @@ __all__ = [
     "parse_fwi_config",
     "load_locate_config",
     "parse_locate_config",
+    "load_image_config",
+    "parse_image_config",
 ]

@@ -2,7 +2,10 @@
 planner consumes.
 
 A config file has the top-level sections ``model``, ``geometry``, ``wavelet`` (required),
-``simulation`` and ``output`` (optional). Every value is checked before any work is done; a
+``physics``, ``source``, ``simulation`` and ``output`` (optional). ``physics: elastic`` (2D) makes ``model`` a
+``{vp, vs, rho}`` section (:func:`adseismic.data.models.load_physics_model`), lets ``source`` choose a force,
+moment-tensor or explosive mechanism and ``geometry.receivers`` record ``components`` (vx, vz, pressure) and DAS
+strain rate (``das``); those keys are refused with acoustic physics. Every value is checked before any work is done; a
 problem raises :class:`ConfigError` whose message starts with the dotted key path (for example
 ``simulation.order: 3 is not one of 2, 4, 8; ...``), says what was found and how to fix it.
 Unknown keys are errors, since a typo would otherwise silently fall back to a default. Keys, types, units,
@@ -25,12 +28,14 @@ from pathlib import Path
 import numpy as np
 
 from adseismic.config import schema
-from adseismic.config.common import ConfigError, _check_keys, _integer, _mapping, _number, _read_yaml
+from adseismic.config.common import ConfigError, _check_keys, _integer, _mapping, _number, _read_yaml, _short
 from adseismic.config.schema import given, validate_section
-from adseismic.data.models import Model, ModelError, load_model
+from adseismic.data.models import ElasticModel, Model, ModelError, load_physics_model
 
 __all__ = [
     "GeometryConfig",
+    "DasConfig",
+    "SourceConfig",
     "WaveletConfig",
     "SimulationConfig",
     "OutputConfig",
@@ -46,15 +51,43 @@ __all__ = [
 # ------------------------------------------------------------------------------ dataclasses
 
 @dataclass
+class DasConfig:
+    """DAS channels at the receiver points (physics elastic): strain rate (1/s) along the unit vector ``direction``
+    (dz, dx) over ``gauge_length`` (m) centred on each point (adseismic.solve.receivers.DasOperator)."""
+
+    gauge_length: float
+    direction: tuple
+
+
+@dataclass
 class GeometryConfig:
     """Acquisition geometry in world metres, axis order (z, [y,] x).
 
     sources: (n_shots, ndim); every source point is one shot.
     receivers: (n_receivers, ndim); one spread shared by all shots.
+    components: what the receivers record with physics elastic (of vx, vz, pressure; () for acoustic physics);
+    das: DAS strain rate at the receivers too (physics elastic), or None.
     """
 
     sources: np.ndarray
     receivers: np.ndarray
+    components: tuple = ()
+    das: DasConfig | None = None
+
+
+@dataclass
+class SourceConfig:
+    """The source mechanism of physics elastic, the same at every shot: ``type`` force, moment or explosive, and
+    ``components`` in the solver's convention (adseismic.solve.elastic): force (f_z, f_x) in N/m, moment and explosive
+    (m_xx, m_zz, m_xz) in N m/m; the source at time t is components x the wavelet s(t)."""
+
+    type: str = "explosive"
+    components: tuple = (1.0, 1.0, 0.0)
+
+    @property
+    def solver_type(self) -> str:
+        """forward_elastic's source_type: an explosive source is the moment tensor (M0, M0, 0)."""
+        return "force" if self.type == "force" else "moment"
 
 
 @dataclass
@@ -94,13 +127,15 @@ class OutputConfig:
 
 @dataclass
 class ForwardConfig:
-    model: Model
+    model: Model | ElasticModel  # ElasticModel with physics elastic
     geometry: GeometryConfig
     wavelet: WaveletConfig
     simulation: SimulationConfig
     output: OutputConfig
     path: Path | None = None  # the YAML file (None when parsed from a dict)
     raw: dict = field(default_factory=dict)  # the parsed YAML, kept for provenance
+    physics: str = "acoustic"  # acoustic or elastic
+    source: SourceConfig | None = None  # physics elastic: the mechanism (None for acoustic physics)
 
     @property
     def ndim(self) -> int:
@@ -113,11 +148,12 @@ class ForwardConfig:
 
 # ------------------------------------------------------------------------------ key tables
 
-SECTIONS = ("model", "geometry", "wavelet", "simulation", "output")
+SECTIONS = ("model", "geometry", "wavelet", "physics", "source", "simulation", "output")
 REQUIRED_SECTIONS = ("model", "geometry", "wavelet")
 SIMULATION_KEYS = tuple(schema.Simulation.model_fields)  # types, units, defaults, ranges: adseismic.config.schema
 OUTPUT_KEYS = tuple(schema.Output.model_fields)
 GEOMETRY_KEYS = ("sources", "receivers")
+RECORDING_KEYS = ("components", "das")  # geometry.receivers: what an elastic spread records
 SPREAD_FORMS = ("points", "line", "lines")
 LINE_KEYS = ("start", "end", "count")
 WAVELET_KEYS = schema.WAVELET_KEYS  # the keys of each kind
@@ -255,27 +291,107 @@ def _check_inside(points: np.ndarray, key: str, model: Model) -> None:
                           f"them inside or change the model's origin")
 
 
-def _parse_geometry(raw, model: Model, key="geometry") -> GeometryConfig:
+def _parse_geometry(raw, model: Model | ElasticModel, physics: str = "acoustic", key="geometry") -> GeometryConfig:
     g = _mapping(raw, key, "sources and receivers")
     _check_keys(g, key, GEOMETRY_KEYS)
-    arrays = {}
+    arrays, recording = {}, {}
     for k in GEOMETRY_KEYS:
         if k not in g:
             raise ConfigError(f"{key}.{k}: missing; give 'points: [...]' or 'line: {{...}}' "
                               f"in world metres")
-        arrays[k] = _parse_spread(g[k], f"{key}.{k}", model.ndim)
+        spread = g[k]
+        if k == "receivers" and isinstance(spread, dict):
+            recording = {r: spread[r] for r in RECORDING_KEYS if r in spread}
+            spread = {r: v for r, v in spread.items() if r not in RECORDING_KEYS}
+        arrays[k] = _parse_spread(spread, f"{key}.{k}", model.ndim)
         _check_inside(arrays[k], f"{key}.{k}", model)
-    return GeometryConfig(arrays["sources"], arrays["receivers"])
+    components, das = _parse_recording(recording, arrays["receivers"], model, physics, f"{key}.receivers")
+    return GeometryConfig(arrays["sources"], arrays["receivers"], components, das)
 
 
-def _load_model(spec, base_dir: Path) -> Model:
-    """:func:`adseismic.data.models.load_model`, its ModelError re-raised as ConfigError (message
-    unchanged when it already starts with ``model``, else prefixed ``model.``)."""
+def _parse_recording(raw: dict, receivers: np.ndarray, model, physics: str, key: str) -> tuple:
+    """(components, das) of geometry.receivers: checked by the schema (schema.Receivers), refused with acoustic
+    physics; the DAS direction normalised and every gauge's ends inside the model."""
+    for k, value in raw.items():
+        if physics != "elastic" and value is not None:
+            raise ConfigError(f"{key}.{k}: {_short(value)} needs physics: elastic (acoustic receivers record the one "
+                              f"wavefield u); set physics: elastic (with model: {{vp, vs, rho}}) or drop {k}")
+    if physics != "elastic":
+        return (), None
+    v = given(validate_section(schema.Receivers, raw, key))
+    das = None
+    if "das" in v:
+        das = DasConfig(v["das"].gauge_length, _direction(v["das"].direction, f"{key}.das.direction"))
+        half = 0.5 * das.gauge_length * np.asarray(das.direction)
+        for sign, end in ((-1, "start"), (1, "end")):
+            _check_inside(receivers + sign * half, f"{key}.das (the gauges' {end}s, +-gauge_length/2 along the fibre)",
+                          model)
+    components = tuple(v["components"]) if "components" in v else (() if das else schema.COMPONENTS)
+    if len(set(components)) != len(components):
+        raise ConfigError(f"{key}.components: {list(components)} names a component twice; list each once")
+    if not components and das is None:
+        raise ConfigError(f"{key}.components: [] records nothing; give any of {', '.join(schema.COMPONENTS)}, or das")
+    return components, das
+
+
+def _direction(value, key: str) -> tuple:
+    """A unit vector (dz, dx) from [dz, dx] (normalised) or an angle in degrees from +x towards +z."""
+    if isinstance(value, list):
+        if len(value) != 2:
+            raise ConfigError(f"{key}: {_short(value)} is not [dz, dx]; give the fibre's direction as two numbers or "
+                              f"an angle in degrees")
+        d = np.array([_number(x, f"{key}[{i}]") for i, x in enumerate(value)])
+        if not np.hypot(*d) > 0:
+            raise ConfigError(f"{key}: {_short(value)} has length 0; give a direction [dz, dx], e.g. [0, 1] (horizontal)")
+        d = d / np.hypot(*d)
+    else:
+        a = np.radians(_number(value, key, "degrees from the +x axis towards +z (depth)"))
+        d = np.array([np.sin(a), np.cos(a)])
+    return (float(d[0]), float(d[1]))
+
+
+SOURCE_SIZES = {"force": 2, "moment": 3}  # components per mechanism (adseismic.solve.elastic.SOURCE_TYPES)
+
+
+def _parse_source(raw, physics: str, key="source") -> SourceConfig | None:
+    """The source section (schema.ElasticSource): physics elastic only; None for acoustic physics."""
+    if physics != "elastic":
+        if raw is not None:
+            raise ConfigError(f"{key}: {_short(raw)} needs physics: elastic; the acoustic solver injects the wavelet as "
+                              f"a pressure (explosive-like) point source: drop the source section, or set physics: "
+                              f"elastic (with model: {{vp, vs, rho}}) for force and moment-tensor sources")
+        return None
+    v = given(validate_section(schema.ElasticSource, raw, key))
+    kind, comp = v.get("type", "explosive"), v.get("components")
+    if kind == "explosive":
+        m0 = 1.0 if comp is None else _number(comp, f"{key}.components", "N m/m (the explosive moment M0)")
+        return SourceConfig(kind, (m0, m0, 0.0))
+    n = SOURCE_SIZES[kind]
+    what = "[f_z, f_x] in N/m" if kind == "force" else "[m_xx, m_zz, m_xz] in N m/m"
+    if not isinstance(comp, list) or len(comp) != n:
+        raise ConfigError(f"{key}.components: {_short(comp)} is not {what}; a {kind} source needs its {n} components")
+    values = tuple(_number(x, f"{key}.components[{i}]", what) for i, x in enumerate(comp))
+    if not any(values):
+        raise ConfigError(f"{key}.components: {list(values)} are all 0: the source radiates nothing; give {what}")
+    return SourceConfig(kind, values)
+
+
+def _load_model(spec, base_dir: Path, physics: str = "acoustic") -> Model | ElasticModel:
+    """:func:`adseismic.data.models.load_physics_model`, its ModelError re-raised as ConfigError (message
+    unchanged when it already starts with ``model`` or ``physics``, else prefixed ``model.``)."""
     try:
-        return load_model(spec, base_dir=base_dir)
+        return load_physics_model(spec, physics, base_dir=base_dir)
     except ModelError as e:
         msg = str(e)
-        raise ConfigError(msg if msg.startswith("model") else f"model.{msg}") from e
+        raise ConfigError(msg if msg.startswith(("model", "physics")) else f"model.{msg}") from e
+
+
+def _parse_physics(raw) -> str:
+    physics = "acoustic" if raw is None else raw
+    if physics not in schema.PHYSICS:
+        raise ConfigError(f"physics: {_short(raw)} is not one of {', '.join(schema.PHYSICS)}; pick one of them "
+                          f"(default acoustic)")
+    return physics
 
 
 # ------------------------------------------------------------------------------ public API
@@ -299,12 +415,17 @@ def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | Non
         if raw.get(k) is None:
             raise ConfigError(f"{k}: missing; a config needs the sections "
                               f"{', '.join(REQUIRED_SECTIONS)} (and optionally simulation, output)")
+    physics = _parse_physics(raw.get("physics"))
     simulation = _parse_simulation(raw.get("simulation"))
     output = _parse_output(raw.get("output"))
+    if physics == "elastic" and output.snapshot_interval:
+        raise ConfigError(f"output.snapshot_interval: {output.snapshot_interval:g} s, but the elastic solver keeps no "
+                          f"wavefield snapshots; set it to 0 (or leave it out) with physics elastic")
     wavelet = _parse_wavelet(raw["wavelet"], base_dir)
-    model = _load_model(raw["model"], base_dir)
-    geometry = _parse_geometry(raw["geometry"], model)
-    return ForwardConfig(model, geometry, wavelet, simulation, output, path, raw)
+    source = _parse_source(raw.get("source"), physics)
+    model = _load_model(raw["model"], base_dir, physics)
+    geometry = _parse_geometry(raw["geometry"], model, physics)
+    return ForwardConfig(model, geometry, wavelet, simulation, output, path, raw, physics, source)
 
 
 def load_config(path) -> ForwardConfig:

@@ -18,7 +18,7 @@ from adseismic.config.common import ConfigError, _check_keys, _choice, _mapping,
 from adseismic.config.forward import AXES, ForwardConfig, parse_config
 from adseismic.config.parallel import ParallelConfig, parse_parallel
 from adseismic.config.schema import given, validate_section
-from adseismic.data.models import Model, ModelError, load_model
+from adseismic.data.models import ElasticModel, Model, ModelError, load_physics_model
 
 __all__ = ["InversionConfig", "FWIConfig", "parse_fwi_config", "load_fwi_config", "MISFIT_NAMES", "OPTIMIZERS",
            "PRECONDITIONERS"]
@@ -38,8 +38,9 @@ DEPTH_CONVENTIONS = ("auto", "elevation", "depth")  # adseismic.data.read.DEPTH_
 class InversionConfig:
     """Full-waveform inversion settings (units: Hz, m/s, m). bands: list of (f_low or None, f_high or
     None) pass bands, inverted in order; iterations / evaluations: limits per band (an evaluation is
-    one misfit + gradient over all shots); bounds: (v_min, v_max) m/s or None (start model range
-    +-25%); water_depth / source_radius: gradient masks (m, 0 = off); smoothing: Gaussian sigma of
+    one misfit + gradient over all shots); bounds: (v_min, v_max) m/s, or {quantity: (min, max)} in its unit
+    (m/s, kg/m^3, Pa), or None (start model range +-25%); parameters: the inverted quantities of parameterization
+    (vp-vs-rho or lambda-mu-rho; None: all; acoustic: vp) (adseismic.inversion.model_space); water_depth / source_radius: gradient masks (m, 0 = off); smoothing: Gaussian sigma of
     the gradient (m); tikhonov / tv: regularisation weights (relative to the band's initial misfit);
     offsets: (min, max) source-receiver distance (m) of the traces used (others muted); time_window:
     (start, end) s of the samples used (cosine taper over 10% of the window at each end)."""
@@ -64,6 +65,9 @@ class InversionConfig:
     lr: float = 0.01
     offsets: tuple | None = None
     time_window: tuple | None = None
+    parameters: tuple | None = None  # the inverted quantities (None: all of the parameterization's)
+    parameterization: str = "vp-vs-rho"  # or lambda-mu-rho (physics elastic)
+    transform: str = "linear"  # or sigmoid: q = lo + (hi - lo) sigmoid(x) (inversion.model_space)
 
 
 @dataclass
@@ -73,9 +77,14 @@ class FWIConfig:
 
     forward: ForwardConfig
     inversion: InversionConfig
-    true_model: Model | None = None
+    true_model: Model | ElasticModel | None = None  # of forward.physics
     observed: dict | None = None
     parallel: ParallelConfig | None = None  # the shots on Dask workers (config.parallel); None: one process
+    network: dict | None = None  # model: {kind: nn}: {v0, scale (m/s), hidden, seed} (inversion.parameterization.MLP)
+
+    @property
+    def physics(self) -> str:
+        return self.forward.physics
 
 
 def _check_band_order(bands, key: str) -> None:
@@ -115,16 +124,81 @@ def _parse_inversion(raw, key="inversion") -> InversionConfig:
             raise ConfigError(f"{key}.{name}: [{v[name][0]:g}, {v[name][1]:g}] {unit} is not 0 <= min < max")
     for name, value in v.items():
         if name != "bands":
-            setattr(out, name, tuple(value) if name in ("bounds", "offsets", "time_window") else value)
+            if name == "bounds" and isinstance(value, dict):
+                value = {k: tuple(b) for k, b in value.items()}
+            elif name in ("bounds", "offsets", "time_window", "parameters"):
+                value = tuple(value)
+            setattr(out, name, value)
     return out
+
+
+def _parse_network(raw: dict) -> tuple:
+    """model: {kind: nn, ...} (schema.NNModelSpec): (the network's settings, the raw config with model replaced by a
+    constant v0 model on the same grid, what the planner and the geometry checks read); else (None, raw)."""
+    spec = raw.get("model") if isinstance(raw, dict) else None
+    if not (isinstance(spec, dict) and spec.get("kind") == "nn"):
+        return None, raw
+    v = given(validate_section(schema.NNModelSpec, spec, "model"))
+    if raw.get("physics", "acoustic") != "acoustic":
+        raise ConfigError(f"model.kind: nn with physics {raw.get('physics')}: a network represents the acoustic velocity "
+                          f"only; set physics: acoustic, or give model: {{vp, vs, rho}} for elastic FWI")
+    net = {"v0": float(v["v0"]), "scale": float(v["scale"]), "hidden": int(v.get("hidden", 8)), "seed": int(v.get("seed", 0))}
+    if net["hidden"] > 64:
+        raise ConfigError(f"model.hidden: {net['hidden']} units; the MLP kernel unrolls its layers, use at most 64")
+    grid = {k: spec[k] for k in ("shape", "spacing", "origin") if k in spec}
+    return net, {**raw, "model": {"kind": "constant", "velocity": net["v0"], **grid}}
+
+
+def _check_inversion_physics(inv: InversionConfig, physics: str, network, raw) -> None:
+    """What the inversion section may ask of the physics: its quantities, parameterisation, bounds and options."""
+    if physics == "acoustic":
+        if inv.parameterization != "vp-vs-rho" and "parameterization" in (raw.get("inversion") or {}):
+            raise ConfigError(f"inversion.parameterization: {inv.parameterization} needs physics: elastic (acoustic physics "
+                              f"inverts the velocity vp alone); drop it or set physics: elastic with model: {{vp, vs, rho}}")
+        quantities = ("vp",)
+    else:
+        quantities = schema.PARAMETERIZATION_QUANTITIES[inv.parameterization]
+    for q in inv.parameters or ():
+        if q not in quantities:
+            why = (f"physics {physics} has the one parameter vp" if physics == "acoustic" else
+                   f"parameterization {inv.parameterization} moves {', '.join(quantities)}")
+            raise ConfigError(f"inversion.parameters: {q} is not a quantity here ({why}); use any of {', '.join(quantities)}")
+    if inv.parameters is not None and len(set(inv.parameters)) != len(inv.parameters):
+        raise ConfigError(f"inversion.parameters: {list(inv.parameters)} names a quantity twice; list each once")
+    inverted = inv.parameters or quantities
+    if isinstance(inv.bounds, dict):
+        for q in inv.bounds:
+            if q not in inverted:
+                raise ConfigError(f"inversion.bounds.{q}: {list(inv.bounds[q])} bounds a quantity that is not inverted "
+                                  f"(inverted: {', '.join(inverted)}); drop it or add {q} to inversion.parameters")
+        if "lambda" in inv.bounds and inv.bounds["lambda"][0] < 0:
+            raise ConfigError(f"inversion.bounds.lambda: [{inv.bounds['lambda'][0]:g}, {inv.bounds['lambda'][1]:g}] Pa allows "
+                              f"lambda < 0 (vs > vp / sqrt(2)), which the elastic solver refuses; give a lower bound >= 0")
+    elif inv.bounds is not None and physics == "elastic":
+        raise ConfigError(f"inversion.bounds: {list(inv.bounds)} is one [min, max] pair but physics elastic inverts "
+                          f"{', '.join(inverted)}; give one per quantity, e.g. {{vp: [1500, 3500], vs: [800, 2000]}} (m/s)")
+    if physics == "elastic":
+        for key, bad, why, fix in (("preconditioning", inv.preconditioning == "pseudo_hessian", "the elastic gradient returns no illumination", "use none or depth"),
+                                   ("wavelet_estimation", inv.wavelet_estimation, "the wavelet fit is for one data channel", "set it false")):  # fmt: skip
+            if bad:
+                raise ConfigError(f"inversion.{key}: {getattr(inv, key)} is acoustic only ({why}); {fix}")
+        for section in ("observed", "parallel"):
+            if raw.get(section) is not None:
+                what = ("elastic FWI simulates its observed data from true_model" if section == "observed" else
+                        "the Dask shot pool runs acoustic shots only")
+                raise ConfigError(f"{section}: given with physics elastic; {what}: drop {section} (use true_model)"
+                                  if section == "observed" else f"{section}: given with physics elastic; {what}: drop it")
 
 
 def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None) -> FWIConfig:
     """Validate an inversion config: the forward sections (model = start model) plus `inversion`
     and exactly one of `true_model` (synthetic study) or `observed` (data files)."""
     base_dir = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
-    forward = parse_config(raw, base_dir, path, extra_sections=FWI_SECTIONS)
+    network, raw_forward = _parse_network(raw)
+    forward = parse_config(raw_forward, base_dir, path, extra_sections=FWI_SECTIONS)
+    forward.raw = raw
     inversion = _parse_inversion(raw.get("inversion"))
+    _check_inversion_physics(inversion, forward.physics, network, raw)
     parallel = parse_parallel(raw.get("parallel"), forward.n_shots)
     has_true, has_obs = raw.get("true_model") is not None, raw.get("observed") is not None
     if has_true == has_obs:
@@ -133,7 +207,7 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
     true_model = None
     if has_true:
         try:
-            true_model = load_model(raw["true_model"], base_dir=base_dir)
+            true_model = load_physics_model(raw["true_model"], forward.physics, base_dir=base_dir)
         except ModelError as e:
             raise ConfigError(f"true_{e}" if str(e).startswith("model") else f"true_model.{e}") from e
         if true_model.ndim != forward.model.ndim:
@@ -197,7 +271,7 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
             observed["depth_convention"] = _choice(observed["depth_convention"], "observed.depth_convention", DEPTH_CONVENTIONS)
         elif observed["kind"] in ("segy", "su"):
             observed["depth_convention"] = "auto"
-    return FWIConfig(forward, inversion, true_model, observed, parallel)
+    return FWIConfig(forward, inversion, true_model, observed, parallel, network)
 
 
 def load_fwi_config(path) -> FWIConfig:

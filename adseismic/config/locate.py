@@ -15,13 +15,13 @@ import numpy as np
 
 from adseismic.config import schema
 from adseismic.config.common import ConfigError, _check_keys, _mapping, _number, _read_yaml, _short
-from adseismic.config.forward import AXES, SimulationConfig, _check_inside, _load_model, _parse_simulation, _point
+from adseismic.config.forward import AXES, SimulationConfig, _check_inside, _load_model, _parse_physics, _parse_simulation, _point
 from adseismic.config.schema import given, validate_section
 from adseismic.data.models import Model
 
 __all__ = ["LocateConfig", "parse_locate_config", "load_locate_config", "LOCATE_METHODS", "STF_KINDS"]
 
-LOCATE_SECTIONS = ("model", "traces", "preprocess", "source", "search", "simulation", "truth")
+LOCATE_SECTIONS = ("physics", "model", "traces", "preprocess", "source", "search", "simulation", "truth")
 LOCATE_METHODS = schema.LOCATE_METHODS  # adseismic.location.locate.METHODS (a test keeps them equal)
 STF_KINDS = schema.STF_KINDS  # adseismic.location.locate.STFS
 
@@ -41,7 +41,9 @@ class LocateConfig:
     smoothness (free STF), bounds ([(lo, hi)] per axis, m, or None: the model less 2 cells), start
     ({position, origin_time} or None: back-projection). search: method, scaled, iterations,
     multi_start, grid_spacing (back-projection candidates, m, or None). truth: optional known
-    {position, origin_time} of a synthetic event, reported beside the result.
+    {position, origin_time} of a synthetic event, reported beside the result. physics: acoustic (model a
+    Model, source.type pressure) or elastic (model an ElasticModel, 2D; source.type moment with
+    source.constraint none, deviatoric or double_couple; traces Z (vertical, up) and X (along the line) per station).
     """
 
     model: Model
@@ -53,6 +55,7 @@ class LocateConfig:
     truth: dict | None = None
     path: Path | None = None
     raw: dict = field(default_factory=dict)
+    physics: str = "acoustic"
 
 
 def _pair(value, key: str, unit: str, allow_none=False) -> tuple:
@@ -111,6 +114,23 @@ def _check_local_coordinates(local, ndim: int) -> None:
             _number(x, f"traces.local_coordinates.{k}[{i}]", "m")
 
 
+def _check_mechanism(src: dict, physics: str) -> None:
+    """source.type / source.constraint against the physics: a moment tensor needs elastic physics, elastic locates a
+    moment tensor; fills the default constraint (none)."""
+    if physics == "acoustic":
+        if src["type"] == "moment":
+            raise ConfigError("source.type: 'moment' (a moment-tensor source) needs elastic physics; an acoustic model "
+                              "has a pressure source only: set physics: elastic with model {vp, vs, rho}, or drop source.type")
+        if src["constraint"] is not None:
+            raise ConfigError(f"source.constraint: {src['constraint']!r} constrains a moment tensor, which needs physics: "
+                              f"elastic; drop source.constraint for acoustic physics")
+        return
+    if src["type"] != "moment":
+        raise ConfigError(f"source.type: {src['type']!r} with physics elastic; the elastic locator fits a moment tensor: give "
+                          f"source.type: moment (or leave it out)")
+    src["constraint"] = src["constraint"] or "none"  # a 3D model was refused by load_physics_model (elastic is 2D)
+
+
 def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None) -> LocateConfig:
     """Validate a location config (sections model, traces, preprocess, source, search, simulation,
     truth); only model and traces are required. Raises ConfigError naming the key."""
@@ -124,7 +144,8 @@ def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Pat
     simulation = _parse_simulation(raw.get("simulation"))
     if (raw.get("simulation") or {}).get("precision") is None:
         simulation.precision = "float64"  # the covariance comes from differences of simulations
-    model = _load_model(raw["model"], base_dir)
+    physics = _parse_physics(raw.get("physics"))
+    model = _load_model(raw["model"], base_dir, physics)
 
     t = given(validate_section(schema.Traces, raw["traces"], "traces"))  # keys and types
     if "paths" not in t:
@@ -150,8 +171,10 @@ def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Pat
         raise ConfigError(f"preprocess.noise_window: starts at {pre['noise_window'][0]:g} s, before the record; give times >= 0")
 
     s = given(validate_section(schema.Source, raw.get("source"), "source"))  # keys, types
-    src = {"stf": "ricker", "peak_frequency": None, "frequency_range": (0.3, 3.0), "smoothness": 0.01, "bounds": None, "start": None}
-    src.update({k: s[k] for k in ("stf", "peak_frequency", "smoothness") if k in s})
+    src = {"stf": "ricker", "peak_frequency": None, "frequency_range": (0.3, 3.0), "smoothness": 0.01, "bounds": None, "start": None,
+           "type": "moment" if physics == "elastic" else "pressure", "constraint": None}  # fmt: skip
+    src.update({k: s[k] for k in ("stf", "peak_frequency", "smoothness", "type", "constraint") if k in s})
+    _check_mechanism(src, physics)
     if "frequency_range" in s:
         fr = tuple(s["frequency_range"])
         if not 0 < fr[0] < 1 < fr[1]:
@@ -167,7 +190,7 @@ def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Pat
     search = {"method": "lbfgs", "scaled": True, "iterations": 60, "multi_start": 1, "grid_spacing": None}
     search.update(given(validate_section(schema.Search, raw.get("search"), "search")))  # keys, types, ranges
     truth = None if raw.get("truth") is None else _parse_location_point(raw["truth"], "truth", model)
-    return LocateConfig(model, traces, pre, src, search, simulation, truth, path, raw)
+    return LocateConfig(model, traces, pre, src, search, simulation, truth, path, raw, physics)
 
 
 def load_locate_config(path) -> LocateConfig:

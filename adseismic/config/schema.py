@@ -24,7 +24,7 @@ from pydantic_core import PydanticCustomError
 
 from adseismic.config.common import ConfigError, _boolean, _integer, _number, _positive, _short
 
-__all__ = ["SCHEMAS", "FWISchema", "ForwardSchema", "LocateSchema", "json_schema", "template", "validate_section"]
+__all__ = ["SCHEMAS", "FWISchema", "ForwardSchema", "ImageSchema", "LocateSchema", "json_schema", "template", "validate_section"]
 
 
 # ------------------------------------------------------------------------------ value checks
@@ -193,6 +193,33 @@ class ModelSpec(_Section):
     smoothing: float | None = F(None, "Gaussian smoothing of the slowness, standard deviation", "m")
 
 
+class VsRatio(_Section):
+    """The shear speed from the P speed: vs = vp / vp_ratio."""
+
+    vp_ratio: Annotated[float, Pos()] = F(..., "vp / vs, >= sqrt(2) = 1.414 (Lame lambda >= 0); 1.732 is a Poisson "
+                                                 "solid")
+
+
+class Gardner(_Section):
+    """The density from the P speed by Gardner's rule, rho = 310 vp^0.25 (kg/m^3, vp in m/s; Gardner et al. 1974)."""
+
+    gardner: Annotated[bool, Bool] = F(..., "true: rho = 310 vp^0.25 kg/m^3 (vp in m/s)")
+
+
+class ElasticModelSpec(_Section):
+    """physics elastic: the P speed, the S speed and the density, each a model spec (kinds as for an acoustic model;
+    the key velocity / velocities / background ... holds the values: m/s for vp and vs, kg/m^3 for rho) on any grid
+    (vs and rho are resampled onto vp's). Checked by adseismic.data.models.load_physics_model."""
+
+    vp: ModelSpec = F(..., "the P-wave speed (m/s)", "m/s")
+    vs: ModelSpec | VsRatio = F(..., "the S-wave speed (m/s), > 0 everywhere and <= vp / sqrt(2); or {vp_ratio: R}",
+                                "m/s")
+    rho: ModelSpec | Gardner = F(..., "the density (kg/m^3), > 0; or {gardner: true}", "kg/m^3")
+
+
+PHYSICS = ("acoustic", "elastic")  # adseismic.data.models.PHYSICS (tests/test_elastic_config.py keeps them equal)
+
+
 class Point(_Section):
     """A point in world metres: x, z in 2D; x, y, z in 3D (exactly the model's axes)."""
 
@@ -217,11 +244,46 @@ class Spread(_Section):
     lines: list[Line] | None = F(None, "several lines")
 
 
+COMPONENTS = ("vx", "vz", "pressure")  # elastic receiver components (adseismic.solve.elastic.COMPONENTS)
+
+
+class Das(_Section):
+    """physics elastic: distributed acoustic sensing; each receiver point is the centre of a gauge recording the
+    strain rate along the fibre (adseismic.solve.receivers.DasOperator)."""
+
+    gauge_length: Annotated[float, Pos("metres")] = F(..., "the gauge length: the strain rate is the difference of "
+                                                            "the particle velocity between the gauge's ends / it", "m",
+                                                       exclusiveMinimum=0)
+    direction: Any = F(0.0, "the fibre's direction: [dz, dx] (normalised) or an angle in degrees from the +x axis "
+                            "towards +z (0: horizontal, 90: vertical well)", "deg")
+
+
+class Receivers(Spread):
+    """One receiver spread shared by all shots (points, line, lines as for sources); physics elastic adds what it
+    records."""
+
+    components: list[Literal[COMPONENTS]] | None = F(
+        None, "physics elastic: any of vx, vz (m/s), pressure (Pa); null: all three, or none when das is given")
+    das: Das | None = F(None, "physics elastic: record DAS strain rate (1/s) along a fibre at the points")
+
+
 class Geometry(_Section):
     """Sources and receivers in world metres; every point must lie inside the model."""
 
     sources: Spread = F(..., "every point is one shot (one source per shot)")
-    receivers: Spread = F(..., "one receiver spread shared by all shots")
+    receivers: Receivers = F(..., "one receiver spread shared by all shots")
+
+
+SOURCE_TYPES = ("force", "moment", "explosive")  # adseismic.solve.elastic.SOURCE_TYPES
+
+
+class ElasticSource(_Section):
+    """physics elastic: the source mechanism; the amplitude at time t is components x the wavelet s(t)."""
+
+    type: Annotated[Literal[SOURCE_TYPES] | None, OneOf(*SOURCE_TYPES)] = F(
+        "explosive", "force (a line force), moment (a moment tensor) or explosive (isotropic moment tensor)")
+    components: Any = F(None, "force: [f_z, f_x] in N/m; moment: [m_xx, m_zz, m_xz] in N m/m; explosive: the "
+                              "moment M0 in N m/m (default 1)")
 
 
 class Wavelet(_Section):
@@ -299,9 +361,12 @@ class Output(_Section):
 class ForwardSchema(_Section):
     """A forward simulation (adseismic forward): model, geometry, wavelet; optionally simulation and output."""
 
-    model: ModelSpec = F(..., "the velocity model (m/s)")
+    physics: Annotated[Literal[PHYSICS] | None, OneOf(*PHYSICS)] = F(
+        "acoustic", "acoustic (model: a velocity model) or elastic (2D; model: {vp, vs, rho})")
+    model: ModelSpec | ElasticModelSpec = F(..., "the velocity model (m/s); physics elastic: {vp, vs, rho}")
     geometry: Geometry = F(..., "sources (one shot each) and receivers, world metres")
     wavelet: Wavelet = F(..., "the source time function")
+    source: ElasticSource | None = F(None, "physics elastic: the source mechanism; null: explosive")
     simulation: Simulation | None = F(None, "numerical settings; null: all planned / defaults")
     output: Output | None = F(None, "extra outputs")
 
@@ -352,6 +417,29 @@ def _iterations(v):
 
 
 _NONNEG = "give 0 (off) or a positive value"
+# each parameterisation's quantities: adseismic.inversion.model_space.PARAMETERIZATIONS (a test keeps them equal)
+PARAMETERIZATION_QUANTITIES = {"vp-vs-rho": ("vp", "vs", "rho"), "lambda-mu-rho": ("lambda", "mu", "rho")}
+PARAMETERIZATIONS = tuple(PARAMETERIZATION_QUANTITIES)
+INVERTED_QUANTITIES = ("vp", "vs", "rho", "lambda", "mu")
+_BOUND_UNITS = {"vp": "m/s", "vs": "m/s", "rho": "kg/m^3", "lambda": "Pa", "mu": "Pa"}
+
+
+def _bounds(v):
+    """inversion.bounds: [min, max] m/s, or {quantity: [min, max]} in the quantity's unit."""
+    if not isinstance(v, dict):
+        return _pair("m/s", what="[v_min, v_max]").func(v)
+    out = {}
+    for k, pair in v.items():
+        if k not in _BOUND_UNITS:
+            _fail(f"{_short(k)} is not an invertible quantity; bounds are keyed by {', '.join(_BOUND_UNITS)}")
+        unit = _BOUND_UNITS[k]
+        if not isinstance(pair, list) or len(pair) != 2:
+            _fail(f"{k}: {_short(pair)} is not [min, max] in {unit}")
+        lo, hi = (_via(_number, x, unit) for x in pair)
+        if not lo < hi:
+            _fail(f"{k}: [{lo:g}, {hi:g}] {unit} has min >= max; give [min, max] with min < max")
+        out[k] = [lo, hi]
+    return out
 
 
 class Inversion(_Section):
@@ -370,8 +458,21 @@ class Inversion(_Section):
         None, "cap on misfit + gradient evaluations per band; null: none", minimum=1)
     rel_decrease: Annotated[float | None, Pos()] = F(
         1e-4, "stop a band when an iteration lowers the misfit by less than this fraction", exclusiveMinimum=0)
-    bounds: Annotated[list[float] | None, _pair("m/s", what="[v_min, v_max]")] = F(
-        None, "[v_min, v_max]; the plan (dt, dx) is made for this range; null: the start model's range +-25%", "m/s")
+    parameters: Annotated[list[Literal[INVERTED_QUANTITIES]] | None, _nonempty_list("[vp, vs]")] = F(
+        None, "the inverted quantities, any of the parameterization's (vp, vs, rho or lambda, mu, rho; acoustic: vp); "
+              "the others stay at the start model; null: all of them")
+    transform: Annotated[Literal["linear", "sigmoid"] | None, OneOf("linear", "sigmoid")] = F(
+        "linear", "how the optimiser's x gives each inverted cell: linear (x = q / reference, the bounds a box L-BFGS-B "
+                  "projects onto) or sigmoid (q = lo + (hi - lo) sigmoid(x) inside the bounds, x free: Deepwave's FWI "
+                  "recipe; a cell near a bound, such as water near the lower velocity bound, moves little); pixels only")
+    parameterization: Annotated[Literal[PARAMETERIZATIONS] | None, OneOf(*PARAMETERIZATIONS)] = F(
+        "vp-vs-rho", "physics elastic: the quantities the optimiser moves, vp-vs-rho (m/s, m/s, kg/m^3) or "
+                     "lambda-mu-rho (Lame moduli in Pa, kg/m^3); each is scaled by a fixed reference (1000 m/s, "
+                     "1000 kg/m^3, 1 GPa) so the optimiser sees O(1) numbers")
+    bounds: Annotated[list[float] | dict[str, list[float]] | None, _opt(_bounds)] = F(
+        None, "[v_min, v_max] (m/s, acoustic vp), or per inverted quantity {vp: [min, max], vs: ..., rho: ..., "
+              "lambda: ..., mu: ...} in its unit (m/s, kg/m^3, Pa); the plan (dt, dx) is made for these ranges; "
+              "null (or a quantity left out): the start model's range +-25%", "m/s, kg/m^3, Pa")
     offsets: Annotated[list[float] | None, _pair("m", what="[min, max]")] = F(
         None, "[min, max] source-receiver distance of the traces used (others muted); null: all", "m")
     time_window: Annotated[list[float] | None, _pair("s", what="[min, max]")] = F(
@@ -432,22 +533,82 @@ class Parallel(_Section):
                                      "device", minimum=1)
 
 
+class NNModelSpec(_Section):
+    """fwi: a velocity model represented by a neural network, v(z, x) = v0 + scale x f_theta(z, x), f_theta an MLP
+    (two tanh layers of `hidden` units) of the cell coordinates scaled to [-1, 1]; the inversion moves the network's
+    weights theta (adseismic.inversion.parameterization.MLP). Acoustic physics only."""
+
+    kind: Literal["nn"] = F(..., "nn")
+    shape: list[int] = F(..., "nodes per axis [nz, nx] or [nz, ny, nx] of the grid the start model is given on")
+    spacing: float | list[float] = F(..., "grid spacing, one number or one per axis (z, [y,] x)", "m")
+    origin: list[float] | None = F(None, "world coordinates of node 0, (z, [y,] x); default 0", "m")
+    v0: float = F(..., "the network's offset velocity", "m/s", exclusiveMinimum=0)
+    scale: float = F(..., "the velocity scale of the network's output (v0 +- scale is its typical reach)", "m/s",
+                     exclusiveMinimum=0)
+    hidden: int | None = F(8, "units per hidden layer", minimum=1)
+    seed: int | None = F(0, "the random initial weights' seed")
+
+
 class FWISchema(ForwardSchema):
     """A full-waveform inversion (adseismic fwi): the forward sections (model is the START model), inversion and
     exactly one of true_model or observed."""
 
-    model: ModelSpec = F(..., "the START model (m/s)")
+    model: ModelSpec | ElasticModelSpec | NNModelSpec = F(..., "the START model (m/s); physics elastic: {vp, vs, rho}; "
+                                                              "{kind: nn, ...}: a neural-network velocity")
     inversion: Inversion | None = F(None, "inversion settings; null: all defaults")
-    true_model: ModelSpec | None = F(None, "a model spec (synthetic study: data are simulated from it); "
+    true_model: ModelSpec | ElasticModelSpec | None = F(None, "a model spec (synthetic study: data are simulated from it); "
                                               "exactly one of true_model and observed")
     observed: Observed | None = F(None, "observed data files; exactly one of true_model and observed")
     parallel: Parallel | None = F(None, "Dask workers for the shots; null: one process")
+
+
+# ------------------------------------------------------------------------------ image sections
+
+IMAGE_METHODS = ("rtm", "lsrtm")  # adseismic.config.image.IMAGE_METHODS
+
+
+class Imaging(_Section):
+    """Imaging settings (adseismic image; docs/imaging.md)."""
+
+    method: Annotated[Literal[IMAGE_METHODS] | None, OneOf(*IMAGE_METHODS)] = F(
+        "rtm", "rtm (reverse-time migration: the adjoint of the Born operator applied to the reflection data) or "
+               "lsrtm (least-squares RTM: conjugate gradients on the normal equations of the Born operator)")
+    iterations: Annotated[int | None, Int(1, "give at least 1 conjugate-gradient iteration")] = F(
+        10, "lsrtm: conjugate-gradient iterations (each one Born and one adjoint simulation of every shot)", minimum=1)
+    smoothing: Annotated[float | None, NonNeg(_NONNEG, "m")] = F(
+        0.0, "the migration background: Gaussian smoothing of the model's slowness, standard deviation", "m", minimum=0)
+    water_depth: Annotated[float | None, NonNeg(_NONNEG, "m")] = F(
+        0.0, "the background keeps the model unsmoothed above this depth (the water) and the image is zero there", "m",
+        minimum=0)
+    illumination: Annotated[bool | None, Bool] = F(
+        True, "divide the RTM image by the source illumination (sum over time and shots of u^2) + epsilon x its "
+              "maximum; lsrtm: precondition with its inverse square root")
+    epsilon: Annotated[float | None, Pos()] = F(
+        0.001, "the illumination's stabiliser, a fraction of its maximum (the maximum is at the sources: 1e-3 compensates "
+                "the decay with depth, 1e-2 half of it)", exclusiveMinimum=0)
+    laplacian: Annotated[bool | None, Bool] = F(
+        False, "rtm: replace the image by -laplacian(image) (per m^2), removing the low-wavenumber backscatter")
+
+
+class ImageSchema(ForwardSchema):
+    """An image of the reflectors (adseismic image): the forward sections (model is the migration model), image and
+    exactly one of true_model or observed."""
+
+    model: ModelSpec | ElasticModelSpec = F(..., "the migration model (m/s), smoothed by image.smoothing into the "
+                                                 "background; physics elastic: {vp, vs, rho}")
+    image: Imaging | None = F(None, "imaging settings; null: all defaults (RTM)")
+    true_model: ModelSpec | ElasticModelSpec | None = F(
+        None, "a model spec (synthetic study: data are simulated from it); exactly one of true_model and observed")
+    observed: Observed | None = F(None, "observed data files (read as fwi reads them); exactly one of true_model "
+                                        "and observed")
 
 
 # ------------------------------------------------------------------------------ locate sections
 
 LOCATE_METHODS = ("lbfgs", "gauss-newton", "gd", "adam")  # locate.LOCATE_METHODS
 STF_KINDS = ("ricker", "free")
+LOCATE_SOURCE_TYPES = ("pressure", "moment")  # locate: acoustic pressure source, elastic moment tensor
+MT_CONSTRAINTS = ("none", "deviatoric", "double_couple")  # adseismic.location.moment_tensor.CONSTRAINTS
 
 
 def _paths(v):
@@ -530,7 +691,13 @@ class LocationPoint(_Section):
 
 
 class Source(_Section):
-    """The source-time function and the search region."""
+    """The source-time function, the mechanism and the search region."""
+
+    type: Annotated[Literal[LOCATE_SOURCE_TYPES] | None, OneOf(*LOCATE_SOURCE_TYPES)] = F(
+        None, "pressure (acoustic physics) or moment (a moment tensor, physics elastic); null: the physics' own")
+    constraint: Annotated[Literal[MT_CONSTRAINTS] | None, OneOf(*MT_CONSTRAINTS)] = F(
+        None, "moment tensor: none, deviatoric or double_couple (2D: strike along the section's normal, dip-slip); "
+              "null: none")
 
     stf: Annotated[Literal[STF_KINDS] | None, OneOf(*STF_KINDS)] = F(
         "ricker", "ricker or free (one value per sample, smoothness-regularised)")
@@ -562,7 +729,9 @@ class LocateSchema(_Section):
     """An event location (adseismic locate): model and traces; optionally preprocess, source, search, simulation
     and truth."""
 
-    model: ModelSpec = F(..., "the velocity model (m/s)")
+    physics: Annotated[Literal[PHYSICS] | None, OneOf(*PHYSICS)] = F(
+        "acoustic", "acoustic (model: a velocity model) or elastic (2D, a moment-tensor source; model: {vp, vs, rho})")
+    model: ModelSpec | ElasticModelSpec = F(..., "the velocity model (m/s); physics elastic: {vp, vs, rho}")
     traces: Traces = F(..., "the event's files")
     preprocess: Preprocess = F(..., "trace processing; noise_window is required")
     source: Source | None = F(None, "source-time function and search region")
@@ -571,7 +740,7 @@ class LocateSchema(_Section):
     truth: LocationPoint | None = F(None, "the known event of a synthetic study, reported beside the result")
 
 
-SCHEMAS = {"forward": ForwardSchema, "fwi": FWISchema, "locate": LocateSchema}
+SCHEMAS = {"forward": ForwardSchema, "fwi": FWISchema, "locate": LocateSchema, "image": ImageSchema}
 
 
 # ------------------------------------------------------------------------------ validation
@@ -592,7 +761,7 @@ def _section_of(cls, loc) -> type | None:
             if isinstance(t, type) and issubclass(t, BaseModel):
                 cls = t
                 break
-            stack += [a for a in typing.get_args(t) if a is not type(None)]
+            stack += [a for a in reversed(typing.get_args(t)) if a is not type(None)]  # a union: its first model
         if cls is None:
             return None
     return cls
@@ -728,7 +897,14 @@ def _comment(field) -> str:
     return f"{field.description}" + (f" [{unit}]" if unit else "")
 
 
-_LIST_OMITTED = ("Simulation", "Output", "Inversion", "Traces", "Preprocess", "Source", "Search", "Wavelet")
+_TEMPLATE_VALUES["image"] = {
+    **{k: v for k, v in _TEMPLATE_VALUES["forward"].items() if k != "output"},
+    "model": {"kind": "constant", "shape": [41, 81], "spacing": 10.0, "velocity": 1800.0},
+    "true_model": {"kind": "layered", "shape": [41, 81], "spacing": 10.0, "velocities": [1800.0, 2400.0],
+                   "interfaces": [250.0]},
+    "image": {"method": "rtm", "smoothing": 0.0, "illumination": True, "epsilon": 0.001, "laplacian": False},
+}
+_LIST_OMITTED = ("Simulation", "Output", "Inversion", "Traces", "Preprocess", "Source", "Search", "Wavelet", "Imaging")
 
 
 def _template_lines(cls, values: dict, indent: int) -> list[str]:
@@ -774,6 +950,8 @@ def template(workflow: str, demo_dir: str | None = None, name: str = "THIS.yaml"
                     "configs/data/location_demo of the adseismic repository); traces paths are relative to this file:"),
                    "  adseismic locate THIS.yaml -o out/locate",
                    "For your own event: point traces.paths / traces.inventory at your files and set the model."],
+        "image": [("adseismic image config: reverse-time migration of a flat reflector at 250 m depth (2 shots, a "
+                   "constant migration model; seconds on a CPU):"), "  adseismic image THIS.yaml -o out/image"],
     }[workflow]
     lines = [f"# {h}" for h in head]
     lines.append(f"# yaml-language-server: $schema=adseismic-{workflow}.schema.json  (write it with: adseismic schema "

@@ -1,11 +1,13 @@
 """Velocity models from the YAML ``model:`` section: generated (adseismic.data_synthetic.generators) or read
 from raw, .npy, HDF5 and SEG-Y files (ObsPy imported only for SEG-Y), in m/s, cropped and smoothed.
-Axis order (z, [y,] x); the `Model` object is adseismic.data.model's."""
+Axis order (z, [y,] x); the `Model` object is adseismic.data.model's. With ``physics: elastic`` the section holds
+``{vp, vs, rho}``, each such a spec (or ``vs: {vp_ratio: R}``, ``rho: {gardner: true}``), loaded by
+:func:`load_physics_model` into an :class:`ElasticModel`."""
 from __future__ import annotations
 
 import math
 import pathlib
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -347,3 +349,159 @@ def _read_segy(path: pathlib.Path) -> np.ndarray:
         raise ModelError(f"model.path: {path.name} has traces of {len(lengths)} different "
                          f"lengths {sorted(lengths)}; a gridded model needs equal-length traces")
     return np.stack([tr.data for tr in stream])
+
+
+# ----------------------------------------------------------------------------------- elastic models
+
+PHYSICS = ("acoustic", "elastic")
+ELASTIC_KEYS = ("vp", "vs", "rho")
+MIN_SHEAR = 10.0  # m/s: below this a shear speed is a unit error (km/s typed as m/s), as for P speeds (scene.MIN_VELOCITY)
+MIN_DENSITY = 100.0  # kg/m^3: below this a density is a unit error (g/cm^3 typed as kg/m^3), not a rock or a fluid
+GARDNER = (310.0, 0.25)  # rho = 310 vp^0.25 kg/m^3 with vp in m/s (Gardner, Gardner & Gregory 1974, Geophysics 39)
+
+
+@dataclass(frozen=True, eq=False)
+class ElasticModel:
+    """An isotropic elastic model: ``vp``, ``vs`` (m/s) and ``rho`` (kg/m^3), three :class:`Model` objects on one grid
+    (shape (nz, nx), spacing and origin in m, axis order (z, x)); 0 < vs <= vp / sqrt(2) (Lame lambda >= 0).
+
+    Model-like for the planner and the config: ``ndim``, ``shape``, ``spacing``, ``origin``, ``extent``, ``name``,
+    ``contains`` are the grid's; ``values``, ``vmin``, ``vmax`` are vp's (the fastest wave: the domain's margin, the
+    CFL limit and the plots); ``resample`` resamples all three.
+    """
+
+    vp: Model
+    vs: Model
+    rho: Model
+    physics = "elastic"
+
+    def __post_init__(self):
+        for name in ("vs", "rho"):
+            m = getattr(self, name)
+            if m.shape != self.vp.shape or m.spacing != self.vp.spacing or m.origin != self.vp.origin:
+                raise ModelError(f"model.{name}: its grid (shape {list(m.shape)}, spacing {list(m.spacing)} m, origin "
+                                 f"{list(m.origin)} m) differs from model.vp's (shape {list(self.vp.shape)}, spacing "
+                                 f"{list(self.vp.spacing)} m, origin {list(self.vp.origin)} m); give the three on one grid")
+        check_shear(self.vp.values, self.vs.values, "model.vs")
+
+    ndim = property(lambda self: self.vp.ndim)
+    shape = property(lambda self: self.vp.shape)
+    spacing = property(lambda self: self.vp.spacing)
+    origin = property(lambda self: self.vp.origin)
+    extent = property(lambda self: self.vp.extent)
+    name = property(lambda self: self.vp.name)
+    values = property(lambda self: self.vp.values)
+    vmin = property(lambda self: self.vp.vmin)
+    vmax = property(lambda self: self.vp.vmax)
+
+    def contains(self, points) -> np.ndarray:
+        """:meth:`Model.contains` of the grid."""
+        return self.vp.contains(points)
+
+    def resample(self, spacing: float, origin: tuple, shape: tuple) -> ElasticModel:
+        """The three models on the regular grid of :meth:`Model.resample` (spacing m, origin m, shape nodes), each by
+        its inverse: slowness for vp and vs, buoyancy (which the velocity update reads) for rho. vp and vs get the
+        same weights at every node, so each new vp / vs lies between old ones (a weighted mediant): vs <= vp / sqrt(2)
+        holds on the new grid wherever it held on the old."""
+        return ElasticModel(*(m.resample(spacing, origin, shape) for m in (self.vp, self.vs, self.rho)))
+
+
+def check_shear(vp: np.ndarray, vs: np.ndarray, key: str) -> None:
+    """Refuse (ModelError naming ``key``) vs > vp / sqrt(2) anywhere (a negative Lame lambda: vs >= vp in particular)."""
+    ratio = vs / vp
+    bad = ratio > (1.0 + 1e-12) / math.sqrt(2.0)
+    if bad.any():
+        i = tuple(int(k) for k in np.unravel_index(int(np.argmax(ratio)), ratio.shape))
+        where = ", ".join(f"{a}={k}" for a, k in zip(AXES[vp.ndim], i))
+        what = "S faster than P" if ratio[i] >= 1 else "a negative Lame lambda"
+        raise ModelError(f"{key}: vs = {vs[i]:g} m/s > vp / sqrt(2) = {vp[i] / math.sqrt(2):g} m/s at index ({where}) "
+                         f"(vp {vp[i]:g} m/s; {int(bad.sum())} of {vs.size} nodes): {what}, no elastic solid; give vs <= "
+                         f"vp / sqrt(2) (vp/vs >= 1.414; rocks: 1.5-2.0) everywhere")
+
+
+def _sub_spec(spec, key: str, vp: Model | None) -> dict:
+    """``spec`` of ``model.<key>``, a generator kind filling shape, spacing and origin from vp's grid when left out."""
+    if not isinstance(spec, dict):
+        raise ModelError(f"model.{key}: {_short(spec)} is not a mapping; give a model spec {{kind: ..., ...}}"
+                         + (" or {vp_ratio: R}" if key == "vs" else " or {gardner: true}" if key == "rho" else ""))
+    if vp is not None and spec.get("kind") in _GENERATOR_KEYS:
+        grid = {"shape": list(vp.shape), "spacing": list(vp.spacing), "origin": list(vp.origin)}
+        spec = {**{k: v for k, v in grid.items() if k not in spec}, **spec}
+    return spec
+
+
+def _load_part(spec, key: str, base_dir, vp: Model | None) -> Model:
+    """load_model of ``model.<key>``, its messages naming ``model.<key>.<field>``."""
+    try:
+        return load_model(_sub_spec(spec, key, vp), base_dir)
+    except ModelError as e:
+        msg = str(e)
+        msg = f"model.{key}{msg[5:]}" if msg.startswith("model") else f"model.{key}.{msg}"
+        if key == "vs" and ("<= 0" in msg or "not > 0" in msg or "not a positive" in msg):
+            msg += ("; vs must be > 0 everywhere in an elastic model from a config (fluid regions are not supported "
+                    "there); if vs is 0 everywhere, the medium is a fluid: use physics: acoustic with model: the vp spec")
+        if key == "rho":  # the message after the key speaks of velocities: here they are densities
+            where, _, text = msg.partition(": ")
+            text = text.replace("velocities", "densities").replace("velocity", "density").replace("m/s", "kg/m^3")
+            msg = f"{where}: {text}"
+        raise ModelError(msg) from None
+
+
+def load_physics_model(spec, physics: str = "acoustic", base_dir: pathlib.Path | None = None) -> Model | ElasticModel:
+    """The ``model:`` section ``spec`` for ``physics``: acoustic, a :class:`Model` (:func:`load_model`); elastic, an
+    :class:`ElasticModel` from ``{vp, vs, rho}``: vp a model spec (m/s); vs a model spec (m/s) or ``{vp_ratio: R}``
+    (vs = vp / R, R >= sqrt(2)); rho a model spec (kg/m^3: the key velocity / velocities / background holds the
+    densities) or ``{gardner: true}`` (rho = 310 vp^0.25). Generator specs of vs and rho may leave out shape, spacing
+    and origin (vp's are used). 2D only. Raises ModelError naming ``model.<part>.<key>``, the value and the fix."""
+    if physics not in PHYSICS:
+        raise ModelError(f"physics: {_short(physics)} is not one of {', '.join(PHYSICS)}; pick one of them")
+    is_elastic_spec = isinstance(spec, dict) and bool(set(spec) & set(ELASTIC_KEYS))
+    if physics == "acoustic":
+        if is_elastic_spec:
+            raise ModelError(f"model: {', '.join(k for k in ELASTIC_KEYS if k in spec)} are the keys of an elastic model "
+                             f"(physics elastic), but physics is acoustic; set physics: elastic, or give one velocity "
+                             f"model (model: {{kind: ..., ...}}) for acoustic physics")
+        return load_model(spec, base_dir)
+    if not is_elastic_spec:
+        raise ModelError(f"model: {_short(spec)} is one velocity model, but physics elastic needs three: write "
+                         f"model: {{vp: {{kind: ...}}, vs: {{kind: ...}} or {{vp_ratio: 1.8}}, rho: {{kind: ...}} or "
+                         f"{{gardner: true}}}} (m/s, m/s, kg/m^3), or set physics: acoustic")
+    unknown = sorted(set(spec) - set(ELASTIC_KEYS), key=str)
+    if unknown:
+        raise ModelError(f"model.{unknown[0]}: unknown key of an elastic model; allowed: vp, vs, rho (each a model spec)")
+    missing = [k for k in ELASTIC_KEYS if spec.get(k) is None]
+    if missing:
+        raise ModelError(f"model.{missing[0]}: missing; an elastic model needs vp (m/s), vs (m/s, or {{vp_ratio: R}}) and "
+                         f"rho (kg/m^3, or {{gardner: true}})")
+    vp = _load_part(spec["vp"], "vp", base_dir, None)
+    if vp.ndim != 2:
+        raise ModelError(f"model.vp: a 3D model (shape {list(vp.shape)}) with physics elastic; the elastic solver is 2D "
+                         f"(3D elastic is not built yet): give a 2D model [nz, nx], or use physics: acoustic in 3D")
+    vs_spec, rho_spec = spec["vs"], spec["rho"]
+    if isinstance(vs_spec, dict) and "vp_ratio" in vs_spec:
+        if set(vs_spec) != {"vp_ratio"}:
+            raise ModelError(f"model.vs: {_short(vs_spec)} mixes vp_ratio with a model spec; give either {{vp_ratio: R}} "
+                             f"or a model spec")
+        r = _real(vs_spec["vp_ratio"], "model.vs.vp_ratio", "vp / vs, a number >= 1.414")
+        if not r >= math.sqrt(2.0):
+            raise ModelError(f"model.vs.vp_ratio: {r:g} is below sqrt(2) = 1.414: vs = vp / {r:g} > vp / sqrt(2) gives a "
+                             f"negative Lame lambda{' (S faster than P)' if r <= 1 else ''}; give vp/vs >= 1.414 "
+                             f"(1.732 for a Poisson solid)")
+        vs = replace(vp, values=vp.values / r, name=f"vp / {r:g}")
+    else:
+        vs = _load_part(vs_spec, "vs", base_dir, vp)
+        if vs.vmin < MIN_SHEAR:
+            raise ModelError(f"model.vs: shear speeds down to {vs.vmin:.4g} m/s, below {MIN_SHEAR:g} m/s (no rock is that "
+                             f"slow, and the grid would need cells of millimetres); km/s? multiply by 1000 (speeds are in m/s)")
+    if isinstance(rho_spec, dict) and "gardner" in rho_spec:
+        if set(rho_spec) != {"gardner"} or rho_spec["gardner"] is not True:
+            raise ModelError(f"model.rho: {_short(rho_spec)} is not {{gardner: true}}; give {{gardner: true}} "
+                             f"(rho = 310 vp^0.25 kg/m^3) or a model spec of the density")
+        a, b = GARDNER
+        rho = replace(vp, values=a * vp.values ** b, name="Gardner")
+    else:
+        rho = _load_part(rho_spec, "rho", base_dir, vp)
+        if rho.vmin < MIN_DENSITY:
+            raise ModelError(f"model.rho: densities down to {rho.vmin:g} kg/m^3, below {MIN_DENSITY:g} kg/m^3 (water: "
+                             f"1000, rocks 1500-3000); g/cm^3? multiply by 1000 (densities are in kg/m^3)")
+    return ElasticModel(vp, vs, rho)

@@ -12,6 +12,9 @@ array axis order (z, [y,] x) as everywhere in adseismic):
 * ``velocity`` (the simulation-grid model): m/s, attrs ``spacing`` (m), ``origin`` (world m of
   node 0), ``axes``.
 * optional ``snapshots`` (n_snapshots, n_shots, *grid) with ``snapshot_times`` (n_snapshots,) s.
+* physics elastic: one dataset per recorded quantity, named by it (``vx``, ``vz`` in m/s, ``pressure`` in Pa,
+  ``das`` strain rate in 1/s), each (n_shots, n_receivers, nt) with attrs ``units`` and ``sample_times``; root attr
+  ``components`` lists them, and ``receiver_data`` is an HDF5 soft link to the first.
 * root attrs: whatever the caller passes (the CLI stores dx, dt, nt, order, precision, device,
   free_surface, pml_width, pml_reflection, adseismic_version, created_utc, config_yaml, plan).
 
@@ -49,6 +52,7 @@ class ForwardData:
     attrs: dict = field(default_factory=dict)
     snapshots: np.ndarray | None = None
     snapshot_times: np.ndarray | None = None
+    components: dict = field(default_factory=dict)  # physics elastic: {name: (n_shots, n_receivers, nt)}
 
     @property
     def dt(self) -> float:
@@ -74,7 +78,7 @@ def _attr(value):
 
 def write_forward(path, *, receiver_data, source_wavelet, dt, source_coordinates,
                   receiver_coordinates, velocity, spacing, origin, attrs=None,
-                  snapshots=None, snapshot_times=None, units="model units (u)") -> pathlib.Path:
+                  snapshots=None, snapshot_times=None, units="model units (u)", components=None) -> pathlib.Path:
     """Write a forward run to the HDF5 file ``path`` atomically and return ``path``.
 
     receiver_data (n_shots, n_receivers, nt); source_wavelet (nt,); dt (s);
@@ -82,8 +86,15 @@ def write_forward(path, *, receiver_data, source_wavelet, dt, source_coordinates
     metres, axis order (z, [y,] x); velocity (nz, [ny,] nx) m/s on the simulation grid with
     ``spacing`` (m, scalar) and ``origin`` (world m of node 0); attrs: extra root attributes;
     snapshots (n_snapshots, n_shots, *grid) with snapshot_times (s), both or neither.
+    components (physics elastic, instead of receiver_data = None): {name: (data (n_shots, n_receivers, nt), units,
+    sample times)}, written as one dataset each; receiver_data becomes a link to the first.
     Shapes are checked before anything is written (ValueError).
     """
+    if components:
+        shapes = {np.shape(c[0]) for c in components.values()}
+        if receiver_data is not None or len(shapes) != 1:
+            raise ValueError(f"components: {len(shapes)} shapes {sorted(shapes)} (one expected) or receiver_data given too")
+        receiver_data = next(iter(components.values()))[0]
 
     path = pathlib.Path(path)
     data = np.asarray(receiver_data)
@@ -117,9 +128,18 @@ def write_forward(path, *, receiver_data, source_wavelet, dt, source_coordinates
     axes = AXES[ndim]
 
     def fill(f):
-        d = f.create_dataset("receiver_data", data=data)
-        d.attrs.update(units=units, axes="shot,receiver,time",
-                       description="wavefield u at the receivers, sampled at `time`")
+        import h5py
+
+        if components:
+            for name, (values, unit, times) in components.items():
+                d = f.create_dataset(name, data=np.asarray(values))
+                d.attrs.update(units=unit, axes="shot,receiver,time", sample_times=times)
+            f["receiver_data"] = h5py.SoftLink(f"/{next(iter(components))}")
+            f.attrs["components"] = list(components)
+        else:
+            d = f.create_dataset("receiver_data", data=data)
+            d.attrs.update(units=units, axes="shot,receiver,time",
+                           description="wavefield u at the receivers, sampled at `time`")
         d = f.create_dataset("source_wavelet", data=wavelet)
         d.attrs.update(axes="time", description="source time function s(t), every shot")
         for name, arr in (("source_coordinates", src), ("receiver_coordinates", rec)):
@@ -193,4 +213,5 @@ def _read_forward(f, path) -> ForwardData:
         attrs=attrs,
         snapshots=f["snapshots"][()] if has_snap else None,
         snapshot_times=f["snapshot_times"][()] if has_snap else None,
+        components={n: f[n][()] for n in (c.decode() if isinstance(c, bytes) else str(c) for c in f.attrs.get("components", []))},
     )

@@ -1,8 +1,9 @@
 """Full-waveform inversion: multiscale bands, conditioned gradients, journaled optimisation, run directory.
 
-run_fwi(config, rundir) inverts the velocity model for all shots of the config:
-1. plan the grid for the velocity bounds (every model the optimiser may visit is stable and resolved)
-   and resample the start model onto it;
+run_fwi(config, rundir) inverts the model (acoustic velocity; with physics elastic any of vp, vs, rho or lambda, mu,
+rho; or a neural network's weights) for all shots of the config:
+1. plan the grid for the bounds of the inverted quantities (every model the optimiser may visit is stable and
+   resolved) and resample the start model onto it;
 2. observed data: simulated from `true_model` with the full wavelet (a synthetic study), or read from
    files; stored in RUNDIR/observed.h5 so that a resumed run uses the same data (and, with pyasdf, in ASDF as
    RUNDIR/observed_waveforms.h5 on the simulation's time axis, adseismic.data.asdf's layout; the final model's
@@ -10,8 +11,9 @@ run_fwi(config, rundir) inverts the velocity model for all shots of the config:
 3. for each band (low to high), the wavelet and the observed data get the same zero-phase
    Butterworth band-pass (filtering the source filters the synthetics exactly: the data are linear
    in the source), optionally a least-squares wavelet estimate, and the optimiser minimises the
-   misfit (normalised by its value at the band's start model) plus regularisation over
-   x = v / V_REF, with the gradient masked, smoothed and preconditioned;
+   misfit (normalised by its value at the band's start model, summed over the recorded channels) plus
+   regularisation over x, the model space's vector (inversion.model_space: x = v / V_REF for acoustic pixels), with
+   the per-cell gradient masked, smoothed and preconditioned before the chain rule takes it back to x;
 4. every evaluation goes to a journal (RUNDIR/journal_band<k>.h5, atomic) and every iteration to
    RUNDIR/history.h5 (one group appended per iteration) and PNGs; --resume replays the journals and
    continues, reproducing an uninterrupted run. fwi.log gets a time breakdown of every evaluation
@@ -29,26 +31,31 @@ from types import SimpleNamespace
 
 import h5py
 import numpy as np
+import warp as wp
 from scipy.signal import butter, sosfiltfilt
 
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
 from adseismic.inversion import conditioning
+from adseismic.inversion.model_space import PARAMETERIZATIONS, PHYSICS_PARAMETERS, REFERENCE, UNITS, ModelSpace, quantities_of
 from adseismic.inversion.optimize import minimize
+from adseismic.inversion.parameterization import MLP
 from adseismic.runs import format_band, format_position
 from adseismic.scene import build_scene, plan_scene
 from adseismic.solve.acoustic import forward, gradient
 from adseismic.solve.batch import shot_slices
 from adseismic.solve.distributed import ShotPool, check_parallel, reduce_in_order
+from adseismic.solve.elastic import forward_elastic, gradient_elastic
 from adseismic.solve.misfits import misfit as named_misfit
+from adseismic.solve.receivers import UNITS as RECORDED_UNITS
 
 log = logging.getLogger(__name__)
-V_REF = 1000.0  # m/s: the optimiser works on v / V_REF, O(1) numbers
 
 
 @dataclass
 class FWIResult:
-    """Inverted model (nz, [ny,] nx) m/s on the simulation grid (spacing dx m, origin m), the start
-    model, per-band optimiser results, and model errors when the true model is known."""
+    """Inverted vp (nz, [ny,] nx) m/s on the simulation grid (spacing dx m, origin m), the start
+    model, per-band optimiser results, and model errors when the true model is known. models / start_models:
+    every physical parameter {vp, [vs (m/s), rho (kg/m^3)]}, the same grid."""
 
     model: np.ndarray
     start_model: np.ndarray
@@ -57,6 +64,8 @@ class FWIResult:
     bands: list = field(default_factory=list)
     errors: dict = field(default_factory=dict)
     seconds: float = 0.0
+    models: dict = field(default_factory=dict)
+    start_models: dict = field(default_factory=dict)
 
 
 def band_pass(x, dt, band, order=4):
@@ -112,22 +121,25 @@ class _History:
 
     UNITS = "model m/s; gradient d(misfit/misfit_0)/d(v/1000 m/s)"
 
-    def __init__(self, path: Path, dx, origin, compression=None):
+    def __init__(self, path: Path, dx, origin, compression=None, units=None):
         self.path, self.dx, self.origin, self.compression = Path(path), dx, origin, compression
+        self.units = units or self.UNITS
         self.rows = []  # (band, iteration, misfit): the misfit curve; the arrays are on disk only
         self.seconds = 0.0  # time spent in add(), for the log's time breakdown
 
     def add(self, band, iteration, model, grad, misfit):
+        """model, grad: arrays (datasets model, gradient) or {dataset name: array} (elastic: model_vp, ...)."""
         t0 = time.perf_counter()
         with h5py.File(self.path, "a" if self.rows else "w", locking=False) as f:
             if not self.rows:
-                f.attrs["dx"], f.attrs["origin"], f.attrs["units"] = self.dx, self.origin, self.UNITS
+                f.attrs["dx"], f.attrs["origin"], f.attrs["units"] = self.dx, self.origin, self.units
                 f.attrs["layout"] = "band<b>/iter<i:04d>/{model, gradient} float32, attr misfit; appended per iteration"
             name = f"band{band}/iter{iteration:04d}"
             if name in f:  # (not in a normal run: the file is truncated by a process's first add)
                 del f[name]
             grp = f.create_group(name)
-            for key, a in (("model", model), ("gradient", grad)):
+            arrays = {**(model if isinstance(model, dict) else {"model": model}), **(grad if isinstance(grad, dict) else {"gradient": grad})}
+            for key, a in arrays.items():
                 grp.create_dataset(key, data=np.asarray(a, np.float32), compression=self.compression)
             grp.attrs["misfit"] = float(misfit)
         self.rows.append((band, iteration, float(misfit)))
@@ -139,7 +151,8 @@ class _History:
 
 def read_history(path) -> list[dict]:
     """The iterations in a history.h5, in (band, iteration) order: dicts with band, iteration, misfit
-    and model, gradient (float32 arrays, m/s and the conditioned gradient). An incomplete last group
+    and every dataset of the group (float32 arrays): model, gradient (m/s and the conditioned gradient), or for
+    elastic physics model_vp, model_vs, model_rho and gradient_<inverted quantity>. An incomplete last group
     (a run killed during its append) is skipped."""
     out = []
     with h5py.File(path, "r") as f:
@@ -147,10 +160,10 @@ def read_history(path) -> list[dict]:
             if not bname.startswith("band"):
                 continue
             for iname, g in f[bname].items():
-                if "misfit" not in g.attrs or "model" not in g or "gradient" not in g:
+                if "misfit" not in g.attrs or not any(k.startswith("model") for k in g) or not any(k.startswith("gradient") for k in g):
                     continue
                 out.append({"band": int(bname[4:]), "iteration": int(iname[4:]), "misfit": float(g.attrs["misfit"]),
-                            "model": g["model"][...], "gradient": g["gradient"][...]})  # fmt: skip
+                            **{k: d[...] for k, d in g.items()}})  # fmt: skip
     return sorted(out, key=lambda r: (r["band"], r["iteration"]))
 
 
@@ -210,27 +223,70 @@ class _EvaluationTimes:
 @dataclass
 class Prepared:
     """What an inversion needs before it writes anything: the plan and scene (start model on the
-    simulation grid), the velocity bounds (m/s) and observed data read from files (or None)."""
+    simulation grid), the vp range (m/s) every visited model stays within, the model space (the optimiser's x
+    and its map to the physics, inversion.model_space) and observed data read from files (or None)."""
 
     plan: object
     scene: object
     bounds: tuple
     observed: np.ndarray | None
+    space: ModelSpace | None = None
+
+
+def _physics(cfg) -> str:
+    return getattr(cfg, "physics", None) or "acoustic"
+
+
+def _start_models(model, physics) -> dict:
+    """{vp, [vs, rho]}: the arrays of a Model (acoustic) or an ElasticModel (its .vp, .vs, .rho Models)."""
+    if physics == "acoustic":
+        return {"vp": np.asarray(model.values, float)}
+    return {k: np.asarray(getattr(model, k).values, float) for k in ("vp", "vs", "rho")}
+
+
+def inversion_bounds(cfg) -> dict:
+    """{inverted quantity: (min, max)} in its unit: inversion.bounds, else the start model's range +-25%; raises
+    ValueError when a box does not contain the start model (the optimiser starts inside it)."""
+    inv, physics = cfg.inversion, _physics(cfg)
+    q = quantities_of(_start_models(cfg.forward.model, physics), inv.parameterization)
+    out = {}
+    for name in _inverted(cfg):
+        lo, hi = float(np.min(q[name])), float(np.max(q[name]))
+        given_bounds = inv.bounds.get(name) if isinstance(inv.bounds, dict) else inv.bounds
+        net = getattr(cfg, "network", None)
+        reach = (lo, hi) if net is None else (net["v0"] - net["scale"], net["v0"] + net["scale"])  # a network: v0 +- scale
+        b = tuple(given_bounds) if given_bounds is not None else (0.75 * min(lo, reach[0]), 1.25 * max(hi, reach[1]))
+        if not (b[0] <= lo and hi <= b[1]):
+            key = "inversion.bounds" if not isinstance(inv.bounds, dict) else f"inversion.bounds.{name}"
+            raise ValueError(f"{key}: [{b[0]:g}, {b[1]:g}] {UNITS[name]} do not contain the start model's range "
+                             f"[{lo:g}, {hi:g}] {UNITS[name]}; widen them")  # fmt: skip
+        out[name] = b
+    return out
+
+
+def _inverted(cfg) -> tuple:
+    """The inverted quantities: inversion.parameters, else every quantity of the parameterisation (acoustic: vp)."""
+    inv = cfg.inversion
+    if _physics(cfg) == "acoustic":
+        return ("vp",)
+    return tuple(inv.parameters or PARAMETERIZATIONS[inv.parameterization])
 
 
 def prepare_fwi(cfg) -> Prepared:
-    """Plan for the velocity bounds and read/check observed data files; raises ValueError (bad input)
-    before any output exists."""
+    """Plan for the bounds of the inverted quantities and read/check observed data files; raises ValueError (bad
+    input) before any output exists."""
     inv, fwd = cfg.inversion, cfg.forward
-    bounds = inv.bounds or (0.75 * fwd.model.vmin, 1.25 * fwd.model.vmax)
-    if not (bounds[0] <= fwd.model.vmin and fwd.model.vmax <= bounds[1]):
-        raise ValueError(f"inversion.bounds: [{bounds[0]:g}, {bounds[1]:g}] m/s do not contain the start model's range "
-                         f"[{fwd.model.vmin:g}, {fwd.model.vmax:g}] m/s; widen them")  # fmt: skip
+    physics = _physics(cfg)
+    bounds_of = inversion_bounds(cfg)
+    probe = ModelSpace(physics, _start_models(fwd.model, physics), _inverted(cfg), inv.parameterization, bounds_of)
+    ranges = probe.physical_ranges()
+    bounds = ranges["vp"]
     highs = [hi for _, hi in inv.bands]
     # a low-passed last band needs no grid for the wavelet's full band (Butterworth: -20 dB at 1.33 f_high)
     f_max = None if None in highs else 1.33 * max(highs)
     # the inversion checks its own memory estimate (below), not the planner's forward-run one
-    plan = plan_scene(fwd, velocity_range=bounds, f_max=f_max, check_memory_of_run=False)
+    extra = {} if physics == "acoustic" else {"vs_range": ranges["vs"]}
+    plan = plan_scene(fwd, velocity_range=bounds, f_max=f_max, check_memory_of_run=False, **extra)
     nyq = 0.5 / plan.dt
     for i, (lo, hi) in enumerate(inv.bands):
         for name, f in (("f_low", lo), ("f_high", hi)):
@@ -247,7 +303,11 @@ def prepare_fwi(cfg) -> Prepared:
         _check_observed_selected(cfg, observed, weights)
     if getattr(cfg, "parallel", None) is not None:  # scheduler reachable, devices present, not more workers than shots
         check_parallel(cfg.parallel, plan.device, fwd.n_shots)
-    return Prepared(plan, scene, bounds, observed)
+    net = getattr(cfg, "network", None)
+    network = None if net is None else MLP(plan.shape, v0=net["v0"], scale=net["scale"], hidden=net["hidden"], seed=net["seed"], zero_output=True)
+    space = ModelSpace(physics, _start_models(scene.model, physics), _inverted(cfg), inv.parameterization, bounds_of, network,
+                       inv.transform)
+    return Prepared(plan, scene, bounds, observed, space)
 
 
 def check_fwi_memory(cfg, plan) -> str:
@@ -313,16 +373,32 @@ def _check_observed_selected(cfg, observed, weights):
                          f"would be 0: widen inversion.offsets / time_window to where the data are")
 
 
-def _observed(cfg, prep: Prepared, rundir: Path, progress):
+def _observed(cfg, prep: Prepared, rundir: Path, progress, sim: Simulator | None = None):
+    """The observed data, kept in RUNDIR/observed.h5 for a resumed run: acoustic an array (n_shots, n_receivers,
+    nt) (dataset data); elastic {channel: array} (a dataset per recorded channel, vx, vz, pressure, das, with its units
+    attribute; simulated from the true model)."""
     path = rundir / "observed.h5"
     if path.exists():
         try:
             with h5py.File(path, "r") as f:
-                return f["data"][...]
+                return f["data"][...] if _physics(cfg) == "acoustic" else {c: f[c][...] for c in sim.channels}
         except (OSError, KeyError) as e:  # written atomically by us, so only damage or a foreign file gets here
             raise ValueError(f"--resume: {path} cannot be read ({type(e).__name__}: {e}); delete it to simulate or read the "
                              f"observed data again, or start a new run directory") from None
     scene, p = prep.scene, prep.plan
+    if _physics(cfg) == "elastic":  # a synthetic study (the config refuses observed files with elastic physics)
+        true = cfg.true_model.resample(p.dx, p.origin, p.shape)
+        log.info("simulating observed data from the true model (%d shots, elastic)", len(scene.source_amplitudes))
+        data = sim.forward(_start_models(true, "elastic"), p.dx, p.dt, scene.source_amplitudes, scene.source_locations,
+                           scene.receiver_locations, progress=progress)  # fmt: skip
+        data = {c: np.asarray(d, float) for c, d in data.items()}
+
+        def fill(f):
+            for c, d in data.items():
+                f.create_dataset(c, data=d).attrs["units"] = RECORDED_UNITS[c]
+
+        write_h5_atomic(path, fill)
+        return data
     if prep.observed is not None:
         data = prep.observed
     else:
@@ -469,34 +545,165 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
         return _run_fwi(cfg, rundir, progress, prep, t_start, pool)
 
 
+class Simulator:
+    """The physics side of the objective: simulate and differentiate one physics on the plan's grid.
+
+    channels: the recorded data's names, each (n_shots, n_receivers, nt): acoustic "data" (the field u); elastic
+    recording.names (adseismic.solve.receivers.Recording: vx, vz (m/s), pressure (Pa), das strain rate (1/s)), whose
+    solver records at recording.locations (the receiver locations passed in) and maps them to the channels with the
+    exact adjoint for the misfit's residuals. kw: the solver's keyword arguments (order, PML, free surface, device,
+    precision, memory budget). Elastic: source_type and source_components (n_shots, n_src, 2|3) as solve.elastic takes
+    them; n_receivers: the receiver points."""
+
+    def __init__(self, physics: str, kw: dict, recording=None, n_receivers=0, source_type="force", source_components=None):
+        self.physics, self.kw, self.recording, self.n = physics, dict(kw), recording, n_receivers
+        self.channels = ("data",) if physics == "acoustic" else tuple(recording.names)
+        self.source_type, self.source_components = source_type, source_components
+
+    def _elastic_kw(self, sl):
+        comp = None if self.source_components is None else self.source_components[sl]
+        return dict(self.kw, source_type=self.source_type, source_components=comp)
+
+    def forward(self, physical, dx, dt, amp, src, rec, sl=slice(None), progress=False) -> dict:
+        """{channel: (n_shots, n_receivers, nt)} for physical {vp, [vs, rho]} (m/s, kg/m^3)."""
+        if self.physics == "acoustic":
+            kw = {k: v for k, v in self.kw.items() if k != "memory_budget"}
+            return {"data": forward(physical["vp"], dx, dt, amp, src, rec, progress=progress, **kw).receiver_amplitudes}
+        kw = {k: v for k, v in self._elastic_kw(sl).items() if k != "memory_budget"}
+        r = forward_elastic(physical["vp"], physical["vs"], physical["rho"], dx, dt, amp, src, rec, progress=progress, **kw)
+        return self.recording.data({c: np.asarray(getattr(r, c), float) for c in ("vx", "vz", "pressure")}, self.n)
+
+    def gradient(self, physical, dx, dt, amp, src, rec, misfit, wrt, sl=slice(None), illumination=False):
+        """(loss, {name in wrt: dJ/dname (nz, [ny,] nx)}, {channel: synthetic}, illumination or None); misfit: a
+        callable {channel: synthetic} -> (J, {channel: dJ/dsynthetic}), or, acoustic only, the resident data
+        (observed, weights) as float64 Warp arrays on the device for the weighted "l2" misfit formed there (the
+        synthetic is then a Warp array there too)."""
+        if self.physics == "acoustic" and isinstance(misfit, tuple):
+            r = gradient(physical["vp"], dx, dt, amp, src, rec, misfit[0], weights=misfit[1], illumination=illumination, **self.kw)
+            return r.loss, {"vp": r.velocity}, {"data": r.synthetic}, r.illumination
+        if self.physics == "acoustic":
+            r = gradient(physical["vp"], dx, dt, amp, src, rec, misfit=lambda d: _one(misfit, d), illumination=illumination, **self.kw)
+            return r.loss, {"vp": r.velocity}, {"data": r.synthetic}, r.illumination
+
+        def recorded_misfit(syn):  # the solver's vx, vz, pressure -> the channels, and the residuals back (exact adjoint)
+            j, adj = misfit(self.recording.data({c: np.asarray(syn[c], float) for c in ("vx", "vz", "pressure")}, self.n))
+            return j, self.recording.adjoint(adj, self.n)
+
+        r = gradient_elastic(physical["vp"], physical["vs"], physical["rho"], dx, dt, amp, src, rec, misfit=recorded_misfit,
+                             wrt=tuple(wrt), **self._elastic_kw(sl))  # fmt: skip
+        syn = self.recording.data({c: np.asarray(r.synthetic[c], float) for c in ("vx", "vz", "pressure")}, self.n)
+        return r.loss, {k: np.asarray(getattr(r, k), float) for k in wrt}, syn, None
+
+
+def _one(misfit, d):
+    j, adj = misfit({"data": d})
+    return j, adj["data"]
+
+
+def make_objective(space: ModelSpace, sim: Simulator, plan, amp, src, rec, observed: dict, weights, batches, inv,
+                   region_mask, depth, scale: dict, scale_path=None, timing=None, last=None, pool=None):
+    """The inversion's objective x -> (f, dJ/dx) for one band (x: the model space's vector).
+
+    f = sum over batches and channels of the named misfit of the weighted data, divided by its value at the band's
+    start (scale["misfit"], set by the first evaluation and kept in scale_path for a resumed run), plus the
+    regularisation of the model space's cells m (tikhonov, tv, inversion settings). The gradient per cell dJ/dm is
+    masked, smoothed and preconditioned (conditioning), then pulled back to x by the model space. observed:
+    {channel: (n_shots, n_receivers, nt)}; weights (n_shots, n_receivers, nt); amp (n_shots, n_src, nt); src, rec
+    (n_shots, n, ndim) m. last: a dict receiving the latest per-cell gradients (for figures) and shot 0's residual."""
+    shape, last = space.shape, {} if last is None else last
+    wrt = PHYSICS_PARAMETERS[space.physics]  # (elastic: all three, which the chain rule and the vs clamp may mix)
+    want_illum = inv.preconditioning == "pseudo_hessian"
+    tm = timing or SimpleNamespace(start=lambda: None, now={"gradient": 0.0, "misfit": 0.0, "conditioning": 0.0})
+    resident = {}
+    if sim.physics == "acoustic" and inv.misfit == "l2" and pool is None:  # the band's data stay on the device
+        resident = {sl.start: tuple(wp.array(np.ascontiguousarray(a[sl]), dtype=wp.float64, device=plan.device)
+                                    for a in (observed["data"], weights)) for sl in batches}  # fmt: skip
+
+    def objective(xv):
+        tm.start()
+        pt = space.point(xv)
+        loss, illum = 0.0, np.zeros(shape) if want_illum else None
+        grads = {k: np.zeros(shape) for k in wrt}
+        if pool is not None:  # the batches on the Dask workers (acoustic), summed here in batch order (float64)
+            t = time.perf_counter()
+            rs = pool.evaluate(pt.physical["vp"], {"dx": plan.dx, "dt": plan.dt, "misfit": inv.misfit, "illumination": want_illum, "kw": sim.kw})
+            tm.now["gradient"] += time.perf_counter() - t  # (the workers' misfits counted as simulation)
+            loss, grads["vp"], illum = reduce_in_order(rs, shape)
+            last["residual"] = weights[0] * (observed["data"][0] - rs[0]["synthetic0"])
+        for sl in batches if pool is None else ():
+            w_sl = weights[sl]
+
+            def weighted(syn, w_sl=w_sl, sl=sl):  # misfit of the muted, windowed data, summed over channels
+                t = time.perf_counter()
+                j, adj = 0.0, {}
+                for c in sim.channels:
+                    jc, a = named_misfit(inv.misfit, w_sl * np.asarray(syn[c], float), w_sl * observed[c][sl], plan.dt)
+                    j, adj[c] = j + jc, w_sl * a
+                tm.now["misfit"] += time.perf_counter() - t
+                return j, adj
+
+            t = time.perf_counter()
+            misfit = resident.get(sl.start, weighted)
+            loss_b, g_b, syn, il = sim.gradient(pt.physical, plan.dx, plan.dt, amp[sl], src[sl], rec[sl], misfit, wrt, sl, want_illum)
+            tm.now["gradient"] += time.perf_counter() - t
+            if sl.start == 0:
+                c0 = sim.channels[0]
+                syn0 = syn[c0][0].numpy() if isinstance(syn[c0], wp.array) else syn[c0][0]
+                last["residual"] = weights[0] * (observed[c0][0] - np.asarray(syn0, float))
+            loss += loss_b
+            for k in wrt:
+                grads[k] += g_b[k]
+            if illum is not None:
+                illum += il
+        t = time.perf_counter()
+        if "misfit" not in scale:
+            scale["misfit"] = loss if loss > 0 else 1.0
+            if scale_path is not None:
+                write_text_atomic(scale_path, json.dumps(scale))
+        f = loss / scale["misfit"]
+        gm = {}
+        for k, g in space.cells_gradient(pt, grads).items():
+            g = conditioning.precondition(conditioning.smooth(g * region_mask, plan.dx, inv.smoothing) * region_mask,
+                                          inv.preconditioning, illum, depth) / scale["misfit"]  # fmt: skip
+            for fn, w in ((conditioning.tikhonov, inv.tikhonov), (conditioning.total_variation, inv.tv)):
+                rv, rg = fn(pt.m[k], w)
+                f, g = f + rv, g + rg * region_mask
+            gm[k] = g
+        last["cells"], last["x"] = gm, np.array(xv, float)
+        gx = space.x_gradient(xv, gm)
+        tm.now["conditioning"] = time.perf_counter() - t
+        return f, gx
+
+    return objective
+
+
 def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     rundir = Path(rundir)
     rundir.mkdir(parents=True, exist_ok=True)
     inv, fwd = cfg.inversion, cfg.forward
-    scene, bounds, p = prep.scene, prep.bounds, prep.plan
+    scene, bounds, p, space = prep.scene, prep.bounds, prep.plan, prep.space
     log.info("plan:\n%s", p.describe())
-    obs = _observed(cfg, prep, rundir, progress)
-    shape = scene.model.values.shape
+    sim = _simulator(cfg, prep, inv, bounds)
+    obs = _observed(cfg, prep, rundir, progress, sim)
+    obs = obs if isinstance(obs, dict) else {"data": obs}
+    shape = space.shape
     region_mask = conditioning.mask(shape, p.dx, p.origin, inv.water_depth, fwd.geometry.sources, inv.source_radius)
     depth = (p.origin[0] + p.dx * np.arange(shape[0])).reshape((-1,) + (1,) * (len(shape) - 1)) * np.ones(shape) + p.dx
-    history = _History(rundir / "history.h5", p.dx, p.origin)
+    history = _History(rundir / "history.h5", p.dx, p.origin, units=_history_units(space))
     batches = shot_slices(len(scene.source_amplitudes), inv.shots_per_batch or (1 if pool is not None else None))
-    budget = None if inv.memory_budget_gb is None else inv.memory_budget_gb * 1e9
-    kw = dict(order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, pml_velocity=bounds[1],
-              free_surface=p.free_surface, device=p.device, precision=p.precision, memory_budget=budget)  # fmt: skip
-
-    x = scene.model.values.ravel() / V_REF
+    x = space.x0()
+    start = space.point(x).physical
     results = []
     last = {}  # the latest gradient (accepted iterate) and data residual of shot 0, for the figures
     weights = data_weights(scene, inv, fwd.geometry)
     for b, band in enumerate(inv.bands):
         wavelet = band_pass(scene.wavelet, p.dt, band)
-        obs_b = band_pass(obs, p.dt, band)
+        obs_b = {c: band_pass(o, p.dt, band) for c, o in obs.items()}
         amp = np.broadcast_to(wavelet, scene.source_amplitudes.shape).copy()
-        kw["pml_frequency"] = band[1] / 2 if band[1] else None
-        if inv.wavelet_estimation:
-            syn = forward(x.reshape(shape) * V_REF, p.dx, p.dt, amp, scene.source_locations, scene.receiver_locations, **{k: v for k, v in kw.items() if k != "memory_budget"}).receiver_amplitudes
-            wavelet = estimate_wavelet(wavelet, syn, obs_b)
+        sim.kw["pml_frequency"] = band[1] / 2 if band[1] else None
+        if inv.wavelet_estimation:  # (acoustic: refused for elastic physics by the config)
+            syn = sim.forward(space.point(x).physical, p.dx, p.dt, amp, scene.source_locations, scene.receiver_locations)["data"]
+            wavelet = estimate_wavelet(wavelet, syn, obs_b["data"])
             amp = np.broadcast_to(wavelet, amp.shape).copy()
         # The misfit is normalised by its value at the band's start model; that value is kept on disk
         # because a resumed run replays the first evaluations from the journal without calling us.
@@ -504,85 +711,106 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
         scale = json.loads(scale_path.read_text()) if scale_path.exists() else {}
         if pool is not None:  # each batch's data stay on a worker for the band; an evaluation sends only the model
             pool.keep([{"amplitudes": amp[sl], "sources": scene.source_locations[sl], "receivers": scene.receiver_locations[sl],
-                        "weights": weights[sl], "observed": weights[sl] * obs_b[sl], "first": sl.start} for sl in batches])  # fmt: skip
+                        "weights": weights[sl], "observed": weights[sl] * obs_b["data"][sl], "first": sl.start} for sl in batches])  # fmt: skip
 
         timing = _EvaluationTimes(b, history)
+        objective = make_objective(space, sim, p, amp, scene.source_locations, scene.receiver_locations, obs_b, weights, batches,
+                                   inv, region_mask, depth, scale, scale_path, timing, last, pool)  # fmt: skip
 
-        def objective(xv, amp=amp, obs_b=obs_b, scale=scale, scale_path=scale_path, tm=timing):
-            tm.start()
-            v = xv.reshape(shape) * V_REF
-            loss, grad, illum = 0.0, np.zeros(shape), np.zeros(shape) if inv.preconditioning == "pseudo_hessian" else None
-            if pool is not None:  # the batches on the Dask workers, summed here in batch order (float64) as below
-                t = time.perf_counter()
-                rs = pool.evaluate(v, {"dx": p.dx, "dt": p.dt, "misfit": inv.misfit, "illumination": illum is not None, "kw": kw})
-                tm.now["gradient"] += time.perf_counter() - t  # (the workers' misfits counted as simulation)
-                loss, grad, illum = reduce_in_order(rs, shape)
-                last["residual"] = weights[0] * (obs_b[0] - rs[0]["synthetic0"])
-            for sl in batches if pool is None else ():
-                w_sl, o_sl = weights[sl], weights[sl] * obs_b[sl]
-
-                def weighted(syn, w_sl=w_sl, o_sl=o_sl):  # misfit of the muted, windowed data
-                    t = time.perf_counter()
-                    j, adj = named_misfit(inv.misfit, w_sl * syn, o_sl, p.dt)
-                    adj = w_sl * adj
-                    tm.now["misfit"] += time.perf_counter() - t
-                    return j, adj
-
-                t = time.perf_counter()
-                r = gradient(v, p.dx, p.dt, amp[sl], scene.source_locations[sl], scene.receiver_locations[sl],
-                             misfit=weighted, illumination=illum is not None, **kw)  # fmt: skip
-                tm.now["gradient"] += time.perf_counter() - t
-                if sl.start == 0:
-                    last["residual"] = weights[0] * (obs_b[0] - r.synthetic[0])
-                loss += r.loss
-                grad += r.velocity
-                if illum is not None:
-                    illum += r.illumination
-            t = time.perf_counter()
-            if "misfit" not in scale:
-                scale["misfit"] = loss if loss > 0 else 1.0
-                write_text_atomic(scale_path, json.dumps(scale))
-            g = conditioning.precondition(conditioning.smooth(grad * region_mask, p.dx, inv.smoothing) * region_mask,
-                                          inv.preconditioning, illum, depth)  # fmt: skip
-            f = loss / scale["misfit"]
-            g = g * V_REF / scale["misfit"]
-            m = v / V_REF
-            for fn, w in ((conditioning.tikhonov, inv.tikhonov), (conditioning.total_variation, inv.tv)):
-                rv, rg = fn(m, w)
-                f, g = f + rv, g + rg * region_mask
-            tm.now["conditioning"] = time.perf_counter() - t
-            return f, g.ravel()
-
-        def callback(iteration, xv, f, g, b=b):
-            history.add(b, iteration, xv.reshape(shape) * V_REF, g.reshape(shape), f)
-            last["gradient"] = g.reshape(shape)
+        def callback(iteration, xv, f, g, b=b, band=band):
+            pt = space.point(xv)
+            cells = _cells_of(space, xv, g, last)
+            history.add(b, iteration, _history_models(space, pt), _history_gradients(space, cells, g), f)
+            last["gradient"] = cells
             log.info("band %d (%s) iteration %d: misfit %.4g", b, format_band(*band), iteration, f)
 
-        res = minimize(objective, x, method=inv.optimizer, bounds=(bounds[0] / V_REF, bounds[1] / V_REF),
+        res = minimize(objective, x, method=inv.optimizer, bounds=space.x_bounds(),
                        max_iterations=inv.iterations[b] if isinstance(inv.iterations, list) else inv.iterations, max_evaluations=inv.evaluations, rel_decrease=inv.rel_decrease, grad_tol=0.0,
                        journal_path=rundir / f"journal_band{b}.h5", callback=callback, on_evaluation=timing,
                        options={"gd": {"step": inv.step}, "adam": {"lr": inv.lr}}.get(inv.optimizer))  # fmt: skip
         log.info("band %d done: %s after %d iterations, %d evaluations", b, res.stop_reason, res.iterations, res.evaluations)
         t_fig = time.perf_counter()
         if "gradient" in last and "residual" in last:  # (a run resumed after its last band has no residual)
-            _figures(rundir, history, res.x.reshape(shape) * V_REF, last, p, fwd, b, inv.bands)
+            _figures(rundir, history, space, space.point(res.x), last, p, fwd, b, inv.bands)
         timing.summary(figures=time.perf_counter() - t_fig)
         results.append({"band": format_band(*band), "f_low_hz": band[0], "f_high_hz": band[1], "iterations": res.iterations, "evaluations": res.evaluations,
                         "misfit": res.f, "stop_reason": res.stop_reason})  # fmt: skip
         x = res.x
-    v = x.reshape(shape) * V_REF
-    out = FWIResult(model=v, start_model=scene.model.values, dx=p.dx, origin=p.origin, bands=results, seconds=time.perf_counter() - t_start)
+    final = space.point(x).physical
+    out = FWIResult(model=final["vp"], start_model=start["vp"], dx=p.dx, origin=p.origin, bands=results, seconds=time.perf_counter() - t_start,
+                    models=final, start_models=start)  # fmt: skip
     if cfg.true_model is not None:
-        v_true = cfg.true_model.resample(p.dx, p.origin, p.shape).values
-        changed = np.abs(v_true - out.start_model) > 0.01 * v_true
-        region = changed if changed.any() else np.ones(shape, bool)
-        below = region_mask > 0
-        out.errors = {
-            "start_anomaly": relative_error(out.start_model, v_true, region), "final_anomaly": relative_error(v, v_true, region),
-            "start_below_water": relative_error(out.start_model, v_true, below), "final_below_water": relative_error(v, v_true, below),
-        }  # fmt: skip
-    _write_synthetic_asdf(rundir, fwd, scene, p, v, progress)
-    _write_result(rundir, out, fwd)
+        out.errors = _model_errors(cfg, space, p, start, final, region_mask)
+    if space.physics == "acoustic":
+        _write_synthetic_asdf(rundir, fwd, scene, p, final["vp"], progress)
+    _write_result(rundir, out, fwd, space)
+    return out
+
+
+def _simulator(cfg, prep: Prepared, inv, bounds) -> Simulator:
+    p = prep.plan
+    budget = None if inv.memory_budget_gb is None else inv.memory_budget_gb * 1e9
+    kw = {"order": p.order, "pml_width": p.pml_width, "pml_reflection": p.pml_reflection, "pml_velocity": bounds[1],
+          "free_surface": p.free_surface, "device": p.device, "precision": p.precision, "memory_budget": budget}
+    if _physics(cfg) == "acoustic":
+        return Simulator("acoustic", kw)
+    sc = prep.scene
+    return Simulator("elastic", kw, sc.recording, len(cfg.forward.geometry.receivers), sc.source_type, sc.source_components)
+
+
+def _cells_of(space: ModelSpace, xv, g, last) -> dict:
+    """The per-cell gradient {name: (nz, [ny,] nx)} at x: the blocks of g (pixels), or the network's per-cell
+    gradient kept by its evaluation (a replayed evaluation has none: zeros)."""
+    if space.network is None:
+        n = int(np.prod(space.shape))
+        return {k: np.asarray(g[i * n:(i + 1) * n]).reshape(space.shape) for i, k in enumerate(space.names)}
+    if "x" in last and np.array_equal(last["x"], xv):
+        return last["cells"]
+    return {"vp": np.zeros(space.shape)}
+
+
+def _history_units(space: ModelSpace) -> str:
+    if space.physics == "acoustic" and space.network is None:
+        return _History.UNITS
+    grads = "; ".join(f"gradient_{k} d(misfit/misfit_0)/d({k}/{REFERENCE[k]:g} {UNITS[k]})" for k in space.names)
+    if space.network is not None:
+        return f"model m/s; gradient d(misfit/misfit_0)/d(network weights); {grads} (per cell)"
+    return f"model_vp, model_vs m/s, model_rho kg/m^3; {grads}"
+
+
+def _history_models(space: ModelSpace, pt) -> dict | np.ndarray:
+    if space.physics == "acoustic":
+        return pt.physical["vp"]
+    return {f"model_{k}": v for k, v in pt.physical.items()}
+
+
+def _history_gradients(space: ModelSpace, cells: dict, g):
+    if space.physics == "acoustic":
+        return cells["vp"] if space.network is None else {"gradient": np.asarray(g), "gradient_vp": cells["vp"]}
+    return {f"gradient_{k}": v for k, v in cells.items()}
+
+
+def _model_errors(cfg, space: ModelSpace, p, start: dict, final: dict, region_mask) -> dict:
+    """Relative model errors (L2 norm of the difference over the norm of the true model) in the region where the
+    true model differs from the start by more than 1% (the anomaly) and below the water / masks. Acoustic: of vp;
+    elastic: per inverted quantity (<name>_start_anomaly, ...) and, under the plain keys, their root mean square."""
+    true = cfg.true_model.resample(p.dx, p.origin, p.shape)
+    truth = quantities_of(_start_models(true, space.physics), space.parameterization)
+    q0 = quantities_of(start, space.parameterization)
+    q1 = quantities_of(final, space.parameterization)
+    changed = np.zeros(space.shape, bool)
+    for k in space.names:
+        changed |= np.abs(truth[k] - q0[k]) > 0.01 * np.abs(truth[k])
+    region = changed if changed.any() else np.ones(space.shape, bool)
+    below = region_mask > 0
+    per = {}
+    for k in space.names:
+        per[k] = {"start_anomaly": relative_error(q0[k], truth[k], region), "final_anomaly": relative_error(q1[k], truth[k], region),
+                  "start_below_water": relative_error(q0[k], truth[k], below), "final_below_water": relative_error(q1[k], truth[k], below)}  # fmt: skip
+    if space.physics == "acoustic":
+        return per["vp"]
+    out = {key: float(np.sqrt(np.mean([per[k][key] ** 2 for k in space.names]))) for key in per[space.names[0]]}
+    out.update({f"{k}_{key}": v for k in space.names for key, v in per[k].items()})
     return out
 
 
@@ -602,31 +830,47 @@ def _write_synthetic_asdf(rundir: Path, fwd, scene, p, model, progress):
                        receiver_coordinates=fwd.geometry.receivers, wavelet=scene.wavelet)
 
 
-def _write_result(rundir: Path, res: FWIResult, fwd):
+def _write_result(rundir: Path, res: FWIResult, fwd, space: ModelSpace | None = None):
+    """model.h5: acoustic the datasets model and start_model (m/s); elastic vp, vs (m/s), rho (kg/m^3) and
+    start_vp, start_vs, start_rho, each with its units attribute, and the attribute inverted (the quantities the
+    inversion changed); summary.json: bands, errors, seconds."""
+    elastic = space is not None and space.physics == "elastic"
+
     def fill(f):
-        f.create_dataset("model", data=res.model)
-        f.create_dataset("start_model", data=res.start_model)
-        f.attrs["dx"], f.attrs["origin"], f.attrs["units"] = res.dx, res.origin, "m/s"
+        if elastic:
+            for k in ("vp", "vs", "rho"):
+                f.create_dataset(k, data=res.models[k]).attrs["units"] = UNITS[k]
+                f.create_dataset(f"start_{k}", data=res.start_models[k]).attrs["units"] = UNITS[k]
+            f.attrs["inverted"], f.attrs["parameterization"] = list(space.names), space.parameterization
+        else:
+            f.create_dataset("model", data=res.model)
+            f.create_dataset("start_model", data=res.start_model)
+        f.attrs["dx"], f.attrs["origin"] = res.dx, res.origin
+        f.attrs["units"] = "vp, vs m/s; rho kg/m^3" if elastic else "m/s"
         f.attrs["summary"] = json.dumps({"bands": res.bands, "errors": res.errors})
 
     write_h5_atomic(rundir / "model.h5", fill)
     write_text_atomic(rundir / "summary.json", json.dumps({"bands": res.bands, "errors": res.errors, "seconds": res.seconds}, indent=2))
 
 
-def _figures(rundir: Path, history: _History, model, last, plan, fwd, b, bands):
-    """model.png, gradient.png, residual.png (shot 0, observed - synthetic, against receiver position in m, a
-    panel per receiver line) and misfit.png after band b of bands. 3D: the x-z slice through the middle of y,
-    sources and receivers projected onto it."""
+def _figures(rundir: Path, history: _History, space: ModelSpace, pt, last, plan, fwd, b, bands):
+    """After band b of bands: the model and the last gradient (acoustic model.png, gradient.png; elastic one
+    model_<name>.png and gradient_<name>.png per inverted quantity), residual.png (shot 0, observed - synthetic of
+    the first channel, against receiver position in m, a panel per receiver line) and misfit.png. 3D: the x-z slice
+    through the middle of y, sources and receivers projected onto it."""
     from adseismic import plotting
 
     name = f"band {b} ({format_band(*bands[b])})"
     origin2 = (plan.origin[0], plan.origin[-1])
-    mid = (lambda a: a) if model.ndim == 2 else (lambda a: a[:, a.shape[1] // 2])
+    mid = (lambda a: a) if len(space.shape) == 2 else (lambda a: a[:, a.shape[1] // 2])
     src, rec = np.asarray(fwd.geometry.sources, float), np.asarray(fwd.geometry.receivers, float)
-    plotting.plot_model(rundir / "model.png", mid(model), plan.dx, origin2, sources=src[:, [0, -1]], receivers=rec[:, [0, -1]],
-                        title=f"model after {name}")  # fmt: skip
-    plotting.plot_model(rundir / "gradient.png", mid(last["gradient"]), plan.dx, origin2, title=f"last gradient of {name}",
-                        label="conditioned gradient\nd(misfit / its start value) / d(v / 1000 m/s)", cmap="seismic", symmetric=True)  # fmt: skip
+    for k in space.names:
+        suffix = "" if space.physics == "acoustic" else f"_{k}"
+        plotting.plot_model(rundir / f"model{suffix}.png", mid(pt.q[k]), plan.dx, origin2, sources=src[:, [0, -1]], receivers=rec[:, [0, -1]],
+                            title=f"{'model' if not suffix else k} after {name}", label=f"{'velocity' if k == 'vp' else k} ({UNITS[k]})")  # fmt: skip
+        plotting.plot_model(rundir / f"gradient{suffix}.png", mid(last["gradient"][k]), plan.dx, origin2, title=f"last gradient of {name}",
+                            label=f"conditioned gradient\nd(misfit / its start value) / d({'v' if k == 'vp' and not suffix else k} / {REFERENCE[k]:g} {UNITS[k]})",
+                            cmap="seismic", symmetric=True)  # fmt: skip
     plotting.plot_gather(rundir / "residual.png", last["residual"], plan.dt, rec, source=src[0], quantity="residual",
                          title=f"shot 0 residual (observed - synthetic, muted and windowed), {name}\n"
                                f"source (star) at {format_position(src[0])}")  # fmt: skip

@@ -86,14 +86,17 @@ class SmoothBasis:
 
 class MLP:
     """A small neural network v(x) = v0 + scale * f_theta(x) over scaled cell coordinates, two tanh
-    layers of `hidden` units; theta: all weights and biases, flat (random init, seed)."""
+    layers of `hidden` units; theta: all weights and biases, flat (random init, seed). zero_output: the output
+    layer's weights and bias start at 0, so that the start model is the constant v0 (FWI's start model)."""
 
-    def __init__(self, shape, v0: float, scale: float, hidden: int = 8, seed: int = 0):
+    def __init__(self, shape, v0: float, scale: float, hidden: int = 8, seed: int = 0, zero_output: bool = False):
         self.shape, self.v0, self.scale, self.hidden = tuple(shape), float(v0), float(scale), int(hidden)
         d, h = 3, self.hidden
         rng = np.random.default_rng(seed)
         sizes = [h * d, h, h * h, h, h, 1]
         self.parameters = np.concatenate([rng.standard_normal(n) / np.sqrt(max(n // h, 1)) for n in sizes])
+        if zero_output:
+            self.parameters[-(h + 1):] = 0.0
 
     def velocity(self, theta, dtype, device):
         return _launch(3, self.shape, dtype, device, theta, dtype(self.v0), dtype(self.scale), mlp_hidden=self.hidden)

@@ -25,6 +25,11 @@ Steps:
    refined by Gauss-Newton steps on the projected problem; the origin time is the STF's peak;
 5. covariance C = (J_r^T J_r + R)^-1 at the solution (R: the smoothness penalty's Hessian for a
    free STF, else 0).
+
+Physics: acoustic (model a Model; pressure traces; the amplitude A) or elastic (model an ElasticModel, 2D;
+traces of vx, vz or pressure; a moment-tensor source whose in-plane components (Mxx, Mzz, Mxz) = a @ BASIS[constraint]
+replace A: the data are linear in the coefficients a, which the same estimators fit; docs/moment_tensor.md). The
+forward problem of each physics is a _Problem: data, the Jacobian and the adjoint misfit gradient.
 """
 
 from __future__ import annotations
@@ -44,7 +49,6 @@ from adseismic.solve.batch import shot_slices
 from adseismic.solve.common import dominant_frequency
 
 log = logging.getLogger(__name__)
-N_PHYS = 3  # T, f, A after the position
 METHODS = ("lbfgs", "gauss-newton", "gd", "adam")
 STFS = ("ricker", "free")
 
@@ -55,10 +59,16 @@ class LocationResult:
     function, on the data's time axis); peak_frequency Hz and amplitude of the Ricker fit;
     covariance (ndim + 1, ndim + 1) 1-sigma over (position..., origin time) in m^2, m s, s^2;
     parameter_covariance: over every unknown (Ricker: position, T, f, A; free STF: position, the
-    STF samples); stf (nt,) the source-time function at t = k dt; noise_std (n_receivers,);
+    STF samples); stf (nt,) the source-time function at t = k dt (elastic: at t = k dt - dt/2, the solver's input,
+    whose velocity samples are recorded half a step earlier); noise_std (n_receivers,);
     synthetic (n_receivers, nt); start: the start of the best run; candidates: every start tried
     (position, origin_time, stack, misfit, final position), best first; inflation: the factor the
-    Gauss-Newton covariance was multiplied by (noise correlation x reduced chi-square if > 1)."""
+    Gauss-Newton covariance was multiplied by (noise correlation x reduced chi-square if > 1).
+    amplitudes: what the STF multiplies in the data (acoustic [1], the STF carries A; moment tensor: its free
+    coefficients). ricker_covariance: over the Ricker fit's parameters (position, T, f, amplitudes), not inflated.
+    Moment-tensor source (elastic physics): moment_tensor (3,) the in-plane (Mxx, Mzz, Mxz) in N m per metre of
+    line for the unit-peak STF, its covariance (3, 3) (inflated like the rest), the constraint, and components
+    (n_traces,) what each trace records; amplitude is then the in-plane scalar moment sqrt(sum M_ij^2 / 2)."""
 
     position: np.ndarray
     origin_time: float
@@ -78,6 +88,12 @@ class LocationResult:
     candidates: list = field(default_factory=list)
     history: list = field(default_factory=list)
     inflation: float = 1.0
+    amplitudes: np.ndarray = field(default_factory=lambda: np.ones(1))
+    ricker_covariance: np.ndarray | None = None
+    moment_tensor: np.ndarray | None = None
+    moment_tensor_covariance: np.ndarray | None = None
+    constraint: str | None = None
+    components: list | None = None
 
 
 def source_wavelet(nt, dt, T, f, A):
@@ -100,9 +116,17 @@ def noise_from_window(observed, dt, window):
     return observed[:, i0:i1].std(axis=1)
 
 
-def back_projection(model: Model, receivers, observed, dt, bounds, spacing, n_best=1, separation=None):
+def phase_models(model) -> list:
+    """The velocity Models of the phases a back-projection stacks: [model] (acoustic); elastic [vs]: a moment-tensor
+    source radiates most of its energy as S (amplitude ~ (vp/vs)^3 that of P for a double couple), and stacking P as
+    well maps that S energy to shallower P positions (the demo's event: S alone starts 12 m from it, P + S 390 m)."""
+    return [model.vs] if hasattr(model, "vs") else [model]
+
+
+def back_projection(model, receivers, observed, dt, bounds, spacing, n_best=1, separation=None):
     """Start candidates from envelope back-projection: the stack S(x, T) = sum_i env_i(T + tau_i(x)) /
-    max env_i over candidate points x (every `spacing` m inside bounds) and times T. receivers (n, ndim)
+    max env_i over candidate points x (every `spacing` m inside bounds) and times T; model: a velocity Model
+    or a list of them (phases, e.g. [vp, vs]), whose stacks are summed (phase_models() picks them per physics). receivers (n, ndim)
     and bounds ((lo, hi) per axis) in the model's world metres. Returns up to n_best dicts
     {position, origin_time, stack (0..1)}, best first, at least `separation` m (default 4 spacing)
     apart; also "grid": the axes and the stack maximum over T per candidate (for the figures)."""
@@ -110,14 +134,15 @@ def back_projection(model: Model, receivers, observed, dt, bounds, spacing, n_be
     env /= env.max(axis=1, keepdims=True) + 1e-30
     axes = [np.arange(lo, hi + 1e-9, spacing) for lo, hi in bounds]
     cand = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(bounds))
-    tau = straight_ray_times(model, cand, receivers)  # (n_cand, n_rec)
+    phases = model if isinstance(model, (list, tuple)) else [model]
+    taus = [straight_ray_times(m, cand, receivers) for m in phases]  # (n_cand, n_rec) each
     nt = observed.shape[1]
     t = np.arange(nt) * dt
     peak, when = np.empty(len(cand)), np.empty(len(cand))
     for c in range(len(cand)):
-        stack = sum(np.interp(t + tau[c, i], t, env[i], right=0.0) for i in range(len(receivers)))
+        stack = sum(np.interp(t + tau[c, i], t, env[i], right=0.0) for tau in taus for i in range(len(receivers)))
         k = int(np.argmax(stack))
-        peak[c], when[c] = stack[k] / len(receivers), k * dt
+        peak[c], when[c] = stack[k] / (len(receivers) * len(phases)), k * dt
     sep = 4.0 * spacing if separation is None else float(separation)
     picked = []
     for c in np.argsort(-peak):
@@ -131,57 +156,206 @@ def back_projection(model: Model, receivers, observed, dt, bounds, spacing, n_be
 
 
 class _Problem:
-    """The forward problem of one event: data at the receivers for a source at `pos` (world m)."""
+    """The forward problem of one event in acoustic physics: data at the receivers (pressure) for a source at
+    `pos` (world m). Parameters p = (position (ndim), T s, f Hz, amplitudes (n_amp,)); the data are linear in the
+    amplitudes (acoustic: one, A) and in the source-time function."""
+
+    n_amp = 1
+    time_offset = 0.0  # s: the solver's sample k of the data is at time k dt - time_offset
+    impulse_sample = 0  # where _fit_free puts its spike: the first sample whose response is a shift of every later one's
 
     def __init__(self, model: Model, receivers, nt, dt, kw, stf_filter=None):
-        self.model, self.nt, self.dt, self.kw = model, nt, dt, kw
+        self.model, self.grid, self.nt, self.dt, self.kw = model, model, nt, dt, kw
         self.filter = stf_filter or (lambda x: x)
-        self.dx = float(model.spacing[0])
-        self.origin = np.asarray(model.origin, float)
+        self.ndim = self.grid.ndim
+        self.dx = float(self.grid.spacing[0])
+        self.origin = np.asarray(self.grid.origin, float)
         self.rec = (np.asarray(receivers, float) - self.origin)[None]
 
-    def data_many(self, positions, wavelet):
-        """(n_positions, n_rec, nt) for sources at positions (n, ndim) world m, one simulation."""
-        pos = np.asarray(positions, float)
-        n = len(pos)
-        amp = np.broadcast_to(wavelet, (n, 1, self.nt))
+    def _run(self, positions, wavelet, amps):
+        """(n, n_rec, nt) data of sources at positions (n, ndim) world m with the STF (nt,) and amplitudes
+        amps (n, n_amp), one simulation of n shots."""
+        n = len(positions)
         rec = np.broadcast_to(self.rec, (n, *self.rec.shape[1:]))
-        return forward(self.model.values, self.dx, self.dt, amp, (pos - self.origin)[:, None], rec, **self.kw).receiver_amplitudes
+        amp = np.broadcast_to(wavelet, (n, 1, self.nt)) * np.asarray(amps)[:, :1, None]
+        return forward(self.model.values, self.dx, self.dt, amp, (positions - self.origin)[:, None], rec, **self.kw).receiver_amplitudes
 
-    def data(self, pos, wavelet):
-        """(n_rec, nt) for source-time function `wavelet` (nt,)."""
-        return self.data_many(np.asarray(pos, float)[None], wavelet)[0]
+    def data_many(self, positions, wavelet, amps):
+        """(n_positions, n_rec, nt) for sources at positions (n, ndim) world m with amplitudes amps (n_amp,)."""
+        pos = np.asarray(positions, float)
+        return self._run(pos, wavelet, np.broadcast_to(np.asarray(amps, float), (len(pos), self.n_amp)))
+
+    def data(self, pos, wavelet, amps):
+        """(n_rec, nt) for source-time function `wavelet` (nt,) and amplitudes amps (n_amp,)."""
+        return self.data_many(np.asarray(pos, float)[None], wavelet, amps)[0]
+
+    def data_basis(self, pos, wavelet):
+        """(n_amp, n_rec, nt): the data of each amplitude alone at 1 (the columns of the linear part), one run."""
+        pos = np.asarray(pos, float)
+        return self._run(np.repeat(pos[None], self.n_amp, axis=0), wavelet, np.eye(self.n_amp))
+
+    def held_amplitudes(self, amps):
+        """The amplitudes a source-time function multiplies in the data (data(pos, stf, held)): acoustic [1]
+        (the STF carries A); a moment tensor its coefficients (the STF is the unit-peak shape)."""
+        return np.ones(1)
+
+    def split(self, p):
+        """p -> (position (ndim,), T, f, amplitudes (n_amp,))."""
+        d = self.ndim
+        return p[:d], p[d], p[d + 1], p[d + 2 :]
 
     def wavelet(self, p):
-        """The (filtered) Ricker source-time function of parameters p and its derivatives, (nt,), (3, nt)."""
-        s, ds = source_wavelet(self.nt, self.dt, *p[len(p) - N_PHYS :])
-        return self.filter(s), self.filter(ds)
+        """The (filtered) unit Ricker source-time function of parameters p and its derivatives with respect to
+        (T, f): (nt,), (2, nt)."""
+        _, T, f, _ = self.split(p)
+        s, ds = source_wavelet(self.nt, self.dt, T - self.time_offset, f, 1.0)
+        return self.filter(s), self.filter(ds[:2])
 
     def simulate(self, p):
-        return self.data(p[: len(p) - N_PHYS], self.wavelet(p)[0])
+        pos, _, _, amps = self.split(p)
+        return self.data(pos, self.wavelet(p)[0], amps)
 
-    def position_derivatives(self, pos, wavelet):
+    def position_derivatives(self, pos, wavelet, amps):
         """d(data)/d(position) (ndim, n_rec, nt) by central differences (h = 0.05 dx; the source
         operator is C^1 in the position), all 2 ndim simulations in one batched run."""
         ndim, h = len(pos), 0.05 * self.dx
         steps = np.concatenate([np.eye(ndim), -np.eye(ndim)]) * h
-        d = self.data_many(pos[None] + steps, wavelet)
+        d = self.data_many(pos[None] + steps, wavelet, amps)
         return (d[:ndim] - d[ndim:]) / (2 * h)
 
     def jacobian(self, p):
         """d(data)/d(parameters) (n_params, n_rec, nt): central differences in position and exact
-        derivatives for (T, f, A): the data are linear in the source-time function, so d(data)/dT
-        is the data of d(s)/dT."""
-        ndim = len(p) - N_PHYS
+        derivatives for (T, f, amplitudes): the data are linear in the source-time function, so d(data)/dT
+        is the data of d(s)/dT, and linear in the amplitudes."""
+        pos, _, _, amps = self.split(p)
         s, ds = self.wavelet(p)
-        cols = list(self.position_derivatives(p[:ndim], s))
-        cols += [self.data(p[:ndim], ds[k]) for k in range(N_PHYS)]
+        cols = list(self.position_derivatives(pos, s, amps))
+        cols += [self.data(pos, ds[k], amps) for k in range(2)]
+        cols += list(self.data_basis(pos, s))
         return np.stack(cols)
+
+    def loss_gradient(self, p, obs, w2):
+        """Misfit 1/2 sum w2 (d(p) - obs)^2 and its gradient with respect to p (the adjoint state)."""
+        pos, _, _, amps = self.split(p)
+        s, ds = self.wavelet(p)
+
+        def misfit(syn):
+            r = (syn[0] - obs) * w2
+            return 0.5 * float(np.sum((syn[0] - obs) * r)), r[None]
+
+        g = gradient(self.model.values, self.dx, self.dt, amps[0] * s[None, None], (pos - self.origin)[None, None], self.rec,
+                     misfit=misfit, wrt=("source_amplitudes", "source_locations"), **self.kw)  # fmt: skip
+        ga = g.source_amplitudes[0, 0]
+        return g.loss, np.concatenate([g.source_locations[0, 0], amps[0] * (ds @ ga), [s @ ga]])
+
+
+class _ElasticProblem(_Problem):
+    """The forward problem of one event in 2D elastic physics with a moment-tensor source: trace i records
+    components[i] ("vx", "vz" m/s or "pressure" Pa) at receivers[i]. The in-plane tensor (Mxx, Mzz, Mxz) N m/m is
+    basis^T a for the free amplitudes a (n_amp,) (moment_tensor.BASIS: the constraint). Every trace is returned at
+    t = k dt: the solver records velocities at (k - 1/2) dt, so the STF is advanced by dt/2 (time_offset) and pressure
+    (recorded at k dt) is averaged onto (k - 1/2) dt as well."""
+
+    def __init__(self, model, receivers, components, basis, nt, dt, kw, stf_filter=None):
+        super().__init__(model.vp, receivers, nt, dt, kw, stf_filter)
+        self.model, self.basis = model, np.asarray(basis, float)
+        self.n_amp = len(self.basis)
+        self.components = list(components)
+        self.time_offset = 0.5 * dt
+        self.impulse_sample = 1  # a moment source injects -(s[k+1] - s[k]): a spike at 0 lacks its s[0] - s[-1] step
+        self.materials = (model.vp.values, model.vs.values, model.rho.values)
+
+    def held_amplitudes(self, amps):
+        return np.asarray(amps, float)
+
+    def _rows(self, syn):
+        """{component: (n, n_rec, nt)} -> (n, n_traces, nt): trace i = components[i] at receiver i."""
+        out = np.stack([syn[c][:, i] for i, c in enumerate(self.components)], axis=1)
+        p = [i for i, c in enumerate(self.components) if c == "pressure"]
+        if p:
+            out[:, p, 1:] = 0.5 * (out[:, p, 1:] + out[:, p, :-1])
+        return out
+
+    def _rows_adjoint(self, r):
+        """Adjoint of _rows for one shot: (n_traces, nt) -> {component: (1, n_rec, nt)}."""
+        adj = {c: np.zeros((1, *r.shape)) for c in ("vx", "vz", "pressure")}
+        for i, c in enumerate(self.components):
+            if c == "pressure":
+                adj[c][0, i, :-1] += 0.5 * r[i, 1:]
+                adj[c][0, i, 1:] += 0.5 * r[i, 1:]
+                adj[c][0, i, 0] += r[i, 0]
+            else:
+                adj[c][0, i] = r[i]
+        return adj
+
+    def _run(self, positions, wavelet, amps):
+        from adseismic.solve.elastic import forward_elastic
+
+        n = len(positions)
+        rec = np.broadcast_to(self.rec, (n, *self.rec.shape[1:]))
+        res = forward_elastic(*self.materials, self.dx, self.dt, np.broadcast_to(wavelet, (n, 1, self.nt)).copy(),
+                              (positions - self.origin)[:, None], rec.copy(), source_type="moment",
+                              source_components=(np.asarray(amps) @ self.basis)[:, None], **self.kw)  # fmt: skip
+        return self._rows({"vx": res.vx, "vz": res.vz, "pressure": res.pressure})
+
+    def loss_gradient(self, p, obs, w2):
+        from adseismic.solve.elastic import gradient_elastic
+
+        pos, _, _, amps = self.split(p)
+        s, ds = self.wavelet(p)
+
+        def misfit(syn):
+            d = self._rows({c: np.asarray(v) for c, v in syn.items()})[0]
+            r = (d - obs) * w2
+            return 0.5 * float(np.sum((d - obs) * r)), self._rows_adjoint(r)
+
+        g = gradient_elastic(*self.materials, self.dx, self.dt, s[None, None], (pos - self.origin)[None, None], self.rec.copy(),
+                             misfit=misfit, wrt=("source_amplitudes", "source_components", "source_locations"), source_type="moment",
+                             source_components=(amps @ self.basis)[None, None], **self.kw)  # fmt: skip
+        return g.loss, np.concatenate([g.source_locations[0, 0], ds @ g.source_amplitudes[0, 0], self.basis @ g.source_components[0, 0]])
+
+
+def _problem(model, receivers, components, constraint, nt, dt, kw, stf_filter=None) -> _Problem:
+    """The forward problem of the model's physics: _Problem (a Model) or _ElasticProblem (vp, vs, rho)."""
+    if not hasattr(model, "vs"):
+        return _Problem(model, receivers, nt, dt, kw, stf_filter)
+    from adseismic.location.moment_tensor import BASIS
+
+    return _ElasticProblem(model, receivers, components, BASIS[constraint], nt, dt, kw, stf_filter)
 
 
 def _simulation_kw(model, f0, order, pml_width, free_surface, device, precision):
     return dict(order=order, pml_width=pml_width, device=device, precision=precision, pml_velocity=model.vmax,
                 pml_frequency=f0, free_surface=free_surface)  # fmt: skip
+
+
+def _grid(model):
+    """The Model that carries the geometry (spacing, origin, extent): the model itself (acoustic) or its vp
+    (an ElasticModel: vp, vs, rho Models on one grid)."""
+    return model.vp if hasattr(model, "vs") else model
+
+
+def _check_physics(model, n_traces, components, constraint):
+    """Acoustic (a Model): pressure traces, no moment-tensor constraint. Elastic (vp, vs, rho): 2D, one component
+    per trace among vx, vz, pressure, constraint one of moment_tensor.CONSTRAINTS."""
+    from adseismic.location.moment_tensor import CONSTRAINTS
+
+    if not hasattr(model, "vs"):
+        if constraint is not None:
+            raise ValueError(f"constraint: {constraint!r} needs a moment-tensor source, which needs elastic physics (a model with vp, "
+                             f"vs, rho); an acoustic model has a pressure source only: drop the constraint or give an elastic model")
+        if components is not None and set(components) != {"pressure"}:
+            raise ValueError(f"components: {sorted(set(components) - {'pressure'})} need elastic physics; an acoustic model records pressure")
+        return
+    if _grid(model).ndim != 2:
+        raise ValueError(f"model: {_grid(model).ndim}D; the elastic moment-tensor locator is 2D (P-SV); give a 2D model")
+    if constraint not in CONSTRAINTS:
+        raise ValueError(f"constraint: {constraint!r} is not one of {', '.join(CONSTRAINTS)}")
+    if components is None or len(components) != n_traces:
+        raise ValueError(f"components: give one of vx, vz, pressure per trace ({n_traces} traces), not {components!r}")
+    bad = sorted(set(components) - {"vx", "vz", "pressure"})
+    if bad:
+        raise ValueError(f"components: {bad} are not among vx, vz, pressure")
 
 
 def _check_options(method, stf, multi_start, frequency_range, smoothness):
@@ -198,13 +372,17 @@ def _check_options(method, stf, multi_start, frequency_range, smoothness):
         raise ValueError(f"smoothness: {smoothness!r} is negative; give 0 (none) or a positive weight")
 
 
-def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_window=None, bounds=None, start=None,
-           multi_start=1, peak_frequency=None, frequency_range=(0.3, 3.0), stf="ricker", smoothness=0.01,
+def locate(model, receivers, observed, dt, *, components=None, constraint=None, noise_std=None, noise_window=None, bounds=None,
+           start=None, multi_start=1, peak_frequency=None, frequency_range=(0.3, 3.0), stf="ricker", smoothness=0.01,
            method="lbfgs", scaled=True, max_iterations=60, max_evaluations=None, order=4, pml_width=None,
            free_surface=False, device="cpu", precision="float64", stf_filter=None, noise_correlation=1.0,
            journal_path=None, options=None, callback=None) -> LocationResult:  # fmt: skip
     """Locate one event. model: the velocity Model on the simulation grid (uniform spacing dx, node 0
-    at model.origin); receivers (n, ndim) world metres; observed (n, nt) at t = k dt. bounds: ((lo, hi)
+    at model.origin), acoustic physics, or an ElasticModel (vp, vs, rho Models on one 2D grid), elastic
+    physics with a moment-tensor source whose in-plane components (Mxx, Mzz, Mxz) are estimated under
+    `constraint` (moment_tensor.CONSTRAINTS: none, deviatoric, double_couple); receivers (n, ndim) world
+    metres, one row per trace; components (n,) what trace i records in elastic physics ("vx", "vz" m/s,
+    "pressure" Pa); observed (n, nt) at t = k dt. bounds: ((lo, hi)
     per axis) world metres (default: the model less 2 cells); start: dict(position, origin_time), or a
     list of them, to skip the back-projection; multi_start: how many back-projection maxima to start
     from (the lowest final misfit wins). peak_frequency: start f0 (Hz, default the data's dominant
@@ -221,14 +399,16 @@ def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_windo
     from adseismic.data.geometry import check_inside, check_samples
 
     _check_options(method, stf, multi_start, frequency_range, smoothness)
-    dx = float(model.spacing[0])
-    rec = np.asarray(receivers, float)
     obs = np.asarray(observed, float)
     n_rec, nt = obs.shape
-    check_inside(rec, model, "receiver")
+    _check_physics(model, n_rec, components, constraint)
+    grid = _grid(model)
+    dx = float(grid.spacing[0])
+    rec = np.asarray(receivers, float)
+    check_inside(rec, grid, "receiver")
     check_samples(obs, [f"trace {i}" for i in range(n_rec)])  # NaN/inf refused, clipped traces warned about
     if bounds is None:
-        bounds = [(lo + 2 * dx, hi - 2 * dx) for lo, hi in model.extent]
+        bounds = [(lo + 2 * dx, hi - 2 * dx) for lo, hi in grid.extent]
     if noise_std is None:
         if noise_window is None:
             raise ValueError("noise_std or noise_window (s, a pre-event window) is needed to weight the data")
@@ -237,11 +417,12 @@ def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_windo
     if np.any(sigma <= 0):
         raise ValueError("noise_std: a trace has zero noise; give a window with noise or noise_std explicitly")
     if start is None:
-        starts = back_projection(model, rec, obs, dt, bounds, max(2 * dx, 0.02 * max(hi - lo for lo, hi in bounds)), n_best=int(multi_start))
+        starts = back_projection(phase_models(model), rec, obs, dt, bounds, max(2 * dx, 0.02 * max(hi - lo for lo, hi in bounds)), n_best=int(multi_start))
     else:
         starts = [start] if isinstance(start, dict) else list(start)
     f0 = float(peak_frequency or dominant_frequency(obs[None], dt))
-    prob = _Problem(model, rec, nt, dt, _simulation_kw(model, f0, order, pml_width, free_surface, device, precision), stf_filter)
+    prob = _problem(model, rec, components, constraint, nt, dt, _simulation_kw(grid, f0, order, pml_width, free_surface, device, precision),
+                    stf_filter)  # fmt: skip
     fit = dict(obs=obs, sigma=sigma, bounds=bounds, f0=f0, frequency_range=frequency_range, method=method, scaled=scaled,
                max_iterations=max_iterations, max_evaluations=max_evaluations, journal_path=journal_path, options=options,
                callback=callback)  # fmt: skip
@@ -251,45 +432,46 @@ def locate(model: Model, receivers, observed, dt, *, noise_std=None, noise_windo
                  st["origin_time"], f" (stack {st['stack']:.2f})" if "stack" in st else "")  # fmt: skip
         runs.append(_fit_ricker(prob, st, **fit))
         log.info("start %d/%d: misfit %.6g at %s after %d evaluations (%s)", k + 1, len(starts), runs[-1]["misfit"],
-                 format_position(runs[-1]["p"][: model.ndim], digits=2), runs[-1]["evaluations"], runs[-1]["stop_reason"])  # fmt: skip
+                 format_position(runs[-1]["p"][: grid.ndim], digits=2), runs[-1]["evaluations"], runs[-1]["stop_reason"])  # fmt: skip
     order_ = sorted(range(len(runs)), key=lambda i: runs[i]["misfit"])
     best = runs[order_[0]]
     candidates = [{**{k: v for k, v in starts[i].items() if k != "grid"}, "misfit": runs[i]["misfit"],
-                   "final_position": runs[i]["p"][: model.ndim]} for i in order_]  # fmt: skip
+                   "final_position": runs[i]["p"][: grid.ndim]} for i in order_]  # fmt: skip
     res = _ricker_result(prob, best, sigma) if stf == "ricker" else _fit_free(prob, best, obs, sigma, smoothness, bounds, max_iterations)
     res.start, res.candidates = starts[order_[0]], candidates
     res.inflation = float(noise_correlation) * max(1.0, 2 * res.misfit / obs.size)
     res.covariance, res.parameter_covariance = res.covariance * res.inflation, res.parameter_covariance * res.inflation
+    if constraint is not None:
+        from adseismic.location.moment_tensor import BASIS
+
+        B = np.asarray(BASIS[constraint], float)
+        a, ca = best["p"][grid.ndim + 2 :], res.ricker_covariance[grid.ndim + 2 :, grid.ndim + 2 :] * res.inflation
+        res.moment_tensor, res.moment_tensor_covariance, res.constraint = a @ B, B.T @ ca @ B, constraint
+        res.components = list(components)
+        mxx, mzz, mxz = res.moment_tensor
+        res.amplitude = float(np.sqrt((mxx**2 + mzz**2 + 2 * mxz**2) / 2))
     return res
 
 
 def _fit_ricker(prob: _Problem, start, *, obs, sigma, bounds, f0, frequency_range, method, scaled, max_iterations,
                 max_evaluations, journal_path, options, callback) -> dict:  # fmt: skip
-    """One parametric (Ricker) fit from `start`; returns a dict with p = (position, T, f, A)."""
-    ndim, nt, dt, dx = prob.model.ndim, prob.nt, prob.dt, prob.dx
+    """One parametric (Ricker) fit from `start`; returns a dict with p = (position, T, f, amplitudes)."""
+    ndim, nt, dt, dx, n_amp = prob.ndim, prob.nt, prob.dt, prob.dx, prob.n_amp
     w2 = 1.0 / sigma[:, None] ** 2
     pos0 = np.asarray(start["position"], float)
-    # amplitude at the start by linear least squares (the data are linear in A)
-    d1 = prob.simulate(np.concatenate([pos0, [start["origin_time"], f0, 1.0]]))
-    A0 = float(np.sum(w2 * d1 * obs) / max(np.sum(w2 * d1 * d1), 1e-300))
-    phys0 = np.concatenate([pos0, [start["origin_time"], f0, A0]])
-    scale = np.concatenate([np.full(ndim, dx), [dt, f0, abs(A0) or 1.0]]) if scaled else np.ones(ndim + N_PHYS)
+    # amplitudes at the start by weighted linear least squares (the data are linear in them)
+    s0 = prob.wavelet(np.concatenate([pos0, [start["origin_time"], f0], np.zeros(n_amp)]))[0]
+    Dw = (prob.data_basis(pos0, s0) / sigma[None, :, None]).reshape(n_amp, -1)
+    a0 = np.linalg.lstsq(Dw.T, (obs / sigma[:, None]).ravel(), rcond=None)[0]
+    phys0 = np.concatenate([pos0, [start["origin_time"], f0], a0])
+    scale = np.concatenate([np.full(ndim, dx), [dt, f0], np.full(n_amp, np.linalg.norm(a0) or 1.0)]) if scaled else np.ones(len(phys0))
     flo, fhi = frequency_range
-    lo = np.concatenate([[b[0] for b in bounds], [0.0, flo * f0, -np.inf]]) / scale
-    hi = np.concatenate([[b[1] for b in bounds], [nt * dt, fhi * f0, np.inf]]) / scale
+    lo = np.concatenate([[b[0] for b in bounds], [0.0, flo * f0], np.full(n_amp, -np.inf)]) / scale
+    hi = np.concatenate([[b[1] for b in bounds], [nt * dt, fhi * f0], np.full(n_amp, np.inf)]) / scale
 
     def objective(x):
-        p = x * scale
-        s, ds = prob.wavelet(p)
-
-        def misfit(syn):
-            r = (syn[0] - obs) * w2
-            return 0.5 * float(np.sum((syn[0] - obs) * r)), r[None]
-
-        g = gradient(prob.model.values, dx, dt, s[None, None], (p[:ndim] - prob.origin)[None, None], prob.rec, misfit=misfit,
-                     wrt=("source_amplitudes", "source_locations"), **prob.kw)  # fmt: skip
-        grad = np.concatenate([g.source_locations[0, 0], ds @ g.source_amplitudes[0, 0]])
-        return g.loss, grad * scale
+        loss, grad = prob.loss_gradient(x * scale, obs, w2)
+        return loss, grad * scale
 
     count = {"evaluations": 0}
 
@@ -317,14 +499,22 @@ def _fit_ricker(prob: _Problem, start, *, obs, sigma, bounds, f0, frequency_rang
 
 
 def _ricker_result(prob: _Problem, run: dict, sigma) -> LocationResult:
-    p, ndim = run["p"], prob.model.ndim
-    jr = (prob.jacobian(p) / sigma[None, :, None]).reshape(len(p), -1)
-    cov = np.linalg.inv(jr @ jr.T)
+    p, ndim = run["p"], prob.ndim
+    cov = _gn_covariance(prob, p, sigma)
+    amps = p[ndim + 2 :]
+    held = prob.held_amplitudes(amps)
     return LocationResult(position=p[:ndim], origin_time=float(p[ndim]), peak_frequency=float(p[ndim + 1]),
                           amplitude=float(p[ndim + 2]), covariance=cov[: ndim + 1, : ndim + 1], parameter_covariance=cov,
-                          stf=prob.wavelet(p)[0], stf_kind="ricker", noise_std=sigma,
+                          ricker_covariance=cov, stf=prob.wavelet(p)[0] * (amps[0] / held[0]), amplitudes=held, stf_kind="ricker",
+                          noise_std=sigma,
                           misfit=run["misfit"], iterations=run["iterations"], evaluations=run["evaluations"],
                           stop_reason=run["stop_reason"], synthetic=run["synthetic"], history=run["history"])  # fmt: skip
+
+
+def _gn_covariance(prob: _Problem, p, sigma):
+    """(J_r^T J_r)^-1 over the Ricker parameters p (J_r: the Jacobian of the whitened residuals)."""
+    jr = (prob.jacobian(p) / sigma[None, :, None]).reshape(len(p), -1)
+    return np.linalg.inv(jr @ jr.T)
 
 
 def _convolve(g, h):
@@ -372,10 +562,12 @@ def _fit_free(prob: _Problem, run: dict, obs, sigma, smoothness, bounds, max_ite
     dt)^4: at the Ricker's peak frequency the penalty weighs `smoothness` times the data term, and
     it grows as f^4 above it.
     """
-    ndim, nt, dt = prob.model.ndim, prob.nt, prob.dt
+    ndim, nt, dt = prob.ndim, prob.nt, prob.dt
     f0 = float(run["p"][ndim + 1])
+    amps = prob.held_amplitudes(run["p"][ndim + 2 :])  # fixed at the Ricker fit's
+    k0 = prob.impulse_sample
     spike = np.zeros(nt)
-    spike[0] = 1.0
+    spike[k0] = 1.0
     w = 1.0 / sigma[:, None]
     ow = obs * w
     DtD = np.diff(np.eye(nt), 2, axis=0)
@@ -383,7 +575,9 @@ def _fit_free(prob: _Problem, run: dict, obs, sigma, smoothness, bounds, max_ite
     lo, hi = np.array([b[0] for b in bounds]), np.array([b[1] for b in bounds])
 
     def project(pos):
-        hw = prob.data(pos, spike) * w  # whitened impulse responses
+        h = prob.data(pos, spike, amps)
+        h = np.concatenate([h[:, k0:], np.zeros((len(h), k0))], axis=1)  # the response to a spike at sample 0
+        hw = h * w  # whitened impulse responses
         H = _normal_matrix(hw)
         mu = smoothness * np.trace(H) / nt / (2 * np.pi * f0 * dt) ** 4
         g = np.linalg.solve(H + mu * DtD, _correlate(ow, hw))
@@ -393,7 +587,7 @@ def _fit_free(prob: _Problem, run: dict, obs, sigma, smoothness, bounds, max_ite
     def jac_position(cur, projected=True):
         # d(residual)/d(position) (ndim, n_rec, nt), whitened; projected: with the STF re-solved for
         # every position (Kaufman's variable-projection Jacobian), else at a fixed STF
-        J = prob.position_derivatives(cur["pos"], cur["g"]) * w
+        J = prob.position_derivatives(cur["pos"], cur["g"], amps) * w
         if projected:
             J = np.stack([j - _convolve(np.linalg.solve(cur["H"] + cur["mu"] * DtD, _correlate(j, cur["hw"])), cur["hw"]) for j in J])
         return J
@@ -433,13 +627,15 @@ def _fit_free(prob: _Problem, run: dict, obs, sigma, smoothness, bounds, max_ite
     H[ndim:, ndim:] = cur["H"] + cur["mu"] * DtD
     C = np.linalg.inv(H)
     T, dT = _peak_time(cur["g"], dt)
+    T += prob.time_offset
     M = np.zeros((ndim + 1, ndim + nt))
     M[:ndim, :ndim] = np.eye(ndim)
     M[ndim, ndim:] = dT
     syn = (cur["r"] + ow) / w
     ricker = run["p"]
     return LocationResult(position=cur["pos"], origin_time=float(T), peak_frequency=float(ricker[ndim + 1]),
-                          amplitude=float(ricker[ndim + 2]), covariance=M @ C @ M.T, parameter_covariance=C, stf=cur["g"],
+                          amplitude=float(ricker[ndim + 2]), covariance=M @ C @ M.T, parameter_covariance=C,
+                          ricker_covariance=_gn_covariance(prob, run["p"], sigma), stf=cur["g"], amplitudes=amps,
                           stf_kind="free", noise_std=sigma, misfit=0.5 * float(np.sum(((syn - obs) / sigma[:, None]) ** 2)),
                           iterations=run["iterations"] + len(hist), evaluations=run["evaluations"] + evals,
                           stop_reason=reason, synthetic=syn, history=run["history"] + hist)  # fmt: skip
@@ -447,13 +643,13 @@ def _fit_free(prob: _Problem, run: dict, obs, sigma, smoothness, bounds, max_ite
 
 def _gauss_newton(prob: _Problem, x, scale, lo, hi, obs, sigma, max_iterations, tol=1e-6, report=None):
     """Levenberg-Marquardt on the whitened residuals in scaled parameters; returns like minimize.
-    Evaluations count forward simulations (a Jacobian costs 2 ndim + 3 of them)."""
+    Evaluations count forward simulations (a Jacobian costs 2 ndim + 2 + n_amp of them)."""
     lam, hist, evals = 1e-3, [], 0
     r = ((prob.simulate(x * scale) - obs) / sigma[:, None]).ravel()
     f = 0.5 * float(r @ r)
     for it in range(1, max_iterations + 1):
         J = (prob.jacobian(x * scale) / sigma[None, :, None]).reshape(len(x), -1) * scale[:, None]
-        evals += 2 * (len(x) - N_PHYS) + N_PHYS
+        evals += 2 * prob.ndim + 2 + prob.n_amp
         H, g = J @ J.T, J @ r
         while True:
             step = -np.linalg.solve(H + lam * np.diag(np.diag(H)), g)
@@ -474,28 +670,29 @@ def _gauss_newton(prob: _Problem, x, scale, lo, hi, obs, sigma, max_iterations, 
     return x, max_iterations, evals, "max_iterations", hist
 
 
-def misfit_map(model: Model, receivers, observed, dt, result: LocationResult, *, n=15, half_width=None, order=4,
+def misfit_map(model, receivers, observed, dt, result: LocationResult, *, n=15, half_width=None, order=4,
                pml_width=None, free_surface=False, device="cpu", precision="float64") -> dict:  # fmt: skip
     """Misfit over an n x n grid of positions in the (z, x) plane through the solution (y fixed in 3D),
-    with the source-time function fixed at the solution's: a picture of the minimum that the
-    covariance ellipse describes. half_width (m): default max(4 sigma, 3 dx). Returns dict z, x
-    (n,) world metres and misfit (n, n) indexed [z, x]; positions outside the model are NaN."""
-    ndim, dx = model.ndim, float(model.spacing[0])
+    with the source-time function (and moment tensor) fixed at the solution's: a picture of the minimum that the
+    covariance ellipse describes. model, receivers: as located (locate()). half_width (m): default max(4 sigma, 3 dx).
+    Returns dict z, x (n,) world metres and misfit (n, n) indexed [z, x]; positions outside the model are NaN."""
+    grid = _grid(model)
+    ndim, dx = grid.ndim, float(grid.spacing[0])
     sd = np.sqrt(np.diag(result.covariance)[:ndim])
     hw = float(half_width or max(4 * sd.max(), 3 * dx))
     z = result.position[0] + np.linspace(-hw, hw, n)
     x = result.position[-1] + np.linspace(-hw, hw, n)
     pts = np.repeat(result.position[None], n * n, axis=0)
     pts[:, 0], pts[:, -1] = np.repeat(z, n), np.tile(x, n)
-    inside = model.contains(pts)
+    inside = grid.contains(pts)
     obs = np.asarray(observed, float)
-    kw = _simulation_kw(model, result.peak_frequency, order, pml_width, free_surface, device, precision)
-    prob = _Problem(model, receivers, obs.shape[1], dt, kw)
+    kw = _simulation_kw(grid, result.peak_frequency, order, pml_width, free_surface, device, precision)
+    prob = _problem(model, receivers, result.components, result.constraint, obs.shape[1], dt, kw)
     out = np.full(n * n, np.nan)
     idx = np.nonzero(inside)[0]
     for sl in shot_slices(len(idx), 64):  # trial positions as the shots of one simulation a batch
         k = idx[sl]
-        d = prob.data_many(pts[k], result.stf)
+        d = prob.data_many(pts[k], result.stf, result.amplitudes)
         out[k] = 0.5 * np.sum(((d - obs[None]) / result.noise_std[None, :, None]) ** 2, axis=(1, 2))
     return {"z": z, "x": x, "misfit": out.reshape(n, n)}
 

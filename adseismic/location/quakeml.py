@@ -70,6 +70,7 @@ __all__ = [
     "ellipsoid_covariance",
     "write_quakeml",
     "read_quakeml_origin",
+    "read_quakeml_focal_mechanism",
 ]
 
 _LOCAL_TAG = "adseismic-local"
@@ -276,7 +277,7 @@ def _latlon_jacobian(position, ref: Reference, h: float = 10.0) -> np.ndarray:
 
 def write_quakeml(path, *, position, origin_time, covariance, reference, ndim: int,
                   confidence: float = 0.68, method: str = "adseismic waveform inversion",
-                  creation_info="adseismic", extra=None) -> None:
+                  creation_info="adseismic", extra=None, focal_mechanism=None) -> None:
     """Write one located event as QuakeML (Catalog -> Event -> Origin) to ``path``, atomically.
 
     position: (ndim,) local metres, axis order (z,[y,]x) (see :func:`adseismic.data.geometry.project`);
@@ -287,7 +288,10 @@ def write_quakeml(path, *, position, origin_time, covariance, reference, ndim: i
     confidence: probability (0, 1) of the confidence regions (stored as confidence_level in %);
     method: free text, stored as the origin's method_id ``smi:local/adseismic/method/<slug>``;
     creation_info: author string or an obspy CreationInfo;
-    extra: JSON-serialisable dict stored in the local-coordinates comment.
+    extra: JSON-serialisable dict stored in the local-coordinates comment;
+    focal_mechanism: a moment tensor as :func:`adseismic.location.moment_tensor.describe` returns it, written as
+    a FocalMechanism (MomentTensor with its Tensor in USE and 1-sigma errors, the scalar moment, the nodal
+    planes; a comment names the components 2D does not resolve, carried as 0) derived from the origin.
 
     Raises ValueError naming the argument for bad input (e.g. a covariance that is not positive
     definite); nothing is left at ``path`` or ``path.part`` on error.
@@ -396,10 +400,51 @@ def write_quakeml(path, *, position, origin_time, covariance, reference, ndim: i
     origin.comments.append(Comment(text=f"method: {method}"))
     event.origins.append(origin)
     event.preferred_origin_id = origin.resource_id
+    if focal_mechanism is not None:
+        fm = _focal_mechanism(focal_mechanism, origin, cinfo)
+        event.focal_mechanisms.append(fm)
+        event.preferred_focal_mechanism_id = fm.resource_id
     catalog = Catalog(events=[event], creation_info=cinfo)
 
     with atomic_write(path) as part:
         catalog.write(str(part), format="QUAKEML")
+
+
+def _focal_mechanism(mt: dict, origin, cinfo):
+    """ObsPy FocalMechanism of a moment_tensor.describe() dict."""
+    from obspy.core.event import Comment, FocalMechanism, MomentTensor, NodalPlane, NodalPlanes, QuantityError, ResourceIdentifier, Tensor
+
+    use, err = mt["use"], mt["use_error_1sigma"]
+    tensor = Tensor(**{k: use[k] for k in use}, **{f"{k}_errors": QuantityError(uncertainty=err[k]) for k in use})
+    planes = [NodalPlane(strike=p["strike"], dip=p["dip"], rake=p["rake"]) for p in mt["nodal_planes"]]
+    mom = MomentTensor(resource_id=ResourceIdentifier(prefix="smi:local/adseismic/momenttensor"), derived_origin_id=origin.resource_id,
+                       scalar_moment=mt["scalar_moment"], tensor=tensor, method_id=ResourceIdentifier("smi:local/adseismic/method/waveform-moment-tensor"),
+                       inversion_type="zero trace" if mt["constraint"] == "deviatoric" else ("double couple" if mt["constraint"] == "double_couple" else "general"),
+                       creation_info=cinfo)  # fmt: skip
+    mom.comments.append(Comment(text=f"2D P-SV moment tensor ({mt['constraint']}); units {mt['units']}; unresolved components "
+                                     f"(carried as 0): {', '.join(mt['unresolved'])}; local (x along the line, y, z down): "
+                                     f"{json.dumps(mt['local_xyz'])}"))  # fmt: skip
+    fm = FocalMechanism(resource_id=ResourceIdentifier(prefix="smi:local/adseismic/focalmechanism"), triggering_origin_id=origin.resource_id,
+                        nodal_planes=NodalPlanes(nodal_plane_1=planes[0], nodal_plane_2=planes[1]), moment_tensor=mom,
+                        evaluation_mode="automatic", evaluation_status="preliminary", creation_info=cinfo)  # fmt: skip
+    return fm
+
+
+def read_quakeml_focal_mechanism(path) -> dict:
+    """The preferred (else first) focal mechanism of the first event: {"use": {m_rr..m_tp}, "use_error_1sigma",
+    "scalar_moment", "nodal_planes": [{strike, dip, rake}, ...], "comment"}."""
+    import obspy
+
+    event = obspy.read_events(str(path))[0]
+    fm = event.preferred_focal_mechanism() or (event.focal_mechanisms[0] if event.focal_mechanisms else None)
+    if fm is None:
+        raise ValueError(f"{path}: the event has no focal mechanism")
+    t = fm.moment_tensor.tensor
+    keys = ("m_rr", "m_tt", "m_pp", "m_rt", "m_rp", "m_tp")
+    planes = [fm.nodal_planes.nodal_plane_1, fm.nodal_planes.nodal_plane_2]
+    return {"use": {k: getattr(t, k) for k in keys}, "use_error_1sigma": {k: getattr(t, f"{k}_errors").uncertainty for k in keys},
+            "scalar_moment": fm.moment_tensor.scalar_moment, "nodal_planes": [{"strike": p.strike, "dip": p.dip, "rake": p.rake} for p in planes],
+            "comment": fm.moment_tensor.comments[0].text if fm.moment_tensor.comments else ""}  # fmt: skip
 
 
 # ------------------------------------------------------------------------------- reading

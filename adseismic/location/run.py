@@ -8,9 +8,11 @@ time step for the data's frequency content (adseismic.scene), resamples the data
 simulation's time axis (anti-aliased) and estimates each trace's noise in the pre-event window.
 :func:`run_locate` locates the event (adseismic.locate) and writes, each file complete or not at all:
 
-    event.xml        QuakeML (Event, Origin, OriginUncertainty; only with geographic station coordinates)
-    location.h5      the result, its covariance, the data, synthetics, STF, misfit map, iterations
-    traces.png       observed against synthetic traces
+    event.xml        QuakeML (Event, Origin, OriginUncertainty, and with physics elastic a FocalMechanism with its
+                     MomentTensor and nodal planes; only with geographic station coordinates)
+    location.h5      the result, its covariance, the data, synthetics, STF, misfit map, iterations (+ moment tensor)
+    traces.png       observed against synthetic traces (physics elastic: one column per component, vz and vx)
+    beachball.png    physics elastic: the moment tensor's focal sphere (ObsPy's beachball)
     location.png     model, stations, back-projection stack, the event with its 68% ellipse; misfit map
     summary.json     the numbers a person reads first (written last: its presence marks a complete run)
 
@@ -32,7 +34,7 @@ import numpy as np
 from adseismic.config import ForwardConfig, GeometryConfig, LocateConfig, OutputConfig, WaveletConfig
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
 from adseismic.inversion.fwi import band_pass
-from adseismic.location.locate import LocationResult, back_projection, locate, misfit_map, noise_from_window
+from adseismic.location.locate import LocationResult, back_projection, locate, misfit_map, noise_from_window, phase_models
 from adseismic.runs import format_position
 from adseismic.scene import plan_scene, straight_ray_times
 from adseismic.solve.common import dominant_frequency
@@ -62,6 +64,36 @@ class PreparedEvent:
     truth: dict | None = None
     noise_correlation: float = 1.0
     warnings: list = field(default_factory=list)
+    components: list | None = None  # physics elastic: what each trace records (vx, vz), see trace_components
+
+
+#: channel orientation code -> (component, sign): SEED Z is positive up, the model's vz positive down
+ORIENTATIONS = {"Z": ("vz", -1.0), "X": ("vx", 1.0)}
+
+
+def trace_components(names) -> tuple[list, np.ndarray]:
+    """Physics elastic: (components, signs) of traces named NET.STA.LOC.CHA from the channel's orientation code
+    (its last letter): Z vertical velocity positive up (= -vz), X horizontal velocity along the line's azimuth (= vx),
+    m/s. Every station needs both (the P-SV fit of a moment tensor uses both components). ValueError naming the
+    trace or station otherwise."""
+    comps, signs, seen = [], [], {}
+    for name in names:
+        code = str(name)[-1:].upper()
+        if code not in ORIENTATIONS:
+            raise ValueError(f"traces: channel {name!r} has orientation code {code!r}; physics elastic reads Z (vertical velocity, "
+                             f"positive up) and X (horizontal velocity along the line's azimuth), m/s: rotate the horizontals onto "
+                             f"the line (X) or leave other channels out (traces.paths)")
+        c, sgn = ORIENTATIONS[code]
+        comps.append(c)
+        signs.append(sgn)
+        seen.setdefault(str(name).rsplit(".", 1)[0], set()).add(code)
+    lacking = {sta: sorted(set(ORIENTATIONS) - codes) for sta, codes in seen.items() if set(ORIENTATIONS) - codes}
+    if lacking:
+        sta, miss = next(iter(lacking.items()))
+        raise ValueError(f"traces: station {sta} lacks its {'/'.join(miss)} component ({len(lacking)} station(s) lack one); physics "
+                         f"elastic fits both Z and X at every station: add the missing channel (X: the horizontal along the line) "
+                         f"or leave the station out")
+    return comps, np.array(signs)
 
 
 def _seconds(value, starttime, key: str) -> float:
@@ -85,11 +117,19 @@ def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
 
     model, pre, src, sim = cfg.model, cfg.preprocess, cfg.source, cfg.simulation
     t = cfg.traces
+    elastic = cfg.physics == "elastic"
+    if elastic and t["component"] is not None:
+        raise ValueError(f"traces.component: {t['component']!r} keeps one component, but physics elastic fits Z and X at every "
+                         f"station: drop traces.component")
     st = read_station_traces(t["paths"], inventory=t["inventory"], reference=t["reference"], ndim=model.ndim,
                              local_coordinates=t["local_coordinates"], component=t["component"],
                              fill_gaps=t["fill_gaps"], align=t["align"])  # fmt: skip
     check_offline(st.offline, st.names, model, "traces.reference")  # 2D: stations the projection would move onto the line
     check_inside(st.positions, model, "station", names=st.names)
+    components = None
+    if elastic:
+        components, signs = trace_components(st.names)
+        st = dataclasses.replace(st, data=st.data * signs[:, None])  # Z (up) -> vz (down)
     record = (st.nt - 1) * st.dt
     a, b = pre["noise_window"]
     if b > record:
@@ -104,14 +144,14 @@ def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
         starts = [{"position": src["start"]["position"], "origin_time": _seconds(src["start"]["origin_time"], st.starttime, "source.start.origin_time")}]
     else:
         spacing = cfg.search["grid_spacing"] or max(2 * h, 0.02 * max(hi - lo for lo, hi in bounds))
-        starts = back_projection(model, st.positions, raw, st.dt, bounds, spacing, n_best=cfg.search["multi_start"])
+        starts = back_projection(phase_models(model), st.positions, raw, st.dt, bounds, spacing, n_best=cfg.search["multi_start"])
         stack = starts[0].pop("grid")
         for s in starts:
             log.info("back-projection start: %s, origin time %.4f s after the record start (stack %.2f)",
                      format_position(s["position"]), s["origin_time"], s["stack"])  # fmt: skip
     times = [s["origin_time"] for s in starts]
     corners = np.array(np.meshgrid(*[np.linspace(lo, hi, 3) for lo, hi in bounds], indexing="ij")).reshape(model.ndim, -1).T
-    t_travel = float(straight_ray_times(model, corners, st.positions).max())
+    t_travel = float(straight_ray_times(phase_models(model)[-1], corners, st.positions).max())  # the slowest phase
     if pre["window"] == "auto":  # the pre-event part up to 4 periods before the earliest start, arrivals + 4 periods
         w0, w1 = max(0.0, min(times) - 4.0 / f0), min(record, max(times) + t_travel + 4.0 / f0)
         why = f"the starts' origin times {min(times):.3g}..{max(times):.3g} s - 4 periods, + the longest straight-ray time {t_travel:.3g} s + 4 periods"
@@ -123,7 +163,8 @@ def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
     log.info("simulated window %.4g..%.4g s after the record start (%s)", w0, w1, why)
     sources = np.array(np.meshgrid(*[[lo, hi] for lo, hi in bounds], indexing="ij")).reshape(model.ndim, -1).T
     sim = dataclasses.replace(sim, duration=sim.duration or (w1 - w0))
-    fwd = ForwardConfig(model, GeometryConfig(sources, st.positions), WaveletConfig("ricker", {"peak_frequency": f0}), sim, OutputConfig())
+    fwd = ForwardConfig(model, GeometryConfig(sources, st.positions), WaveletConfig("ricker", {"peak_frequency": f0}), sim, OutputConfig(),
+                        physics=cfg.physics)  # fmt: skip
     band_hi = None if pre["band"] is None else pre["band"][1]
     plan = plan_scene(fwd, f_max=None if band_hi is None else 1.33 * band_hi)  # Butterworth: -20 dB near 1.33 f_high
     # the 2^ndim "sources" at the search box's corners only size the domain: the run simulates one event
@@ -152,7 +193,7 @@ def prepare_locate(cfg: LocateConfig) -> PreparedEvent:
         truth = {"position": cfg.truth["position"], "origin_time": None if tt is None else _seconds(tt, st.starttime, "truth.origin_time") - t_shift}
     return PreparedEvent(config=cfg, traces=st, plan=plan, model=model.resample(plan.dx, plan.origin, plan.shape), stations=st.positions,
                          observed=data[:, k0 : k0 + plan.nt], noise_std=noise, t_shift=t_shift, f0=f0, bounds=bounds, starts=starts,
-                         stack=stack, truth=truth, noise_correlation=tau, warnings=list(plan.warnings))  # fmt: skip
+                         stack=stack, truth=truth, noise_correlation=tau, warnings=list(plan.warnings), components=components)  # fmt: skip
 
 
 def integrated_correlation(noise) -> float:
@@ -185,7 +226,8 @@ def locate_event(prep: PreparedEvent, callback=None) -> LocationResult:
         log.warning("search.method %s: first-order methods converge slowly on location problems%s; lbfgs or gauss-newton "
                     "is the default for that reason (docs/location.md, optimiser study)",
                     q["method"], " and fail in raw units (parameters of very different scales)" if not q["scaled"] else "")  # fmt: skip
-    return locate(prep.model, prep.stations, prep.observed, prep.plan.dt, noise_std=prep.noise_std, bounds=prep.bounds,
+    return locate(prep.model, prep.stations, prep.observed, prep.plan.dt, components=prep.components, constraint=src["constraint"],
+                  noise_std=prep.noise_std, bounds=prep.bounds,
                   start=prep.starts, peak_frequency=prep.f0, frequency_range=src["frequency_range"], stf=src["stf"],
                   smoothness=src["smoothness"], method=q["method"], scaled=q["scaled"], max_iterations=q["iterations"],
                   noise_correlation=prep.noise_correlation, callback=callback, **simulation_options(prep))  # fmt: skip
@@ -225,11 +267,21 @@ def summary(prep: PreparedEvent, res: LocationResult) -> dict:
     if prep.traces.reference is not None:
         lat, lon, elev = (float(v) for v in unproject(res.position, prep.traces.reference))
         out.update(latitude=lat, longitude=lon, depth_m=-elev)
+    if res.moment_tensor is not None:
+        from adseismic.location.moment_tensor import describe
+
+        out["moment_tensor"] = describe(res.moment_tensor, res.moment_tensor_covariance, res.constraint, section_azimuth(prep))
     if prep.truth is not None:
         out["truth_position_error_m"] = float(np.linalg.norm(res.position - prep.truth["position"]))
         if prep.truth["origin_time"] is not None:
             out["truth_origin_time_error_s"] = float(res.origin_time - prep.truth["origin_time"])
     return out
+
+
+def section_azimuth(prep: PreparedEvent) -> float:
+    """Azimuth (degrees from north) of the model's x axis: the traces' reference azimuth (90, east, without one)."""
+    ref = prep.traces.reference
+    return 90.0 if ref is None or getattr(ref, "azimuth", None) is None else float(ref.azimuth)
 
 
 def write_outputs(outdir: Path, prep: PreparedEvent, res: LocationResult, mmap: dict, study: dict | None = None) -> list:
@@ -244,7 +296,8 @@ def write_outputs(outdir: Path, prep: PreparedEvent, res: LocationResult, mmap: 
     if prep.traces.reference is not None:
         write_quakeml(outdir / "event.xml", position=res.position, origin_time=prep.traces.starttime + prep.t_shift + res.origin_time,
                       covariance=res.covariance, reference=prep.traces.reference, ndim=ndim, confidence=CONFIDENCE,
-                      method=f"adseismic waveform location ({res.stf_kind} STF)", extra={"misfit": res.misfit, "dx_m": prep.plan.dx})  # fmt: skip
+                      method=f"adseismic waveform location ({res.stf_kind} STF)", extra={"misfit": res.misfit, "dx_m": prep.plan.dx},
+                      focal_mechanism=summ.get("moment_tensor"))  # fmt: skip
         written.append(outdir / "event.xml")
     else:
         log.warning("no QuakeML: the station coordinates were local metres (no traces.reference), so there is no latitude/longitude")
@@ -260,6 +313,10 @@ def write_outputs(outdir: Path, prep: PreparedEvent, res: LocationResult, mmap: 
                           ("history/f", np.array([h["f"] for h in res.history]))):  # fmt: skip
             f.create_dataset(name, data=np.asarray(val))
         f.create_dataset("station_names", data=np.array(prep.traces.names, dtype="S"))
+        if res.moment_tensor is not None:  # in-plane (Mxx, Mzz, Mxz), N m per metre of line
+            f.create_dataset("moment_tensor", data=res.moment_tensor).attrs.update(components="Mxx,Mzz,Mxz", constraint=res.constraint)
+            f.create_dataset("moment_tensor_covariance", data=res.moment_tensor_covariance)
+            f.create_dataset("components", data=np.array(res.components, dtype="S"))
 
     write_h5_atomic(outdir / "location.h5", fill)
     written.append(outdir / "location.h5")
@@ -270,7 +327,15 @@ def write_outputs(outdir: Path, prep: PreparedEvent, res: LocationResult, mmap: 
                             events=outdir / "event.xml" if (outdir / "event.xml").exists() else None)  # fmt: skip
     if asdf is not None:
         written.append(asdf)
-    written.append(plot_station_traces(outdir / "traces.png", prep.observed, res.synthetic, prep.plan.dt, prep.traces.names, t0=prep.t_shift))
+    written.append(plot_station_traces(outdir / "traces.png", prep.observed, res.synthetic, prep.plan.dt, prep.traces.names, t0=prep.t_shift,
+                                       components=prep.components))  # fmt: skip
+    if res.moment_tensor is not None:
+        from adseismic.location.moment_tensor import plot_beachball, tensor_local, to_ned
+
+        mt = summ["moment_tensor"]
+        planes = ", ".join(f"{p['strike']:.0f}/{p['dip']:.0f}/{p['rake']:.0f}" for p in mt["nodal_planes"])
+        written.append(plot_beachball(outdir / "beachball.png", to_ned(tensor_local(res.moment_tensor, res.constraint), section_azimuth(prep)),
+                                      title=f"{res.constraint}: strike/dip/rake {planes}\n2D: {', '.join(mt['unresolved'])} unresolved"))  # fmt: skip
     truth = None if prep.truth is None else prep.truth["position"]
     written.append(plot_location(outdir / "location.png", prep.model, prep.stations, res.position, res.covariance[[0, ndim - 1]][:, [0, ndim - 1]],
                                  confidence_scale(2, CONFIDENCE), mmap, candidates=res.candidates, truth_zx=truth, stack=prep.stack,
