@@ -152,7 +152,7 @@ def run_ours(sc: RaceScene, workdir: pathlib.Path) -> tuple[Curve, dict]:
     log.info("adseismic fwi: %d bands x %d iterations", len(sc.bands), sc.iterations)
     t0 = time.perf_counter()  # what `adseismic fwi` runs after its checks: the plan and the inversion
     try:
-        run_fwi(load_fwi_config(cfg_path), rundir, progress=False, prepared=prepare_fwi(load_fwi_config(cfg_path)))
+        run_fwi(config, rundir, progress=False)  # (it plans again: part of what a run costs)
     finally:
         fwi_log.removeHandler(handler)
         fwi_log.setLevel(level)
