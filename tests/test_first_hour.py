@@ -99,6 +99,28 @@ def test_interrupt_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
     assert not (out / "data.h5").exists() and not list(out.glob("*.part"))
 
 
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_a_signal_landing_in_a_finaliser_still_interrupts(sig, capsys):
+    """CI saw SIGTERM land in a Warp array's __del__: Python ignores exceptions raised there, and the FWI ran on to
+    exit 0. The interrupt must come out of the code that dropped the object, and no traceback is printed."""
+    import gc
+    import signal
+    import time
+
+    class Finalised:
+        def __del__(self):
+            signal.raise_signal(getattr(signal, sig))
+            sum(range(100))  # bytecodes, so the handler runs here, inside __del__
+
+    with pytest.raises(KeyboardInterrupt, match=sig), cli._interruptible():
+        Finalised()
+        gc.collect()
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 2:  # the interrupt comes 1 ms later, from SIGALRM
+            pass
+    assert "Exception ignored" not in capsys.readouterr().err
+
+
 def test_progress_in_a_log_is_lines_not_a_bar(caplog, capsys):
     with caplog.at_level(logging.INFO, logger=log.name):
         bar = progress_bar(total=100, desc="time steps", unit="steps")

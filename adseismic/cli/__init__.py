@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
+import functools
 import json
 import math
 import pathlib
@@ -699,19 +700,46 @@ def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
+_DEFERRED: list[str] = []  # the name of a signal whose KeyboardInterrupt a finaliser swallowed
+
+
+def _redeliver_interrupt(unraisable, hook_before):
+    """Python ignores an exception raised in a finaliser (a Warp array's __del__ runs often), so a signal landing
+    there was lost and the run went on to exit 0. Raise it again 1 ms later from SIGALRM, outside the finaliser
+    (raising it here would land in this hook, which Python ignores too)."""
+    e = unraisable.exc_value
+    if isinstance(e, KeyboardInterrupt) and e.args and e.args[0] in signal.Signals.__members__:
+        _DEFERRED[:] = [e.args[0]]
+        signal.setitimer(signal.ITIMER_REAL, 1e-3)
+    else:
+        hook_before(unraisable)
+
+
+def _raise_deferred(signum, frame):
+    if _DEFERRED:
+        raise KeyboardInterrupt(_DEFERRED.pop())
+
+
 @contextlib.contextmanager
 def _interruptible():
     """SIGINT and SIGTERM raise KeyboardInterrupt while a command runs, also where the process was started with
     SIGINT ignored (a background job of a script: Python keeps the ignore, and Ctrl-C or `kill -INT` used to be
-    swallowed, the run ending with exit status 0) or is stopped by a scheduler's SIGTERM; the handlers before are
-    restored after. Only in the main thread (signal handlers can be set nowhere else)."""
+    swallowed, the run ending with exit status 0) or is stopped by a scheduler's SIGTERM, and where the signal lands
+    in a finaliser; the handlers before are restored after. Only in the main thread (signal handlers can be set
+    nowhere else)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    before = {s: signal.signal(s, _raise_interrupt) for s in (signal.SIGINT, signal.SIGTERM)}
+    handlers = {signal.SIGINT: _raise_interrupt, signal.SIGTERM: _raise_interrupt, signal.SIGALRM: _raise_deferred}
+    before = {s: signal.signal(s, h) for s, h in handlers.items()}
+    hook_before = sys.unraisablehook
+    sys.unraisablehook = functools.partial(_redeliver_interrupt, hook_before=hook_before)
     try:
         yield
     finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        _DEFERRED.clear()
+        sys.unraisablehook = hook_before
         for s, h in before.items():
             signal.signal(s, h)
 
