@@ -19,9 +19,10 @@ a taped time step close to one wavefield.
 
 Off-grid sources and receivers use one operator for injection and recording (so the two are exact
 adjoints): a Kaiser-windowed sinc of half-width HICKS_RADIUS cells per axis (Hicks 2002, shape
-parameter HICKS_B for wavenumbers up to pi/2, i.e. >= 4 points per wavelength), mirrored with a
-sign change across a free surface. The Kaiser window has its edge value (1/I0(b), ~1%) subtracted so
-that the weights are continuously differentiable in the position (source-location gradients).
+parameter HICKS_B for wavenumbers up to pi/2, i.e. >= 4 points per wavelength; per axis its weights sum to one
+and have zero first and second moments: kernels/common.hicks_axis), mirrored with a sign change across a free
+surface. The Kaiser window has its edge value (1/I0(b), ~1%) subtracted so that the weights are continuously
+differentiable in the position (source-location gradients).
 
 All kernels write fresh outputs from inputs (or add with atomics), never read-modify their own
 input, so each time step can be differentiated by wp.Tape when given its own arrays.
