@@ -17,7 +17,7 @@ import numpy as np
 from adseismic.data.atomic import atomic_write
 from adseismic.runs import format_position
 
-__all__ = ["plot_model", "plot_gather", "plot_snapshots", "plot_misfit", "plot_station_traces", "plot_location", "save_figure", "xz_slice",
+__all__ = ["Background", "plot_model", "plot_gather", "plot_snapshots", "plot_misfit", "plot_station_traces", "plot_location", "save_figure", "xz_slice",
            "receiver_lines"]
 
 
@@ -35,6 +35,36 @@ def save_figure(fig, path) -> pathlib.Path:
     with atomic_write(path) as part:
         fig.savefig(part, format="png")
     return pathlib.Path(path)
+
+
+class Background:
+    """Figures drawn on one background thread while the caller goes on (an FWI's next band on the device):
+    ``submit(fn, *args)`` queues a drawing, ``wait()`` returns once every queued one is written and raises the
+    first failure. One thread, so matplotlib is never used by two threads at once: the caller draws nothing
+    itself before ``wait()``, and hands over arrays it will not change."""
+
+    def __init__(self):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="figures")
+        self._jobs = [self._pool.submit(_warm_up)]
+
+    def submit(self, fn, *args, **kwargs):
+        self._jobs.append(self._pool.submit(fn, *args, **kwargs))
+
+    def wait(self):
+        jobs, self._jobs = self._jobs, []
+        for job in jobs:
+            job.result()
+
+
+def _warm_up():
+    """Draw a small figure (to memory): matplotlib's imports, fonts and colormaps load here (~1 s)."""
+    import io
+
+    fig = _figure(2.0, 2.0)
+    fig.colorbar(fig.add_subplot().imshow(np.zeros((2, 2)), cmap="seismic"), label="a")
+    fig.savefig(io.BytesIO(), format="png")
 
 
 def _scale(extent_m: float) -> tuple[float, str]:

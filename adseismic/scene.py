@@ -16,7 +16,9 @@ and resamples the model onto that grid.
 
 With ``physics: elastic`` (config.model an ElasticModel, 2D) dx and dt come from :func:`plan_elastic_grid`: dx from
 the slowest wave (S, or with a free surface the Rayleigh wave) and dt from the staggered scheme's CFL limit at vp_max;
-the record length from the S-wave straight-ray times (Rayleigh with a free surface).
+the record length from the S-wave straight-ray times (Rayleigh with a free surface). ``physics: acoustic_vd`` (an
+ElasticModel with vs None: a fluid) runs on the same solver: dx from vp_min, dt from the staggered CFL at vp_max, the
+record from P-wave times; its plan also reports what dropping the density would cost (:func:`density_reflection_check`).
 """
 
 from __future__ import annotations
@@ -78,15 +80,16 @@ class Plan:
     n_shots: int = 1
     reasons: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
-    physics: str = "acoustic"  # acoustic or elastic
+    physics: str = "acoustic"  # acoustic, elastic or acoustic_vd
 
     def describe(self) -> str:
         grid = " x ".join(str(n) for n in self.shape)
         axes = "z, y, x" if self.ndim == 3 else "z, x"
+        what = {"elastic": " (2D velocity-stress, staggered grid; dx for the wave that needs the finest grid, dt from vp_max)",
+                "acoustic_vd": " (2D variable-density acoustic on the elastic solver with vs = 0: velocity-stress, "
+                               "staggered grid; dx from vp_min, dt from vp_max)"}.get(self.physics, " (pressure wave equation)")
         lines = [
-            f"physics   {self.physics}" + (" (2D velocity-stress, staggered grid; dx for the wave that needs the finest grid, "
-                                          "dt from vp_max)"
-                                          if self.physics == "elastic" else " (pressure wave equation)"),
+            f"physics   {self.physics}{what}",
             f"grid      {grid} cells ({axes}), dx = {self.dx:g} m, origin {tuple(round(o, 3) for o in self.origin)} m",
             f"          why: {self.reasons['dx']}",
             f"dt        {self.dt:.6g} s (Courant {self.courant:.3f}, limit {self.cfl_limit:.3f} for order {self.order} in {self.ndim}D)",
@@ -101,6 +104,8 @@ class Plan:
         ]
         if self.reasons.get("memory"):
             lines.append(f"memory    {self.reasons['memory']}")
+        if self.reasons.get("density"):
+            lines.append(f"density   {self.reasons['density']}")
         lines += [f"WARNING   {w}" for w in self.warnings]
         return "\n".join(lines)
 
@@ -341,8 +346,11 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     f_wavelet, w_len = wavelet_band(config.wavelet.kind, config.wavelet.params)
     f_max = f_wavelet if f_max is None else min(float(f_max), f_wavelet)
 
-    elastic = isinstance(model, ElasticModel)
-    if elastic:  # the slowest direct wave arrives last: S, or the Rayleigh wave along a free surface
+    elastic = isinstance(model, ElasticModel)  # elastic or acoustic_vd: the elastic solver
+    fluid = elastic and model.vs is None  # acoustic_vd: P waves only
+    if fluid:
+        t_direct = float(straight_ray_times(model.vp, src, rec).max())
+    elif elastic:  # the slowest direct wave arrives last: S, or the Rayleigh wave along a free surface
         i = np.unravel_index(int(np.argmin(model.vs.values)), model.shape)
         slowdown = rayleigh_speed(model.vp.values[i], model.vs.values[i]) / model.vs.values[i] if sim.free_surface else 1.0
         t_direct = float(straight_ray_times(model.vs, src, rec).max()) / slowdown
@@ -355,7 +363,7 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
             warnings.append(f"record length {t_record:g} s is shorter than the longest direct arrival ({t_direct:.3g} s)")
     else:
         t_record = t_direct + w_len
-        wave = ("Rayleigh-wave " if sim.free_surface else "S-wave ") if elastic else ""
+        wave = "P-wave " if fluid else ("Rayleigh-wave " if sim.free_surface else "S-wave ") if elastic else ""
         why_nt = f"longest straight-ray {wave}source-receiver time {t_direct:.3g} s + wavelet duration {w_len:.3g} s"
 
     pts = np.vstack([src, rec])
@@ -384,11 +392,13 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
 
     pins = {"dx": sim.dx, "dt": sim.dt}
     if elastic:
-        vs_box = model.vs.values[tuple(slice(a, b) for a, b in zip(i0, i1))]
+        vs_box = model.materials()["vs"][tuple(slice(a, b) for a, b in zip(i0, i1))]
         vs_min = float(vs_box.min()) if vs_range is None else float(vs_range[0])
         grid = plan_elastic_grid((vmin, vmax), vs_min, f_max, order, float(sim.accuracy), float(sim.cfl_safety),
                                  bool(sim.free_surface), dx=sim.dx, dt=sim.dt)
         dx, dt, why_dx, why_dt = grid.dx, grid.dt, grid.reasons["dx"], grid.reasons["dt"]
+        if fluid and pins["dx"] is None:
+            why_dx += f"; acoustic_vd: the slowest wave is P at vp_min {vmin:.0f} m/s (vs = 0: no S wave)"
     else:
         dx, dt, why_dx, why_dt = _choose_dx_dt(order, ndim, vmin, vmax, f_max, float(sim.accuracy), float(sim.cfl_safety), pins, cells, t_record)
     try:
@@ -440,9 +450,10 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
         pml_width=pml, pml_reflection=refl, free_surface=bool(sim.free_surface), device=str(sim.device),
         precision=str(sim.precision), f_max=float(f_max), expected_error=float(err), courant=float(courant),
         cfl_limit=float(limit), padded_cells=padded, memory_bytes=int(memory),
-        seconds_per_shot=seconds, n_shots=len(src), physics="elastic" if elastic else "acoustic",
+        seconds_per_shot=seconds, n_shots=len(src), physics=model.physics if elastic else "acoustic",
         reasons={"dx": why_dx, "dt": why_dt, "nt": why_nt, "domain": why_domain,
-                 **({"memory": reasons_memory} if reasons_memory else {})}, warnings=warnings,
+                 **({"memory": reasons_memory} if reasons_memory else {}),
+                 **({"density": density_reflection_check(model, (i0, i1)).describe()} if fluid else {})}, warnings=warnings,
     )  # fmt: skip
 
 
@@ -461,7 +472,8 @@ def build_scene(config, plan: Plan | None = None, model: Model | None = None) ->
         from adseismic.solve.receivers import DasOperator, Recording
 
         das = config.geometry.das  # a config built in Python may leave out what parse_config fills in: its defaults
-        components = tuple(config.geometry.components) or (() if das else ("vx", "vz", "pressure"))
+        default = ("pressure",) if model.vs is None else ("vx", "vz", "pressure")
+        components = tuple(config.geometry.components) or (() if das else default)
         recording = Recording(components, das and DasOperator(das.gauge_length, das.direction))
         rec = recording.locations(rec)
         source = config.source
@@ -486,9 +498,9 @@ def run_forward(scene: Scene, snapshot_every: int = 0, progress: bool = False):
     if isinstance(scene.model, ElasticModel):
         from adseismic.solve.elastic import forward_elastic
 
-        m = scene.model
+        m = scene.model.materials()
         return forward_elastic(
-            m.vp.values, m.vs.values, m.rho.values, p.dx, p.dt, scene.source_amplitudes, scene.source_locations,
+            m["vp"], m["vs"], m["rho"], p.dx, p.dt, scene.source_amplitudes, scene.source_locations,
             scene.receiver_locations, source_type=scene.source_type, source_components=scene.source_components,
             order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface,
             device=p.device, precision=p.precision, progress=progress,
@@ -584,3 +596,54 @@ def _staggered_ppw(order: int, courant: float, target: float) -> float:
         else:
             lo = mid
     return hi
+
+
+# --- Which physics a scene needs: density (issue 26, item 7) -------------------------------------------
+
+DENSITY_R_THRESHOLD = 0.01  # absolute error in a normal-incidence reflection coefficient below which dropping the
+# density is harmless: the reflected amplitude then moves by < 1% of the incident one, the tolerance of the
+# reflection check of tests/test_acoustic_vd.py (issue 26 item 1)
+
+
+@dataclass
+class DensityCheck:
+    """The largest error made in a normal-incidence reflection coefficient by dropping the density: ``error`` =
+    |R - R0| with R = (Z2 - Z1) / (Z2 + Z1) (Z = rho vp, the model's) and R0 = (v2 - v1) / (v2 + v1) (constant
+    density), between vertically adjacent nodes; at ``position`` (z, x) m, the interface's upper node."""
+
+    error: float
+    r_density: float
+    r_constant: float
+    position: tuple
+
+    @property
+    def needed(self) -> bool:
+        return self.error >= DENSITY_R_THRESHOLD
+
+    def describe(self) -> str:
+        where = (f"R = {self.r_density:+.4f} with density, {self.r_constant:+.4f} without, at z = {self.position[0]:g} m, "
+                 f"x = {self.position[1]:g} m")
+        if self.needed:
+            return (f"physics: acoustic drops density contrasts worth up to {self.error:.3g} in reflection coefficient "
+                    f"(>= {DENSITY_R_THRESHOLD:g}; {where}); acoustic_vd models them")
+        return (f"constant density suffices (error {self.error:.3g} < {DENSITY_R_THRESHOLD:g} in reflection coefficient; "
+                f"{where}): physics: acoustic gives the same reflections within 1% of the incident amplitude, faster")
+
+
+def density_reflection_check(model: ElasticModel, box=None) -> DensityCheck:
+    """:class:`DensityCheck` of ``model`` (vp m/s, rho kg/m^3 on its grid, axis order (z, x)), over the index box
+    ``box`` = (i0, i1) (per axis, end exclusive; None: the whole model). Node to node along z on the model's own grid,
+    so a sharp interface gives its exact coefficients; a gradual transition spreads its contrast over several nodes
+    (and reflects less than the same step would)."""
+    sl = tuple(slice(None) for _ in range(model.ndim)) if box is None else tuple(slice(a, b) for a, b in zip(*box))
+    vp, rho = model.vp.values[sl], model.rho.values[sl]
+    if vp.shape[0] < 2:
+        return DensityCheck(0.0, 0.0, 0.0, (float(model.origin[0]), float(model.origin[-1])))
+    z = rho * vp
+    r = (z[1:] - z[:-1]) / (z[1:] + z[:-1])
+    r0 = (vp[1:] - vp[:-1]) / (vp[1:] + vp[:-1])
+    err = np.abs(r - r0)
+    i = np.unravel_index(int(np.argmax(err)), err.shape)
+    first = [0 if s.start is None else s.start for s in sl]
+    pos = tuple(float(o + (k + f) * h) for o, k, f, h in zip(model.origin, i, first, model.spacing))
+    return DensityCheck(float(err[i]), float(r[i]), float(r0[i]), (pos[0], pos[-1]))

@@ -161,6 +161,8 @@ def elastic(vp="{kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2000.
     return (f"physics: elastic\nmodel:\n  vp: {vp}\n  vs: {vs}\n  rho: {rho}\n"
             + GEOMETRY.replace("{line: {start: {x: 0, z: 10}, end: {x: 300, z: 10}, count: 16}}", receivers) + WAVELET + SIM)
 FWI = ["fwi", "{d}/c.yaml", "-o", "{out}"]
+AVD = elastic().replace("physics: elastic", "physics: acoustic_vd").replace("  vs: {vp_ratio: 1.8}\n", "")  # acoustic_vd: {vp, rho}
+ATRUE = "true_model:\n  vp: {kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2100.0}\n  rho: {gardner: true}\n"
 ETRUE = "true_model:\n  vp: {kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2100.0}\n  vs: {vp_ratio: 1.8}\n  rho: {gardner: true}\n"
 LOC = ["locate", "{d}/c.yaml", "-o", "{out}"]
 IMAGE = ["image", "{d}/c.yaml", "-o", "{out}"]
@@ -364,6 +366,27 @@ CATALOGUE = [
       "inversion.preconditioning: pseudo_hessian is acoustic only", "use none or depth"),
     C("fwi elastic observed files", {"c.yaml": elastic() + "observed: {kind: hdf5, path: obs.h5}\ninversion: {iterations: 1}\n"}, FWI, 2,
       "observed: given with physics elastic", "use true_model"),
+    # --- physics acoustic_vd (issue 26): the elastic solver with vs = 0
+    C("acoustic_vd with vs", {"c.yaml": elastic().replace("physics: elastic", "physics: acoustic_vd")}, FWD, 2,
+      "model.vs: {'vp_ratio': 1.8} given with physics acoustic_vd", "drop vs", "physics: elastic"),
+    C("acoustic_vd one velocity model", {"c.yaml": "physics: acoustic_vd\n" + FORWARD}, FWD, 2,
+      "model: ", "physics acoustic_vd needs two, {vp, rho}"),
+    C("acoustic_vd density in g/cm^3", {"c.yaml": AVD.replace("rho: {gardner: true}", "rho: {kind: constant, velocity: 2.2}")}, FWD, 2,
+      "model.rho: densities down to 2.2 kg/m^3", "multiply by 1000"),
+    C("acoustic_vd force source", {"c.yaml": AVD + "source: {type: force, components: [1, 0]}\n"}, FWD, 2,
+      "source.type: 'force' with physics acoustic_vd", "set type: explosive"),
+    C("acoustic_vd snapshots", {"c.yaml": AVD + "output: {snapshot_interval: 0.05}\n"}, FWD, 2,
+      "output.snapshot_interval: 0.05 s", "physics acoustic_vd"),
+    C("fwi acoustic_vd inverting vs", {"c.yaml": AVD + ATRUE + "inversion: {iterations: 1, parameters: [vs]}\n"}, FWI, 2,
+      "inversion.parameters: vs is not a quantity here (physics acoustic_vd is a fluid: vs stays 0)", "use any of vp, rho"),
+    C("fwi acoustic_vd lambda-mu-rho", {"c.yaml": AVD + ATRUE + "inversion: {iterations: 1, parameterization: lambda-mu-rho}\n"},
+      FWI, 2, "inversion.parameterization: lambda-mu-rho with physics acoustic_vd", "ip-rho"),
+    C("fwi impedance with elastic physics", {"c.yaml": elastic() + ETRUE + "inversion: {iterations: 1, parameterization: ip-rho}\n"},
+      FWI, 2, "inversion.parameterization: ip-rho (acoustic impedance) needs physics: acoustic_vd"),
+    C("image with acoustic_vd", {"c.yaml": AVD + ATRUE}, IMAGE, 2, "physics: acoustic_vd is not available for adseismic image",
+      "use physics: acoustic"),
+    C("locate with acoustic_vd", {"c.yaml": ELOCATE.replace("physics: elastic", "physics: acoustic_vd")}, LOC, 2,
+      "physics: acoustic_vd is not available for adseismic locate", "use physics: acoustic"),
     # --- adseismic image
     C("image lsrtm with elastic physics", {"c.yaml": elastic() + ETRUE + "image: {method: lsrtm}\n"}, IMAGE, 2,
       "image.method: lsrtm with physics: elastic", "use method: rtm"),
@@ -408,6 +431,17 @@ CATALOGUE = [
       LOC, 2, "traces.component: 'Z'", "physics elastic fits Z and X", "drop traces.component"),
     C("locate elastic optimiser study", {"ev.mseed": lambda d, n: two_component(d, n, ()), "c.yaml": ELOCATE},
       LOC + ["--compare-optimizers"], 2, "--compare-optimizers", "acoustic physics only", "physics is elastic"),
+    # --- parallel: the threads engine (several devices in one process), forward on workers, locate refused (issue 25)
+    C("threads on a device this host lacks", {"c.yaml": fwi() + "parallel: {engine: threads, devices: [cuda:7]}\n"}, FWI, 2,
+      "parallel.devices[0]", "'cuda:7' is not available", "list devices of this host"),
+    C("threads: more devices than shots", {"c.yaml": FORWARD + "parallel: {engine: threads, devices: [cpu, cpu, cpu]}\n"}, FWD, 2,
+      "parallel.devices: 3 devices for 2 shot(s)", "list at most 2 device(s)"),
+    C("threads with a scheduler", {"c.yaml": FORWARD + "parallel: {engine: threads, scheduler: local}\n"}, FWD, 2,
+      "parallel.scheduler: 'local' given with engine threads", "write engine: dask"),
+    C("threads with workers", {"c.yaml": fwi() + "parallel: {engine: threads, workers: 2}\n"}, FWI, 2,
+      "parallel.workers: 2 given with engine threads", "devices: [cpu, cpu]"),
+    C("locate with a parallel section", {"ev.mseed": miniseed, "c.yaml": LOCATE + ACOUSTIC_TRACES + "parallel: {engine: threads}\n"}, LOC, 2,
+      "parallel: a location simulates one event per evaluation", "drop the section"),
 ]
 
 

@@ -13,72 +13,17 @@ import time
 import h5py
 import numpy as np
 import pytest
-import yaml
 
 pytest.importorskip("distributed")
 
 from adseismic.cli import main
-from adseismic.config import load_fwi_config
 from adseismic.config.parallel import ParallelConfig
-from adseismic.inversion.fwi import _observed, band_pass, data_weights, prepare_fwi
 from adseismic.solve import distributed
-from adseismic.solve.acoustic import gradient
-from adseismic.solve.batch import shot_slices
-from adseismic.solve.misfits import misfit as named_misfit
 
 from .test_fwi import TINY
+from .test_parallel_threads import Problem, write
 
 PARALLEL = {"engine": "dask", "scheduler": "local", "devices": ["cpu", "cpu"]}
-
-
-def write(tmp_path, cfg, name="fwi.yaml"):
-    path = tmp_path / name
-    path.write_text(yaml.safe_dump(cfg))
-    return path
-
-
-class Problem:
-    """TINY's gradient problem (with n_shots shots) as inversion.fwi builds it: the band-passed wavelet and observed
-    data, the weights, the gradient keywords; `one_process` is fwi's single-process loop over shot batches."""
-
-    def __init__(self, tmp_path, n_shots=3):
-        raw = dict(TINY, geometry=dict(TINY["geometry"], sources={"line": dict(TINY["geometry"]["sources"]["line"], count=n_shots)}))
-        self.cfg = load_fwi_config(write(tmp_path, raw, "problem.yaml"))
-        prep = prepare_fwi(self.cfg)
-        self.scene, p = prep.scene, prep.plan
-        band = self.cfg.inversion.bands[0]
-        self.obs = band_pass(_observed(self.cfg, prep, tmp_path, False), p.dt, band)
-        wavelet = band_pass(self.scene.wavelet, p.dt, band)
-        self.amp = np.broadcast_to(wavelet, self.scene.source_amplitudes.shape).copy()
-        self.weights = data_weights(self.scene, self.cfg.inversion, self.cfg.forward.geometry)
-        self.kw = dict(order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, pml_velocity=prep.bounds[1],
-                       free_surface=p.free_surface, device=p.device, precision=p.precision, memory_budget=None, pml_frequency=band[1] / 2)  # fmt: skip
-        self.p, self.n_shots = p, n_shots
-        self.model = self.scene.model.values * 1.02  # away from the start model: every term of the gradient non-zero
-
-    def batches(self, per_batch=1):
-        s = self.scene
-        return [{"amplitudes": self.amp[sl], "sources": s.source_locations[sl], "receivers": s.receiver_locations[sl],
-                 "weights": self.weights[sl], "observed": self.weights[sl] * self.obs[sl], "first": sl.start}
-                for sl in shot_slices(self.n_shots, per_batch)]  # fmt: skip
-
-    def params(self):
-        return {"dx": self.p.dx, "dt": self.p.dt, "misfit": "l2", "illumination": False, "kw": self.kw}
-
-    def one_process(self, per_batch=None):
-        s, p = self.scene, self.p
-        loss, grad = 0.0, np.zeros(self.model.shape)
-        for sl in shot_slices(self.n_shots, per_batch):
-            w_sl, o_sl = self.weights[sl], self.weights[sl] * self.obs[sl]
-
-            def weighted(syn, w_sl=w_sl, o_sl=o_sl):
-                j, adj = named_misfit("l2", w_sl * syn, o_sl, p.dt)
-                return j, w_sl * adj
-
-            r = gradient(self.model, p.dx, p.dt, self.amp[sl], s.source_locations[sl], s.receiver_locations[sl], misfit=weighted, **self.kw)
-            loss += r.loss
-            grad += r.velocity
-        return loss, grad
 
 
 @pytest.fixture(scope="module")
@@ -142,7 +87,9 @@ def test_fwi_iterates_do_not_depend_on_the_workers(tmp_path):
     one, two = tmp_path / "one", tmp_path / "two"
     assert main(["fwi", str(write(tmp_path, cfg, "one.yaml")), "-o", str(one), "-q"]) == 0
     assert main(["fwi", str(write(tmp_path, dict(cfg, parallel=PARALLEL), "two.yaml")), "-o", str(two), "-q"]) == 0
-    assert "2 Dask worker(s)" in (two / "fwi.log").read_text()
+    log = (two / "fwi.log").read_text()
+    assert "2 Dask worker(s)" in log
+    assert "evaluation 1: 3 shot batch(es) on 2 worker(s) in" in log  # progress over the workers, in fwi.log
     with h5py.File(one / "history.h5") as a, h5py.File(two / "history.h5") as b:
         assert sorted(a["band0"]) == sorted(b["band0"]) == ["iter0001", "iter0002"]
         for it in a["band0"]:

@@ -207,3 +207,18 @@ def test_fwi_log_summary_and_output_print_bands_in_words(tmp_path, capsys, figur
     for fig in figures:
         if image_axes(fig):
             assert_every_image_has_a_colourbar(fig)
+
+
+def test_background_figures_are_written_in_order_and_a_failure_is_raised(tmp_path):
+    """An FWI's band figures are drawn on one thread beside the next band; wait() returns once they are on disk and
+    raises a drawing's failure instead of losing it."""
+    bg = plotting.Background()
+    rows = [(0, i, 0.5**i) for i in range(5)]
+    bg.submit(plotting.plot_misfit, tmp_path / "a.png", rows)
+    bg.submit(plotting.plot_misfit, tmp_path / "b.png", rows)
+    bg.wait()
+    assert (tmp_path / "a.png").stat().st_size > 1000 and (tmp_path / "b.png").stat().st_size > 1000
+    bg.submit(plotting.plot_misfit, tmp_path / "no" / "such" / "dir.png", rows)
+    with pytest.raises(FileNotFoundError):
+        bg.wait()
+    assert not list(tmp_path.glob("*.part"))

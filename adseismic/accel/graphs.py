@@ -6,9 +6,10 @@ once as a CUDA graph and replayed to cover the nt levels; the source and receive
 time index from a device clock that each replay advances. A blow-up guard's statistics (max |u| and
 the count of non-finite values, every `every` levels) are read after each replay. The last captured
 loop of each kind (key[0]: acoustic or elastic forward, gradient) is kept, with the arrays its launches
-read, for the next call with the same key (grid, time step, steps, shots, sources, receivers), which
-copies its inputs into those arrays and replays: no capture, no allocation. One per kind, so that an
-inversion's forward and gradient calls do not evict each other.
+read, for the next call with the same key (grid, time step, steps, shots, sources, receivers, device), which
+copies its inputs into those arrays and replays: no capture, no allocation. One per kind and device, so that an
+inversion's forward and gradient calls do not evict each other, nor do the devices of one process
+(solve.devices: a thread per device).
 """
 
 from __future__ import annotations
@@ -87,22 +88,29 @@ def replay(loop: Loop, nt: int, guard, progress=None):
             progress.update(min(K, nt - g * K))
 
 
-_KEPT: dict = {}  # kind -> the last captured loop of that kind (each holds a full set of wavefields)
+_KEPT: dict = {}  # (kind, device) -> the last captured loop of that kind on that device (a full set of wavefields)
+
+
+def _slot(key) -> tuple:
+    """(kind, device) of a key: key[0] and the device in it (the setups' keys hold the device they were given, a
+    wp.Device or its name, cpu or cuda[:N], which no other entry of a key spells)."""
+    names = (str(k) for k in key[1:] if isinstance(k, (str, wp.Device)))
+    return key[0], next((k for k in names if k.split(":")[0] in ("cpu", "cuda")), None)
 
 
 def kept(key) -> Loop | None:
-    """The kept loop captured under `key`, or None; a miss frees the kept loop of that kind (the caller
-    captures a new one, which needs the memory)."""
-    loop = _KEPT.get(key[0])
+    """The kept loop captured under `key`, or None; a miss frees the kept loop of that kind on that device (the
+    caller captures a new one, which needs the memory)."""
+    loop = _KEPT.get(_slot(key))
     if loop is not None and loop.key == key:
         return loop
-    _KEPT.pop(key[0], None)
+    _KEPT.pop(_slot(key), None)
     return None
 
 
 def keep(loop):
-    """Keep `loop` (anything with a `key`), replacing the kept one of its kind."""
-    _KEPT[loop.key[0]] = loop
+    """Keep `loop` (anything with a `key`), replacing the kept one of its kind on its device."""
+    _KEPT[_slot(loop.key)] = loop
     return loop
 
 

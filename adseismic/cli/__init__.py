@@ -253,6 +253,10 @@ def cmd_forward(args) -> int:
     plan = _plan(config)
     every = snapshot_every(config, plan)
     _check_device(plan.device, args.dry_run)
+    if config.parallel is not None and not args.dry_run:  # devices present, scheduler reachable, not more workers than shots
+        from adseismic.solve.pools import check_pool
+
+        check_pool(config.parallel, plan.device, config.n_shots)
     if args.dry_run:
         _print_plan(f"forward plan for {args.config} ({config.model.ndim}D, {config.n_shots} shot(s), "
                     f"{len(config.geometry.receivers)} receivers)", plan,
@@ -286,7 +290,12 @@ def cmd_forward(args) -> int:
                  plan.device, plan.precision)
         t0 = time.perf_counter()
         try:
-            result = run_forward(scene, snapshot_every=every, progress=progress)
+            if config.parallel is None:
+                result = run_forward(scene, snapshot_every=every, progress=progress)
+            else:  # the shots over the workers, gathered in shot order
+                from adseismic.solve.pools import forward_on_workers
+
+                result = forward_on_workers(scene, config.parallel, every, progress)
         except PropagationError as e:
             log.error("%s", e)
             raise CommandError(f"simulation failed: {e}; no data.h5 was written",
@@ -311,14 +320,14 @@ def cmd_forward(args) -> int:
             "config_yaml": text, "config_path": str(pathlib.Path(args.config).resolve()),
             "plan": plan.describe(), "seconds": seconds, "physics": config.physics,
         }
-        if config.physics == "elastic":  # the mechanism (N/m or N m/m per unit of the wavelet) and the fibre
+        if config.physics != "acoustic":  # the mechanism (N/m or N m/m per unit of the wavelet) and the fibre
             das = config.geometry.das
             attrs.update(source_type=config.source.type, source_components=config.source.components,
                          **({"das_gauge_length": das.gauge_length, "das_direction": das.direction} if das else {}))
         ndim = config.model.ndim
         units = "units of source_wavelet" + (" x m" if ndim == 3 else "")
         store = np.float32 if plan.precision == "float32" else np.float64  # as simulated
-        traces = _elastic_traces(scene, result, store, len(rec_world)) if config.physics == "elastic" else None
+        traces = _elastic_traces(scene, result, store, len(rec_world)) if config.physics != "acoustic" else None
         data_path = io.write_forward(
             outdir / "data.h5", receiver_data=None if traces else result.receiver_amplitudes.astype(store),
             source_wavelet=scene.wavelet, dt=result.dt, source_coordinates=src_world,
@@ -329,7 +338,7 @@ def cmd_forward(args) -> int:
         from adseismic.data.asdf import write_forward_asdf  # the same traces in ASDF (pyasdf optional: a warning without it)
 
         if traces:
-            log.info("no waveforms.h5 (ASDF) for physics elastic: data.h5 holds %s", ", ".join(traces))
+            log.info("no waveforms.h5 (ASDF) for physics %s: data.h5 holds %s", config.physics, ", ".join(traces))
         else:
             write_forward_asdf(outdir / "waveforms.h5", receiver_data=result.receiver_amplitudes.astype(store), dt=result.dt,
                                source_coordinates=src_world, receiver_coordinates=rec_world, wavelet=scene.wavelet, units=units)
@@ -337,10 +346,11 @@ def cmd_forward(args) -> int:
         pngs = [plotting.plot_model(outdir / "model.png", scene.model.values, plan.dx,
                                     plan.origin, src_world, rec_world,
                                     title=config.model.name or "velocity model")]
-        if config.physics == "elastic":  # model.png is vp
+        if config.physics != "acoustic":  # model.png is vp; acoustic_vd has no vs (0)
             pngs += [plotting.plot_model(outdir / f"model_{name}.png", getattr(scene.model, name).values, plan.dx, plan.origin,
                                          src_world, rec_world, title=f"{name} on the simulation grid", label=label)
-                     for name, label in (("vs", "S velocity (m/s)"), ("rho", "density (kg/m^3)"))]
+                     for name, label in (("vs", "S velocity (m/s)"), ("rho", "density (kg/m^3)"))
+                     if getattr(scene.model, name) is not None]
         for k in range(n_shots):
             where = ", ".join(f"{a}={v:g}" for a, v in zip("zyx" if ndim == 3 else "zx",
                                                             src_world[k]))

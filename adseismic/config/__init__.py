@@ -10,7 +10,8 @@
 - :mod:`adseismic.config.fwi`: inversions (:class:`FWIConfig`, :func:`load_fwi_config`);
 - :mod:`adseismic.config.locate`: event location (:class:`LocateConfig`, :func:`load_locate_config`);
 - :mod:`adseismic.config.image`: imaging, RTM and LSRTM (:class:`ImageConfig`, :func:`load_image_config`);
-- :mod:`adseismic.config.parallel`: the optional ``parallel:`` section of fwi (shots on Dask workers).
+- :mod:`adseismic.config.parallel`: the optional ``parallel:`` section of fwi and forward (shots over Dask workers
+  or the devices of one process).
 
 Loading or parsing a config imports no workflow (nothing of adseismic.inversion, .location,
 .solve, .cli or .bench); only the data layer (adseismic.data.models) for the velocity models.

@@ -29,6 +29,7 @@ import numpy as np
 
 from adseismic.config import schema
 from adseismic.config.common import ConfigError, _check_keys, _integer, _mapping, _number, _read_yaml, _short
+from adseismic.config.parallel import ParallelConfig, parse_parallel
 from adseismic.config.schema import given, validate_section
 from adseismic.data.models import ElasticModel, Model, ModelError, load_physics_model
 
@@ -134,8 +135,9 @@ class ForwardConfig:
     output: OutputConfig
     path: Path | None = None  # the YAML file (None when parsed from a dict)
     raw: dict = field(default_factory=dict)  # the parsed YAML, kept for provenance
-    physics: str = "acoustic"  # acoustic or elastic
-    source: SourceConfig | None = None  # physics elastic: the mechanism (None for acoustic physics)
+    physics: str = "acoustic"  # acoustic, elastic or acoustic_vd (an ElasticModel with vs None)
+    source: SourceConfig | None = None  # physics elastic, acoustic_vd: the mechanism (None for acoustic physics)
+    parallel: ParallelConfig | None = None  # a forward file's parallel section (config.parallel): shots over workers
 
     @property
     def ndim(self) -> int:
@@ -313,10 +315,11 @@ def _parse_recording(raw: dict, receivers: np.ndarray, model, physics: str, key:
     """(components, das) of geometry.receivers: checked by the schema (schema.Receivers), refused with acoustic
     physics; the DAS direction normalised and every gauge's ends inside the model."""
     for k, value in raw.items():
-        if physics != "elastic" and value is not None:
-            raise ConfigError(f"{key}.{k}: {_short(value)} needs physics: elastic (acoustic receivers record the one "
-                              f"wavefield u); set physics: elastic (with model: {{vp, vs, rho}}) or drop {k}")
-    if physics != "elastic":
+        if physics == "acoustic" and value is not None:
+            raise ConfigError(f"{key}.{k}: {_short(value)} needs physics: elastic or acoustic_vd (acoustic receivers "
+                              f"record the one wavefield u); set physics: elastic (with model: {{vp, vs, rho}}) or "
+                              f"acoustic_vd (with model: {{vp, rho}}), or drop {k}")
+    if physics == "acoustic":
         return (), None
     v = given(validate_section(schema.Receivers, raw, key))
     das = None
@@ -326,7 +329,8 @@ def _parse_recording(raw: dict, receivers: np.ndarray, model, physics: str, key:
         for sign, end in ((-1, "start"), (1, "end")):
             _check_inside(receivers + sign * half, f"{key}.das (the gauges' {end}s, +-gauge_length/2 along the fibre)",
                           model)
-    components = tuple(v["components"]) if "components" in v else (() if das else schema.COMPONENTS)
+    default = schema.COMPONENTS if physics == "elastic" else ("pressure",)  # acoustic_vd: a hydrophone by default
+    components = tuple(v["components"]) if "components" in v else (() if das else default)
     if len(set(components)) != len(components):
         raise ConfigError(f"{key}.components: {list(components)} names a component twice; list each once")
     if not components and das is None:
@@ -354,8 +358,9 @@ SOURCE_SIZES = {"force": 2, "moment": 3}  # components per mechanism (adseismic.
 
 
 def _parse_source(raw, physics: str, key="source") -> SourceConfig | None:
-    """The source section (schema.ElasticSource): physics elastic only; None for acoustic physics."""
-    if physics != "elastic":
+    """The source section (schema.ElasticSource): physics elastic, or acoustic_vd with type explosive only (the
+    pressure source of a fluid); None for acoustic physics."""
+    if physics == "acoustic":
         if raw is not None:
             raise ConfigError(f"{key}: {_short(raw)} needs physics: elastic; the acoustic solver injects the wavelet as "
                               f"a pressure (explosive-like) point source: drop the source section, or set physics: "
@@ -363,6 +368,10 @@ def _parse_source(raw, physics: str, key="source") -> SourceConfig | None:
         return None
     v = given(validate_section(schema.ElasticSource, raw, key))
     kind, comp = v.get("type", "explosive"), v.get("components")
+    if physics == "acoustic_vd" and kind != "explosive":
+        raise ConfigError(f"{key}.type: {kind!r} with physics acoustic_vd; a fluid model takes the explosive (pressure) "
+                          f"source only: set type: explosive (components: M0 in N m/m), or physics: elastic for force and "
+                          f"moment-tensor sources")
     if kind == "explosive":
         m0 = 1.0 if comp is None else _number(comp, f"{key}.components", "N m/m (the explosive moment M0)")
         return SourceConfig(kind, (m0, m0, 0.0))
@@ -418,9 +427,10 @@ def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | Non
     physics = _parse_physics(raw.get("physics"))
     simulation = _parse_simulation(raw.get("simulation"))
     output = _parse_output(raw.get("output"))
-    if physics == "elastic" and output.snapshot_interval:
-        raise ConfigError(f"output.snapshot_interval: {output.snapshot_interval:g} s, but the elastic solver keeps no "
-                          f"wavefield snapshots; set it to 0 (or leave it out) with physics elastic")
+    if physics != "acoustic" and output.snapshot_interval:
+        raise ConfigError(f"output.snapshot_interval: {output.snapshot_interval:g} s, but the elastic solver (which runs "
+                          f"physics {physics}) keeps no wavefield snapshots; set it to 0 (or leave it out) with physics "
+                          f"{physics}")
     wavelet = _parse_wavelet(raw["wavelet"], base_dir)
     source = _parse_source(raw.get("source"), physics)
     model = _load_model(raw["model"], base_dir, physics)
@@ -433,5 +443,7 @@ def load_config(path) -> ForwardConfig:
     geometry in metres (axis order z, [y,] x) and wavelet in Hz and s; relative paths inside resolve from its
     folder. Raises ConfigError naming the key, the value and the fix."""
     raw, path = _read_yaml(path)
-    return parse_config(raw, base_dir=path.resolve().parent, path=path)
+    config = parse_config(raw, base_dir=path.resolve().parent, path=path, extra_sections=("parallel",))
+    config.parallel = parse_parallel(raw.get("parallel"), config.n_shots)
+    return config
 

@@ -158,9 +158,18 @@ def _check_inversion_physics(inv: InversionConfig, physics: str, network, raw) -
         quantities = ("vp",)
     else:
         quantities = schema.PARAMETERIZATION_QUANTITIES[inv.parameterization]
+        if physics == "acoustic_vd" and inv.parameterization == "lambda-mu-rho":
+            raise ConfigError("inversion.parameterization: lambda-mu-rho with physics acoustic_vd, a fluid (mu = 0); use "
+                              "vp-vs-rho (inverts vp and rho; vs stays 0) or ip-rho (impedance and density)")
+        if physics == "elastic" and inv.parameterization == "ip-rho":
+            raise ConfigError("inversion.parameterization: ip-rho (acoustic impedance) needs physics: acoustic_vd (a "
+                              "fluid); use vp-vs-rho or lambda-mu-rho with physics elastic")
+        if physics == "acoustic_vd":  # vs stays 0: never inverted
+            quantities = tuple(q for q in quantities if q != "vs")
     for q in inv.parameters or ():
         if q not in quantities:
             why = (f"physics {physics} has the one parameter vp" if physics == "acoustic" else
+                   "physics acoustic_vd is a fluid: vs stays 0" if q == "vs" and physics == "acoustic_vd" else
                    f"parameterization {inv.parameterization} moves {', '.join(quantities)}")
             raise ConfigError(f"inversion.parameters: {q} is not a quantity here ({why}); use any of {', '.join(quantities)}")
     if inv.parameters is not None and len(set(inv.parameters)) != len(inv.parameters):
@@ -174,10 +183,12 @@ def _check_inversion_physics(inv: InversionConfig, physics: str, network, raw) -
         if "lambda" in inv.bounds and inv.bounds["lambda"][0] < 0:
             raise ConfigError(f"inversion.bounds.lambda: [{inv.bounds['lambda'][0]:g}, {inv.bounds['lambda'][1]:g}] Pa allows "
                               f"lambda < 0 (vs > vp / sqrt(2)), which the elastic solver refuses; give a lower bound >= 0")
-    elif inv.bounds is not None and physics == "elastic":
-        raise ConfigError(f"inversion.bounds: {list(inv.bounds)} is one [min, max] pair but physics elastic inverts "
-                          f"{', '.join(inverted)}; give one per quantity, e.g. {{vp: [1500, 3500], vs: [800, 2000]}} (m/s)")
-    if physics == "elastic":
+    elif inv.bounds is not None and physics != "acoustic":
+        example = ("{vp: [1500, 3500], vs: [800, 2000]} (m/s)" if physics == "elastic" else
+                   "{vp: [1500, 3500], rho: [1000, 2600]} (m/s, kg/m^3)")
+        raise ConfigError(f"inversion.bounds: {list(inv.bounds)} is one [min, max] pair but physics {physics} inverts "
+                          f"{', '.join(inverted)}; give one per quantity, e.g. {example}")
+    if physics != "acoustic":  # elastic and acoustic_vd (which runs on the elastic solver)
         for key, bad, why, fix in (("preconditioning", inv.preconditioning == "pseudo_hessian", "the elastic gradient returns no illumination", "use none or depth"),
                                    ("wavelet_estimation", inv.wavelet_estimation, "the wavelet fit is for one data channel", "set it false")):  # fmt: skip
             if bad:
@@ -185,9 +196,9 @@ def _check_inversion_physics(inv: InversionConfig, physics: str, network, raw) -
         for section in ("observed", "parallel"):
             if raw.get(section) is not None:
                 what = ("elastic FWI simulates its observed data from true_model" if section == "observed" else
-                        "the Dask shot pool runs acoustic shots only")
-                raise ConfigError(f"{section}: given with physics elastic; {what}: drop {section} (use true_model)"
-                                  if section == "observed" else f"{section}: given with physics elastic; {what}: drop it")
+                        "the parallel shot pools (dask, threads) run acoustic shots only")
+                raise ConfigError(f"{section}: given with physics {physics}; {what}: drop {section} (use true_model)"
+                                  if section == "observed" else f"{section}: given with physics {physics}; {what}: drop it")
 
 
 def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None) -> FWIConfig:

@@ -79,6 +79,10 @@ def parse_image_config(raw: dict, base_dir: Path | str | None = None, path: Path
                           f"{', '.join(forward.REQUIRED_SECTIONS + IMAGE_SECTIONS)} (and optionally physics, simulation)")
     _check_keys(raw, "", forward.SECTIONS + IMAGE_SECTIONS)
     physics = _choice(raw.get("physics") or "acoustic", "physics", schema.PHYSICS)
+    if physics == "acoustic_vd":  # migration needs a smooth background's kinematics, which density does not change
+        raise ConfigError("physics: acoustic_vd is not available for adseismic image (there is no density image, and "
+                          "the migration background's travel times do not depend on the density); use physics: acoustic "
+                          "with model: the vp spec (or physics: elastic)")
     image = _parse_image(raw.get("image"), physics)
     fwi = parse_fwi_config({k: v for k, v in raw.items() if k != "image"}, base_dir=base_dir, path=path)
     if getattr(fwi, "network", None) is not None:

@@ -137,6 +137,10 @@ def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Pat
     base_dir = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
     if not isinstance(raw, dict):
         raise ConfigError(f"config: {type(raw).__name__} is not a mapping; a location config has the sections {', '.join(LOCATE_SECTIONS)}")
+    if raw.get("parallel") is not None:
+        raise ConfigError("parallel: a location simulates one event per evaluation (one forward and one adjoint run of "
+                          "a single source), there are no shots to split over workers or devices; drop the section "
+                          "(locate runs on simulation.device)")
     _check_keys(raw, "", LOCATE_SECTIONS)
     for k in ("model", "traces"):
         if raw.get(k) is None:
@@ -145,6 +149,10 @@ def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Pat
     if (raw.get("simulation") or {}).get("precision") is None:
         simulation.precision = "float64"  # the covariance comes from differences of simulations
     physics = _parse_physics(raw.get("physics"))
+    if physics == "acoustic_vd":  # a location fits travel times (and a source amplitude), not interface amplitudes
+        raise ConfigError("physics: acoustic_vd is not available for adseismic locate (an event's location comes from "
+                          "travel times, which density does not change); use physics: acoustic with model: the vp spec, "
+                          "or physics: elastic for a moment-tensor source")
     model = _load_model(raw["model"], base_dir, physics)
 
     t = given(validate_section(schema.Traces, raw["traces"], "traces"))  # keys and types

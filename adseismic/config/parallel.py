@@ -1,14 +1,17 @@
-"""The optional ``parallel:`` section (fwi): the shots of each misfit + gradient evaluation on Dask workers.
+"""The optional ``parallel:`` section (fwi, forward): the shots of each evaluation (or of a forward run) spread over
+workers: Dask worker processes, or threads of this process, one per device.
 
     parallel:
-      engine: dask                       # the only engine
-      scheduler: local                   # local (a LocalCluster on this host) or a scheduler address, tcp://host:8786
+      engine: dask                       # dask (worker processes, here or on a cluster) or threads (this process)
+      scheduler: local                   # dask: local (a LocalCluster on this host) or a scheduler address, tcp://host:8786
       devices: [cpu, cpu]                # one worker per entry; or all (every GPU, else CPU workers); cpu, cuda, cuda:N
-      workers: 2                         # optional: the number of workers (default: one per device)
+      workers: 2                         # dask, optional: the number of workers (default: one per device)
 
-No section: one process, as without Dask. What this module checks needs nothing but the text and the shot count
+engine threads: one Python thread and one Warp stream per entry of devices, in this process, without Dask
+(adseismic.solve.devices.DevicePool); it takes no scheduler and no workers (list the devices instead).
+No section: one process, one device. What this module checks needs nothing but the text and the shot count
 (keys, types, device spelling, more devices or workers than shots); whether the scheduler answers and the devices
-exist is checked before any work by adseismic.solve.distributed.check_parallel (ValueError naming the key).
+exist is checked before any work by adseismic.solve.pools.check_pool (ValueError naming the key).
 Imports no workflow and nothing of Dask.
 """
 from __future__ import annotations
@@ -21,16 +24,17 @@ from adseismic.config.common import ConfigError, _check_keys, _choice, _integer,
 __all__ = ["PARALLEL_KEYS", "ParallelConfig", "parse_parallel"]
 
 PARALLEL_KEYS = ("engine", "scheduler", "devices", "workers")
-ENGINES = ("dask",)
+ENGINES = ("dask", "threads")
 DEVICE_RE = re.compile(r"^(cpu|cuda|cuda:\d+)$")
 ADDRESS_RE = re.compile(r"^([a-z]+://)?[^\s:/]+:\d+$")
 
 
 @dataclass
 class ParallelConfig:
-    """engine: "dask"; scheduler: "local" or an address (tcp://host:port); devices: a list of device names (one
-    worker per entry, worker i on devices[i % len(devices)] when workers is larger), "all" (every GPU, else CPU
-    workers) or None (all for a CUDA simulation.device, CPU workers for cpu); workers: int or None."""
+    """engine: "dask" or "threads"; scheduler (dask): "local" or an address (tcp://host:port); devices: a list of
+    device names (one worker per entry, worker i on devices[i % len(devices)] when workers is larger), "all" (every
+    GPU, else CPU workers: one per core, at most one per shot) or None (all for a CUDA simulation.device, CPU workers
+    for cpu); workers (dask): int or None."""
 
     engine: str = "dask"
     scheduler: str = "local"
@@ -42,7 +46,7 @@ def parse_parallel(raw, n_shots: int, key: str = "parallel") -> ParallelConfig |
     """The parallel section (None when absent or null: one process)."""
     if raw is None:
         return None
-    sec = _mapping(raw, key, "engine: dask, scheduler: local | tcp://host:port, devices: [cpu, cpu] | all")
+    sec = _mapping(raw, key, "engine: dask | threads, scheduler: local | tcp://host:port, devices: [cpu, cpu] | all")
     _check_keys(sec, key, PARALLEL_KEYS)
     out = ParallelConfig()
     if sec.get("engine") is not None:
@@ -79,4 +83,10 @@ def parse_parallel(raw, n_shots: int, key: str = "parallel") -> ParallelConfig |
             raise ConfigError(f"{key}.workers: {n} is fewer than the {len(out.devices)} devices listed in {key}.devices; "
                               f"give at least {len(out.devices)} workers or list fewer devices")
         out.workers = n
+    if out.engine == "threads":
+        for k, fix in (("scheduler", "drop it, or write engine: dask to run on a Dask scheduler"),
+                       ("workers", "list one device per thread instead, e.g. devices: [cpu, cpu]")):
+            if sec.get(k) is not None:
+                raise ConfigError(f"{key}.{k}: {_short(sec[k])} given with engine threads, which runs one thread per device "
+                                  f"in this process; {fix}")
     return out

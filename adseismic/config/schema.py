@@ -217,7 +217,16 @@ class ElasticModelSpec(_Section):
     rho: ModelSpec | Gardner = F(..., "the density (kg/m^3), > 0; or {gardner: true}", "kg/m^3")
 
 
-PHYSICS = ("acoustic", "elastic")  # adseismic.data.models.PHYSICS (tests/test_elastic_config.py keeps them equal)
+class AcousticVDModelSpec(_Section):
+    """physics acoustic_vd: the P speed and the density (a fluid, vs = 0), each a model spec (kinds as for an acoustic
+    model; the key velocity / velocities / background ... holds the values: m/s for vp, kg/m^3 for rho) on any grid
+    (rho is resampled onto vp's). Checked by adseismic.data.models.load_physics_model."""
+
+    vp: ModelSpec = F(..., "the P-wave speed (m/s)", "m/s")
+    rho: ModelSpec | Gardner = F(..., "the density (kg/m^3), >= 100; or {gardner: true}", "kg/m^3")
+
+
+PHYSICS = ("acoustic", "elastic", "acoustic_vd")  # adseismic.data.models.PHYSICS (tests/test_elastic_config.py keeps them equal)
 
 
 class Point(_Section):
@@ -362,11 +371,14 @@ class ForwardSchema(_Section):
     """A forward simulation (adseismic forward): model, geometry, wavelet; optionally simulation and output."""
 
     physics: Annotated[Literal[PHYSICS] | None, OneOf(*PHYSICS)] = F(
-        "acoustic", "acoustic (model: a velocity model) or elastic (2D; model: {vp, vs, rho})")
-    model: ModelSpec | ElasticModelSpec = F(..., "the velocity model (m/s); physics elastic: {vp, vs, rho}")
+        "acoustic", "acoustic (model: a velocity model), elastic (2D; model: {vp, vs, rho}) or acoustic_vd (2D "
+                    "acoustic with variable density, on the elastic solver with vs = 0; model: {vp, rho})")
+    model: ModelSpec | ElasticModelSpec | AcousticVDModelSpec = F(
+        ..., "the velocity model (m/s); physics elastic: {vp, vs, rho}; acoustic_vd: {vp, rho}")
     geometry: Geometry = F(..., "sources (one shot each) and receivers, world metres")
     wavelet: Wavelet = F(..., "the source time function")
-    source: ElasticSource | None = F(None, "physics elastic: the source mechanism; null: explosive")
+    source: ElasticSource | None = F(None, "physics elastic: the source mechanism; null: explosive; acoustic_vd: "
+                                           "explosive only (M0 in N m/m)")
     simulation: Simulation | None = F(None, "numerical settings; null: all planned / defaults")
     output: Output | None = F(None, "extra outputs")
 
@@ -418,10 +430,11 @@ def _iterations(v):
 
 _NONNEG = "give 0 (off) or a positive value"
 # each parameterisation's quantities: adseismic.inversion.model_space.PARAMETERIZATIONS (a test keeps them equal)
-PARAMETERIZATION_QUANTITIES = {"vp-vs-rho": ("vp", "vs", "rho"), "lambda-mu-rho": ("lambda", "mu", "rho")}
+PARAMETERIZATION_QUANTITIES = {"vp-vs-rho": ("vp", "vs", "rho"), "lambda-mu-rho": ("lambda", "mu", "rho"),
+                               "ip-rho": ("ip", "rho")}
 PARAMETERIZATIONS = tuple(PARAMETERIZATION_QUANTITIES)
-INVERTED_QUANTITIES = ("vp", "vs", "rho", "lambda", "mu")
-_BOUND_UNITS = {"vp": "m/s", "vs": "m/s", "rho": "kg/m^3", "lambda": "Pa", "mu": "Pa"}
+INVERTED_QUANTITIES = ("vp", "vs", "rho", "lambda", "mu", "ip")
+_BOUND_UNITS = {"vp": "m/s", "vs": "m/s", "rho": "kg/m^3", "lambda": "Pa", "mu": "Pa", "ip": "kg/(m^2 s)"}
 
 
 def _bounds(v):
@@ -459,7 +472,8 @@ class Inversion(_Section):
     rel_decrease: Annotated[float | None, Pos()] = F(
         1e-4, "stop a band when an iteration lowers the misfit by less than this fraction", exclusiveMinimum=0)
     parameters: Annotated[list[Literal[INVERTED_QUANTITIES]] | None, _nonempty_list("[vp, vs]")] = F(
-        None, "the inverted quantities, any of the parameterization's (vp, vs, rho or lambda, mu, rho; acoustic: vp); "
+        None, "the inverted quantities, any of the parameterization's (vp, vs, rho or lambda, mu, rho or ip, rho; "
+              "acoustic: vp; acoustic_vd: vp, rho or ip, rho); "
               "the others stay at the start model; null: all of them")
     transform: Annotated[Literal["linear", "sigmoid"] | None, OneOf("linear", "sigmoid")] = F(
         "linear", "how the optimiser's x gives each inverted cell: linear (x = q / reference, the bounds a box L-BFGS-B "
@@ -467,8 +481,9 @@ class Inversion(_Section):
                   "recipe; a cell near a bound, such as water near the lower velocity bound, moves little); pixels only")
     parameterization: Annotated[Literal[PARAMETERIZATIONS] | None, OneOf(*PARAMETERIZATIONS)] = F(
         "vp-vs-rho", "physics elastic: the quantities the optimiser moves, vp-vs-rho (m/s, m/s, kg/m^3) or "
-                     "lambda-mu-rho (Lame moduli in Pa, kg/m^3); each is scaled by a fixed reference (1000 m/s, "
-                     "1000 kg/m^3, 1 GPa) so the optimiser sees O(1) numbers")
+                     "lambda-mu-rho (Lame moduli in Pa, kg/m^3); acoustic_vd: vp-vs-rho (vp and rho move, vs stays 0) "
+                     "or ip-rho (impedance ip = rho vp in kg/(m^2 s), and rho); each is scaled by a fixed reference "
+                     "(1000 m/s, 1000 kg/m^3, 1 GPa, 1e6 kg/(m^2 s)) so the optimiser sees O(1) numbers")
     bounds: Annotated[list[float] | dict[str, list[float]] | None, _opt(_bounds)] = F(
         None, "[v_min, v_max] (m/s, acoustic vp), or per inverted quantity {vp: [min, max], vs: ..., rho: ..., "
               "lambda: ..., mu: ...} in its unit (m/s, kg/m^3, Pa); the plan (dt, dx) is made for these ranges; "
@@ -520,17 +535,22 @@ class Observed(_Section):
 
 
 class Parallel(_Section):
-    """Shots of every evaluation on Dask workers (pip install "adseismic[dask]"); checked by
-    adseismic.config.parallel.parse_parallel. No section: one process."""
+    """fwi, forward: the shots of every evaluation (fwi) or of the run (forward) spread over workers: Dask worker
+    processes (engine dask; pip install "adseismic[dask]"), here or on a cluster, or one thread and one Warp stream
+    per device in this process (engine threads, e.g. every GPU of this host); the results are summed or gathered in
+    shot order, independent of the number of workers (docs/parallel.md). Checked by
+    adseismic.config.parallel.parse_parallel. No section: one process, one device."""
 
-    engine: Literal["dask"] | None = F("dask", "the only engine")
-    scheduler: str | None = F("local", "local (a LocalCluster on this host) or a running scheduler's address, "
+    engine: Literal["dask", "threads"] | None = F(
+        "dask", "dask (worker processes: a LocalCluster or a running scheduler) or threads (one thread per device in "
+                "this process, no Dask; takes no scheduler and no workers)")
+    scheduler: str | None = F("local", "dask: local (a LocalCluster on this host) or a running scheduler's address, "
                                           "tcp://host:8786")
     devices: Literal["all"] | list[str] | None = F(
-        None, "one worker per entry (cpu, cuda, cuda:N) or all (every GPU, else CPU workers); null: all for a CUDA "
-              "simulation.device, else [cpu]")
-    workers: int | None = F(None, "the number of workers (worker i on devices[i % len(devices)]); null: one per "
-                                     "device", minimum=1)
+        None, "one worker per entry (cpu, cuda, cuda:N) or all (every GPU, else one CPU worker per core); at most one "
+              "per shot; null: all for a CUDA simulation.device, else [cpu]")
+    workers: int | None = F(None, "dask: the number of workers (worker i on devices[i % len(devices)]); null: one "
+                                     "per device", minimum=1)
 
 
 class NNModelSpec(_Section):
@@ -553,13 +573,14 @@ class FWISchema(ForwardSchema):
     """A full-waveform inversion (adseismic fwi): the forward sections (model is the START model), inversion and
     exactly one of true_model or observed."""
 
-    model: ModelSpec | ElasticModelSpec | NNModelSpec = F(..., "the START model (m/s); physics elastic: {vp, vs, rho}; "
-                                                              "{kind: nn, ...}: a neural-network velocity")
+    model: ModelSpec | ElasticModelSpec | AcousticVDModelSpec | NNModelSpec = F(
+        ..., "the START model (m/s); physics elastic: {vp, vs, rho}; acoustic_vd: {vp, rho}; {kind: nn, ...}: a "
+             "neural-network velocity")
     inversion: Inversion | None = F(None, "inversion settings; null: all defaults")
-    true_model: ModelSpec | ElasticModelSpec | None = F(None, "a model spec (synthetic study: data are simulated from it); "
-                                              "exactly one of true_model and observed")
+    true_model: ModelSpec | ElasticModelSpec | AcousticVDModelSpec | None = F(
+        None, "a model spec (synthetic study: data are simulated from it); exactly one of true_model and observed")
     observed: Observed | None = F(None, "observed data files; exactly one of true_model and observed")
-    parallel: Parallel | None = F(None, "Dask workers for the shots; null: one process")
+    parallel: Parallel | None = F(None, "the shots over Dask workers or the devices of this process; null: one process")
 
 
 # ------------------------------------------------------------------------------ image sections
@@ -740,7 +761,14 @@ class LocateSchema(_Section):
     truth: LocationPoint | None = F(None, "the known event of a synthetic study, reported beside the result")
 
 
-SCHEMAS = {"forward": ForwardSchema, "fwi": FWISchema, "locate": LocateSchema, "image": ImageSchema}
+class ForwardFileSchema(ForwardSchema):
+    """A forward simulation (adseismic forward): model, geometry, wavelet; optionally simulation, output and parallel."""
+
+    parallel: Parallel | None = F(None, "the shots over Dask workers or the devices of this process, gathered in shot "
+                                        "order; null: one process")
+
+
+SCHEMAS = {"forward": ForwardFileSchema, "fwi": FWISchema, "locate": LocateSchema, "image": ImageSchema}
 
 
 # ------------------------------------------------------------------------------ validation

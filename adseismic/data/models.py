@@ -1,8 +1,8 @@
 """Velocity models from the YAML ``model:`` section: generated (adseismic.data_synthetic.generators) or read
 from raw, .npy, HDF5 and SEG-Y files (ObsPy imported only for SEG-Y), in m/s, cropped and smoothed.
 Axis order (z, [y,] x); the `Model` object is adseismic.data.model's. With ``physics: elastic`` the section holds
-``{vp, vs, rho}``, each such a spec (or ``vs: {vp_ratio: R}``, ``rho: {gardner: true}``), loaded by
-:func:`load_physics_model` into an :class:`ElasticModel`."""
+``{vp, vs, rho}``, each such a spec (or ``vs: {vp_ratio: R}``, ``rho: {gardner: true}``), with ``physics: acoustic_vd``
+``{vp, rho}`` (a fluid: vs = 0), loaded by :func:`load_physics_model` into an :class:`ElasticModel`."""
 from __future__ import annotations
 
 import math
@@ -353,8 +353,10 @@ def _read_segy(path: pathlib.Path) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------- elastic models
 
-PHYSICS = ("acoustic", "elastic")
+PHYSICS = ("acoustic", "elastic", "acoustic_vd")
+ELASTIC_SOLVER = ("elastic", "acoustic_vd")  # the physics the elastic solver runs (acoustic_vd: vs = 0, a fluid)
 ELASTIC_KEYS = ("vp", "vs", "rho")
+ACOUSTIC_VD_KEYS = ("vp", "rho")
 MIN_SHEAR = 10.0  # m/s: below this a shear speed is a unit error (km/s typed as m/s), as for P speeds (scene.MIN_VELOCITY)
 MIN_DENSITY = 100.0  # kg/m^3: below this a density is a unit error (g/cm^3 typed as kg/m^3), not a rock or a fluid
 GARDNER = (310.0, 0.25)  # rho = 310 vp^0.25 kg/m^3 with vp in m/s (Gardner, Gardner & Gregory 1974, Geophysics 39)
@@ -364,6 +366,8 @@ GARDNER = (310.0, 0.25)  # rho = 310 vp^0.25 kg/m^3 with vp in m/s (Gardner, Gar
 class ElasticModel:
     """An isotropic elastic model: ``vp``, ``vs`` (m/s) and ``rho`` (kg/m^3), three :class:`Model` objects on one grid
     (shape (nz, nx), spacing and origin in m, axis order (z, x)); 0 < vs <= vp / sqrt(2) (Lame lambda >= 0).
+    ``vs`` None: a fluid everywhere (vs = 0), the variable-density acoustic model of ``physics: acoustic_vd``, which
+    the elastic solver runs (``physics`` says which; :meth:`materials` gives the solver's three arrays).
 
     Model-like for the planner and the config: ``ndim``, ``shape``, ``spacing``, ``origin``, ``extent``, ``name``,
     ``contains`` are the grid's; ``values``, ``vmin``, ``vmax`` are vp's (the fastest wave: the domain's margin, the
@@ -371,18 +375,31 @@ class ElasticModel:
     """
 
     vp: Model
-    vs: Model
+    vs: Model | None
     rho: Model
-    physics = "elastic"
 
     def __post_init__(self):
         for name in ("vs", "rho"):
             m = getattr(self, name)
+            if m is None:
+                continue
             if m.shape != self.vp.shape or m.spacing != self.vp.spacing or m.origin != self.vp.origin:
                 raise ModelError(f"model.{name}: its grid (shape {list(m.shape)}, spacing {list(m.spacing)} m, origin "
                                  f"{list(m.origin)} m) differs from model.vp's (shape {list(self.vp.shape)}, spacing "
                                  f"{list(self.vp.spacing)} m, origin {list(self.vp.origin)} m); give the three on one grid")
-        check_shear(self.vp.values, self.vs.values, "model.vs")
+        if self.vs is not None:
+            check_shear(self.vp.values, self.vs.values, "model.vs")
+
+    @property
+    def physics(self) -> str:
+        """elastic, or acoustic_vd when vs is None (a fluid)."""
+        return "acoustic_vd" if self.vs is None else "elastic"
+
+    def materials(self) -> dict:
+        """{vp, vs, rho}: float64 arrays (nz, nx) in m/s, m/s, kg/m^3 as the elastic solver takes them (vs zeros for
+        acoustic_vd)."""
+        vs = np.zeros(self.shape) if self.vs is None else self.vs.values
+        return {"vp": np.asarray(self.vp.values, float), "vs": np.asarray(vs, float), "rho": np.asarray(self.rho.values, float)}
 
     ndim = property(lambda self: self.vp.ndim)
     shape = property(lambda self: self.vp.shape)
@@ -403,7 +420,7 @@ class ElasticModel:
         its inverse: slowness for vp and vs, buoyancy (which the velocity update reads) for rho. vp and vs get the
         same weights at every node, so each new vp / vs lies between old ones (a weighted mediant): vs <= vp / sqrt(2)
         holds on the new grid wherever it held on the old."""
-        return ElasticModel(*(m.resample(spacing, origin, shape) for m in (self.vp, self.vs, self.rho)))
+        return ElasticModel(*(None if m is None else m.resample(spacing, origin, shape) for m in (self.vp, self.vs, self.rho)))
 
 
 def check_shear(vp: np.ndarray, vs: np.ndarray, key: str) -> None:
@@ -439,7 +456,8 @@ def _load_part(spec, key: str, base_dir, vp: Model | None) -> Model:
         msg = f"model.{key}{msg[5:]}" if msg.startswith("model") else f"model.{key}.{msg}"
         if key == "vs" and ("<= 0" in msg or "not > 0" in msg or "not a positive" in msg):
             msg += ("; vs must be > 0 everywhere in an elastic model from a config (fluid regions are not supported "
-                    "there); if vs is 0 everywhere, the medium is a fluid: use physics: acoustic with model: the vp spec")
+                    "there); if vs is 0 everywhere, the medium is a fluid: use physics: acoustic with model: the vp spec, or "
+                    "physics: acoustic_vd with model: {vp, rho} where the density varies")
         if key == "rho":  # the message after the key speaks of velocities: here they are densities
             where, _, text = msg.partition(": ")
             text = text.replace("velocities", "densities").replace("velocity", "density").replace("m/s", "kg/m^3")
@@ -451,33 +469,46 @@ def load_physics_model(spec, physics: str = "acoustic", base_dir: pathlib.Path |
     """The ``model:`` section ``spec`` for ``physics``: acoustic, a :class:`Model` (:func:`load_model`); elastic, an
     :class:`ElasticModel` from ``{vp, vs, rho}``: vp a model spec (m/s); vs a model spec (m/s) or ``{vp_ratio: R}``
     (vs = vp / R, R >= sqrt(2)); rho a model spec (kg/m^3: the key velocity / velocities / background holds the
-    densities) or ``{gardner: true}`` (rho = 310 vp^0.25). Generator specs of vs and rho may leave out shape, spacing
-    and origin (vp's are used). 2D only. Raises ModelError naming ``model.<part>.<key>``, the value and the fix."""
+    densities) or ``{gardner: true}`` (rho = 310 vp^0.25); acoustic_vd, an ElasticModel with vs None (a fluid) from
+    ``{vp, rho}``. Generator specs of vs and rho may leave out shape, spacing and origin (vp's are used). 2D only.
+    Raises ModelError naming ``model.<part>.<key>``, the value and the fix."""
     if physics not in PHYSICS:
         raise ModelError(f"physics: {_short(physics)} is not one of {', '.join(PHYSICS)}; pick one of them")
     is_elastic_spec = isinstance(spec, dict) and bool(set(spec) & set(ELASTIC_KEYS))
     if physics == "acoustic":
         if is_elastic_spec:
             raise ModelError(f"model: {', '.join(k for k in ELASTIC_KEYS if k in spec)} are the keys of an elastic model "
-                             f"(physics elastic), but physics is acoustic; set physics: elastic, or give one velocity "
-                             f"model (model: {{kind: ..., ...}}) for acoustic physics")
+                             f"(physics elastic), but physics is acoustic; set physics: elastic (or acoustic_vd for "
+                             f"{{vp, rho}}), or give one velocity model (model: {{kind: ..., ...}}) for acoustic physics")
         return load_model(spec, base_dir)
+    keys = ELASTIC_KEYS if physics == "elastic" else ACOUSTIC_VD_KEYS
+    what = ("vp (m/s), vs (m/s, or {vp_ratio: R}) and rho (kg/m^3, or {gardner: true})" if physics == "elastic" else
+            "vp (m/s) and rho (kg/m^3, or {gardner: true})")
     if not is_elastic_spec:
-        raise ModelError(f"model: {_short(spec)} is one velocity model, but physics elastic needs three: write "
-                         f"model: {{vp: {{kind: ...}}, vs: {{kind: ...}} or {{vp_ratio: 1.8}}, rho: {{kind: ...}} or "
-                         f"{{gardner: true}}}} (m/s, m/s, kg/m^3), or set physics: acoustic")
-    unknown = sorted(set(spec) - set(ELASTIC_KEYS), key=str)
+        raise ModelError(f"model: {_short(spec)} is one velocity model, but physics {physics} needs "
+                         f"{'three' if physics == 'elastic' else 'two'}, {{{', '.join(keys)}}}: write model: {{vp: {{kind: ...}}, "
+                         + ("vs: {kind: ...} or {vp_ratio: 1.8}, " if physics == "elastic" else "")
+                         + "rho: {kind: ...} or {gardner: true}} (m/s, kg/m^3), or set physics: acoustic")
+    if physics == "acoustic_vd" and "vs" in spec:
+        raise ModelError(f"model.vs: {_short(spec['vs'])} given with physics acoustic_vd, a fluid (vs = 0 everywhere); "
+                         f"drop vs (model: {{vp, rho}}), or set physics: elastic for a solid with shear waves")
+    unknown = sorted(set(spec) - set(keys), key=str)
     if unknown:
-        raise ModelError(f"model.{unknown[0]}: unknown key of an elastic model; allowed: vp, vs, rho (each a model spec)")
-    missing = [k for k in ELASTIC_KEYS if spec.get(k) is None]
+        kind = "an elastic" if physics == "elastic" else "an acoustic_vd"
+        raise ModelError(f"model.{unknown[0]}: unknown key of {kind} model; allowed: {', '.join(keys)} "
+                         f"(each a model spec)")
+    missing = [k for k in keys if spec.get(k) is None]
     if missing:
-        raise ModelError(f"model.{missing[0]}: missing; an elastic model needs vp (m/s), vs (m/s, or {{vp_ratio: R}}) and "
-                         f"rho (kg/m^3, or {{gardner: true}})")
+        raise ModelError(f"model.{missing[0]}: missing; a physics {physics} model needs {what}")
     vp = _load_part(spec["vp"], "vp", base_dir, None)
     if vp.ndim != 2:
-        raise ModelError(f"model.vp: a 3D model (shape {list(vp.shape)}) with physics elastic; the elastic solver is 2D "
-                         f"(3D elastic is not built yet): give a 2D model [nz, nx], or use physics: acoustic in 3D")
-    vs_spec, rho_spec = spec["vs"], spec["rho"]
+        raise ModelError(f"model.vp: a 3D model (shape {list(vp.shape)}) with physics {physics}; the elastic solver "
+                         f"(which runs {physics}) is 2D (3D is not built yet): give a 2D model [nz, nx], or use physics: "
+                         f"acoustic in 3D")
+    rho = _load_density(spec["rho"], base_dir, vp)
+    if physics == "acoustic_vd":
+        return ElasticModel(vp, None, rho)
+    vs_spec = spec["vs"]
     if isinstance(vs_spec, dict) and "vp_ratio" in vs_spec:
         if set(vs_spec) != {"vp_ratio"}:
             raise ModelError(f"model.vs: {_short(vs_spec)} mixes vp_ratio with a model spec; give either {{vp_ratio: R}} "
@@ -493,15 +524,19 @@ def load_physics_model(spec, physics: str = "acoustic", base_dir: pathlib.Path |
         if vs.vmin < MIN_SHEAR:
             raise ModelError(f"model.vs: shear speeds down to {vs.vmin:.4g} m/s, below {MIN_SHEAR:g} m/s (no rock is that "
                              f"slow, and the grid would need cells of millimetres); km/s? multiply by 1000 (speeds are in m/s)")
+    return ElasticModel(vp, vs, rho)
+
+
+def _load_density(rho_spec, base_dir, vp: Model) -> Model:
+    """``model.rho``: a model spec (kg/m^3) on vp's grid or ``{gardner: true}``; refuses densities below MIN_DENSITY."""
     if isinstance(rho_spec, dict) and "gardner" in rho_spec:
         if set(rho_spec) != {"gardner"} or rho_spec["gardner"] is not True:
             raise ModelError(f"model.rho: {_short(rho_spec)} is not {{gardner: true}}; give {{gardner: true}} "
                              f"(rho = 310 vp^0.25 kg/m^3) or a model spec of the density")
         a, b = GARDNER
-        rho = replace(vp, values=a * vp.values ** b, name="Gardner")
-    else:
-        rho = _load_part(rho_spec, "rho", base_dir, vp)
-        if rho.vmin < MIN_DENSITY:
-            raise ModelError(f"model.rho: densities down to {rho.vmin:g} kg/m^3, below {MIN_DENSITY:g} kg/m^3 (water: "
-                             f"1000, rocks 1500-3000); g/cm^3? multiply by 1000 (densities are in kg/m^3)")
-    return ElasticModel(vp, vs, rho)
+        return replace(vp, values=a * vp.values ** b, name="Gardner")
+    rho = _load_part(rho_spec, "rho", base_dir, vp)
+    if rho.vmin < MIN_DENSITY:
+        raise ModelError(f"model.rho: densities down to {rho.vmin:g} kg/m^3, below {MIN_DENSITY:g} kg/m^3 (water: "
+                         f"1000, rocks 1500-3000); g/cm^3? multiply by 1000 (densities are in kg/m^3)")
+    return rho

@@ -34,6 +34,7 @@ import numpy as np
 import warp as wp
 from scipy.signal import butter, sosfiltfilt
 
+from adseismic import plotting
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
 from adseismic.inversion import conditioning
 from adseismic.inversion.model_space import PARAMETERIZATIONS, PHYSICS_PARAMETERS, REFERENCE, UNITS, ModelSpace, quantities_of
@@ -43,7 +44,8 @@ from adseismic.runs import format_band, format_position
 from adseismic.scene import build_scene, plan_scene
 from adseismic.solve.acoustic import forward, gradient
 from adseismic.solve.batch import shot_slices
-from adseismic.solve.distributed import ShotPool, check_parallel, reduce_in_order
+from adseismic.solve.distributed import reduce_in_order
+from adseismic.solve.pools import check_pool, open_pool
 from adseismic.solve.elastic import forward_elastic, gradient_elastic
 from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.solve.receivers import UNITS as RECORDED_UNITS
@@ -238,10 +240,11 @@ def _physics(cfg) -> str:
 
 
 def _start_models(model, physics) -> dict:
-    """{vp, [vs, rho]}: the arrays of a Model (acoustic) or an ElasticModel (its .vp, .vs, .rho Models)."""
+    """{vp, [vs, rho]}: the arrays of a Model (acoustic) or an ElasticModel (ElasticModel.materials: vs 0 for
+    acoustic_vd)."""
     if physics == "acoustic":
         return {"vp": np.asarray(model.values, float)}
-    return {k: np.asarray(getattr(model, k).values, float) for k in ("vp", "vs", "rho")}
+    return model.materials()
 
 
 def inversion_bounds(cfg) -> dict:
@@ -269,7 +272,9 @@ def _inverted(cfg) -> tuple:
     inv = cfg.inversion
     if _physics(cfg) == "acoustic":
         return ("vp",)
-    return tuple(inv.parameters or PARAMETERIZATIONS[inv.parameterization])
+    if inv.parameters:
+        return tuple(inv.parameters)
+    return tuple(q for q in PARAMETERIZATIONS[inv.parameterization] if not (q == "vs" and _physics(cfg) == "acoustic_vd"))
 
 
 def prepare_fwi(cfg) -> Prepared:
@@ -296,13 +301,16 @@ def prepare_fwi(cfg) -> Prepared:
                                  f"wavelet has no energy there; use a corner below {0.9 * nyq:.3g} Hz, or null for the full band")  # fmt: skip
     memory_line = check_fwi_memory(cfg, plan)
     plan.reasons["memory"] = memory_line
+    if "density" in plan.reasons and {"rho", "ip"} & set(_inverted(cfg)):  # (acoustic_vd) the start model's contrasts say nothing
+        plan.reasons["density"] = (f"inverted ({', '.join(_inverted(cfg))}): whether the result needs the density is for the "
+                                   f"inverted model to say, not the start model")
     weights = _check_weights(cfg, plan)
     scene = build_scene(fwd, plan)
     observed = read_observed(cfg.observed, scene, fwd.geometry, bands=inv.bands) if cfg.observed is not None else None
     if observed is not None:
         _check_observed_selected(cfg, observed, weights)
     if getattr(cfg, "parallel", None) is not None:  # scheduler reachable, devices present, not more workers than shots
-        check_parallel(cfg.parallel, plan.device, fwd.n_shots)
+        check_pool(cfg.parallel, plan.device, fwd.n_shots)
     net = getattr(cfg, "network", None)
     network = None if net is None else MLP(plan.shape, v0=net["v0"], scale=net["scale"], hidden=net["hidden"], seed=net["seed"], zero_output=True)
     space = ModelSpace(physics, _start_models(scene.model, physics), _inverted(cfg), inv.parameterization, bounds_of, network,
@@ -386,10 +394,10 @@ def _observed(cfg, prep: Prepared, rundir: Path, progress, sim: Simulator | None
             raise ValueError(f"--resume: {path} cannot be read ({type(e).__name__}: {e}); delete it to simulate or read the "
                              f"observed data again, or start a new run directory") from None
     scene, p = prep.scene, prep.plan
-    if _physics(cfg) == "elastic":  # a synthetic study (the config refuses observed files with elastic physics)
+    if _physics(cfg) != "acoustic":  # a synthetic study (the config refuses observed files with the elastic solver)
         true = cfg.true_model.resample(p.dx, p.origin, p.shape)
-        log.info("simulating observed data from the true model (%d shots, elastic)", len(scene.source_amplitudes))
-        data = sim.forward(_start_models(true, "elastic"), p.dx, p.dt, scene.source_amplitudes, scene.source_locations,
+        log.info("simulating observed data from the true model (%d shots, %s)", len(scene.source_amplitudes), _physics(cfg))
+        data = sim.forward(_start_models(true, _physics(cfg)), p.dx, p.dt, scene.source_amplitudes, scene.source_locations,
                            scene.receiver_locations, progress=progress)  # fmt: skip
         data = {c: np.asarray(d, float) for c, d in data.items()}
 
@@ -535,13 +543,13 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
     """Run (or resume, when rundir holds journals) the inversion described by cfg, an FWIConfig
     (config.load_fwi_config), writing model.h5, history.h5, the log and PNGs into the folder rundir. Returns the
     FWIResult: the inverted model (nz, [ny,] nx) in m/s on the simulation grid (spacing dx m, origin m).
-    With a `parallel:` section (cfg.parallel) the shots of every evaluation run on Dask workers
-    (solve.distributed.ShotPool, one shot per batch unless inversion.shots_per_batch says otherwise)."""
+    With a `parallel:` section (cfg.parallel) the shots of every evaluation run on Dask workers or on the threads of
+    several devices (solve.pools.open_pool, one shot per batch unless inversion.shots_per_batch says otherwise)."""
     t_start = time.perf_counter()
     prep = prepared or prepare_fwi(cfg)
     if getattr(cfg, "parallel", None) is None:
         return _run_fwi(cfg, rundir, progress, prep, t_start, None)
-    with ShotPool(cfg.parallel, prep.plan.device, cfg.forward.n_shots) as pool:
+    with open_pool(cfg.parallel, prep.plan.device, cfg.forward.n_shots, progress) as pool:
         return _run_fwi(cfg, rundir, progress, prep, t_start, pool)
 
 
@@ -624,7 +632,7 @@ def make_objective(space: ModelSpace, sim: Simulator, plan, amp, src, rec, obser
         pt = space.point(xv)
         loss, illum = 0.0, np.zeros(shape) if want_illum else None
         grads = {k: np.zeros(shape) for k in wrt}
-        if pool is not None:  # the batches on the Dask workers (acoustic), summed here in batch order (float64)
+        if pool is not None:  # the batches on the workers or devices (acoustic), summed here in batch order (float64)
             t = time.perf_counter()
             rs = pool.evaluate(pt.physical["vp"], {"dx": plan.dx, "dt": plan.dt, "misfit": inv.misfit, "illumination": want_illum, "kw": sim.kw})
             tm.now["gradient"] += time.perf_counter() - t  # (the workers' misfits counted as simulation)
@@ -696,6 +704,7 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     results = []
     last = {}  # the latest gradient (accepted iterate) and data residual of shot 0, for the figures
     weights = data_weights(scene, inv, fwd.geometry)
+    figures = plotting.Background()  # each band's figures are drawn while the next band runs
     for b, band in enumerate(inv.bands):
         wavelet = band_pass(scene.wavelet, p.dt, band)
         obs_b = {c: band_pass(o, p.dt, band) for c, o in obs.items()}
@@ -711,7 +720,7 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
         scale = json.loads(scale_path.read_text()) if scale_path.exists() else {}
         if pool is not None:  # each batch's data stay on a worker for the band; an evaluation sends only the model
             pool.keep([{"amplitudes": amp[sl], "sources": scene.source_locations[sl], "receivers": scene.receiver_locations[sl],
-                        "weights": weights[sl], "observed": weights[sl] * obs_b["data"][sl], "first": sl.start} for sl in batches])  # fmt: skip
+                        "weights": weights[sl], "observed": obs_b["data"][sl], "first": sl.start} for sl in batches])  # fmt: skip
 
         timing = _EvaluationTimes(b, history)
         objective = make_objective(space, sim, p, amp, scene.source_locations, scene.receiver_locations, obs_b, weights, batches,
@@ -731,7 +740,8 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
         log.info("band %d done: %s after %d iterations, %d evaluations", b, res.stop_reason, res.iterations, res.evaluations)
         t_fig = time.perf_counter()
         if "gradient" in last and "residual" in last:  # (a run resumed after its last band has no residual)
-            _figures(rundir, history, space, space.point(res.x), last, p, fwd, b, inv.bands)
+            drawn = {"gradient": {k: np.array(v) for k, v in last["gradient"].items()}, "residual": np.array(last["residual"])}
+            figures.submit(_figures, rundir, history.misfits(), space, space.point(res.x), drawn, p, fwd, b, inv.bands)
         timing.summary(figures=time.perf_counter() - t_fig)
         results.append({"band": format_band(*band), "f_low_hz": band[0], "f_high_hz": band[1], "iterations": res.iterations, "evaluations": res.evaluations,
                         "misfit": res.f, "stop_reason": res.stop_reason})  # fmt: skip
@@ -743,6 +753,7 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
         out.errors = _model_errors(cfg, space, p, start, final, region_mask)
     if space.physics == "acoustic":
         _write_synthetic_asdf(rundir, fwd, scene, p, final["vp"], progress)
+    figures.wait()  # before summary.json, which marks the run complete
     _write_result(rundir, out, fwd, space)
     return out
 
@@ -834,7 +845,7 @@ def _write_result(rundir: Path, res: FWIResult, fwd, space: ModelSpace | None = 
     """model.h5: acoustic the datasets model and start_model (m/s); elastic vp, vs (m/s), rho (kg/m^3) and
     start_vp, start_vs, start_rho, each with its units attribute, and the attribute inverted (the quantities the
     inversion changed); summary.json: bands, errors, seconds."""
-    elastic = space is not None and space.physics == "elastic"
+    elastic = space is not None and space.physics != "acoustic"
 
     def fill(f):
         if elastic:
@@ -853,13 +864,13 @@ def _write_result(rundir: Path, res: FWIResult, fwd, space: ModelSpace | None = 
     write_text_atomic(rundir / "summary.json", json.dumps({"bands": res.bands, "errors": res.errors, "seconds": res.seconds}, indent=2))
 
 
-def _figures(rundir: Path, history: _History, space: ModelSpace, pt, last, plan, fwd, b, bands):
+def _figures(rundir: Path, misfits, space: ModelSpace, pt, last, plan, fwd, b, bands):
     """After band b of bands: the model and the last gradient (acoustic model.png, gradient.png; elastic one
     model_<name>.png and gradient_<name>.png per inverted quantity), residual.png (shot 0, observed - synthetic of
-    the first channel, against receiver position in m, a panel per receiver line) and misfit.png. 3D: the x-z slice
-    through the middle of y, sources and receivers projected onto it."""
-    from adseismic import plotting
-
+    the first channel, against receiver position in m, a panel per receiver line) and misfit.png (misfits: the
+    history's rows). 3D: the x-z slice through the middle of y, sources and receivers projected onto it. Runs on
+    the figures' thread (plotting.Background): it logs its own time."""
+    t0 = time.perf_counter()
     name = f"band {b} ({format_band(*bands[b])})"
     origin2 = (plan.origin[0], plan.origin[-1])
     mid = (lambda a: a) if len(space.shape) == 2 else (lambda a: a[:, a.shape[1] // 2])
@@ -874,4 +885,5 @@ def _figures(rundir: Path, history: _History, space: ModelSpace, pt, last, plan,
     plotting.plot_gather(rundir / "residual.png", last["residual"], plan.dt, rec, source=src[0], quantity="residual",
                          title=f"shot 0 residual (observed - synthetic, muted and windowed), {name}\n"
                                f"source (star) at {format_position(src[0])}")  # fmt: skip
-    plotting.plot_misfit(rundir / "misfit.png", history.misfits(), labels={i: format_band(*bb) for i, bb in enumerate(bands)})
+    plotting.plot_misfit(rundir / "misfit.png", misfits, labels={i: format_band(*bb) for i, bb in enumerate(bands)})
+    log.info("band %d figures: %.3f s on the figures' thread (beside the run)", b, time.perf_counter() - t0)

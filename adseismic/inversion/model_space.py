@@ -15,8 +15,9 @@ x -> m -> q -> physical, arrays (nz, [ny,] nx) on the simulation grid:
   for m/s, kg/m^3 and Pa (a raw vector mixing 2000 m/s and 8e9 Pa would make the Hessian's diagonal span 1e13
   and L-BFGS would move only the Pa entries). Fixed references, not the start model's means, keep the acoustic
   path's x = v / 1000 m/s (and its regularisation weights) exactly as before;
-- parameterisation (q -> physical): "vp-vs-rho" (identity) or "lambda-mu-rho" (vp = sqrt((lambda + 2 mu) / rho),
-  vs = sqrt(mu / rho)); quantities not inverted stay at the start model's values. The elastic solver needs
+- parameterisation (q -> physical): "vp-vs-rho" (identity), "lambda-mu-rho" (vp = sqrt((lambda + 2 mu) / rho),
+  vs = sqrt(mu / rho)) or, for acoustic_vd (a fluid, vs = 0 throughout), "ip-rho" (vp = ip / rho, the acoustic
+  impedance ip = rho vp); quantities not inverted stay at the start model's values. The elastic solver needs
   vs <= vp / sqrt(2) (lambda >= 0): in vp-vs-rho a box on vp and vs cannot say that, so vs is clamped to
   vp / sqrt(2) (1 - 1e-9) with the clamp's exact (sub)gradient; the nn representation clips v into its bounds
   (the plan's velocity range, so every model is stable), with zero gradient outside.
@@ -33,15 +34,19 @@ from dataclasses import dataclass
 import numpy as np
 
 V_REF = 1000.0  # m/s
-REFERENCE = {"vp": V_REF, "vs": V_REF, "rho": 1000.0, "lambda": 1e9, "mu": 1e9}  # m/s, m/s, kg/m^3, Pa, Pa
-UNITS = {"vp": "m/s", "vs": "m/s", "rho": "kg/m^3", "lambda": "Pa", "mu": "Pa"}
-PHYSICS_PARAMETERS = {"acoustic": ("vp",), "elastic": ("vp", "vs", "rho")}
-PARAMETERIZATIONS = {"vp-vs-rho": ("vp", "vs", "rho"), "lambda-mu-rho": ("lambda", "mu", "rho")}
+REFERENCE = {"vp": V_REF, "vs": V_REF, "rho": 1000.0, "lambda": 1e9, "mu": 1e9, "ip": 1e6}  # m/s, m/s, kg/m^3, Pa, Pa, kg/(m^2 s)
+UNITS = {"vp": "m/s", "vs": "m/s", "rho": "kg/m^3", "lambda": "Pa", "mu": "Pa", "ip": "kg/(m^2 s)"}
+# the solver's parameters per physics (acoustic_vd runs on the elastic solver with vs = 0 and never inverts vs)
+PHYSICS_PARAMETERS = {"acoustic": ("vp",), "elastic": ("vp", "vs", "rho"), "acoustic_vd": ("vp", "vs", "rho")}
+PARAMETERIZATIONS = {"vp-vs-rho": ("vp", "vs", "rho"), "lambda-mu-rho": ("lambda", "mu", "rho"), "ip-rho": ("ip", "rho")}
 _VS_MAX = (1.0 - 1e-9) / math.sqrt(2.0)  # vs <= vp / sqrt(2): lambda >= 0 (the elastic solver's check)
 
 
 def quantities_of(physical: dict, parameterization: str) -> dict:
     """The parameterisation's quantities {name: array} of physical {vp, [vs, rho]} (m/s, kg/m^3)."""
+    if parameterization == "ip-rho":
+        vp, rho = (np.asarray(physical[k], float) for k in ("vp", "rho"))
+        return {"ip": rho * vp, "rho": rho}
     if parameterization != "lambda-mu-rho":
         return {k: np.asarray(v, float) for k, v in physical.items()}
     vp, vs, rho = (np.asarray(physical[k], float) for k in ("vp", "vs", "rho"))
@@ -63,7 +68,7 @@ class Point:
 class ModelSpace:
     """The inverted part of a model and its map to the physics (module docstring).
 
-    physics "acoustic" | "elastic"; start {vp, [vs, rho]} (nz, [ny,] nx) m/s, kg/m^3; names: the inverted
+    physics "acoustic" | "elastic" | "acoustic_vd"; start {vp, [vs, rho]} (nz, [ny,] nx) m/s, kg/m^3; names: the inverted
     quantities (of PARAMETERIZATIONS[parameterization], or ("vp",) for acoustic); bounds {name: (min, max)} in
     the quantity's unit (each inverted name has one); network: an inversion.parameterization.MLP (acoustic vp only)
     or None for pixels."""
@@ -146,6 +151,8 @@ class ModelSpace:
         if self.parameterization == "lambda-mu-rho":
             lam, mu, rho = q["lambda"], q["mu"], q["rho"]
             return Point(m, q, {"vp": np.sqrt((lam + 2 * mu) / rho), "vs": np.sqrt(mu / rho), "rho": rho})
+        if self.parameterization == "ip-rho":  # a fluid: vs = 0
+            return Point(m, q, {"vp": q["ip"] / q["rho"], "vs": np.zeros(self.shape), "rho": q["rho"]})
         clamped = q["vs"] > _VS_MAX * q["vp"]
         return Point(m, q, {"vp": q["vp"], "vs": np.where(clamped, _VS_MAX * q["vp"], q["vs"]), "rho": q["rho"]}, vs_clamped=clamped)
 
@@ -159,6 +166,9 @@ class ModelSpace:
             vp, vs, rho = pt.physical["vp"], pt.physical["vs"], pt.physical["rho"]
             gvp, gvs = g["vp"] / (2 * rho * vp), g["vs"] / (2 * rho * vs)  # dJ/dvp dvp/d(lambda + 2 mu), dJ/dvs dvs/dmu
             gq = {"lambda": gvp, "mu": 2 * gvp + gvs, "rho": g["rho"] - gvp * vp**2 - gvs * vs**2}
+        elif self.parameterization == "ip-rho":  # vp = ip / rho
+            rho = pt.physical["rho"]
+            gq = {"ip": g["vp"] / rho, "rho": g["rho"] - g["vp"] * pt.physical["vp"] / rho}
         else:
             c = pt.vs_clamped
             gq = {"vp": g["vp"] + np.where(c, _VS_MAX * g["vs"], 0.0), "vs": np.where(c, 0.0, g["vs"]), "rho": g["rho"]}
@@ -191,4 +201,6 @@ class ModelSpace:
         if self.parameterization == "lambda-mu-rho":
             vp = (math.sqrt((lo["lambda"] + 2 * lo["mu"]) / hi["rho"]), math.sqrt((hi["lambda"] + 2 * hi["mu"]) / lo["rho"]))
             return {"vp": vp, "vs": (math.sqrt(lo["mu"] / hi["rho"]), math.sqrt(hi["mu"] / lo["rho"]))}
+        if self.parameterization == "ip-rho":
+            return {"vp": (lo["ip"] / hi["rho"], hi["ip"] / lo["rho"]), "vs": (0.0, 0.0)}
         return {"vp": (lo["vp"], hi["vp"]), "vs": (lo["vs"], min(hi["vs"], _VS_MAX * hi["vp"]))}

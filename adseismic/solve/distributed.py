@@ -17,6 +17,12 @@ evaluation, only the model (`evaluate`):
   float64 in that order (as the single-process loop does), so the result does not depend on the number of workers
   or on which worker ran what.
 
+solve.pools.open_pool gives a ShotPool or, for `engine: threads`, a solve.devices.DevicePool (one thread and one
+stream per device in this process, no Dask) with the same face; batch_gradient (fwi) and batch_forward
+(`adseismic forward` with a parallel section) are the tasks of both, gather_forward and reduce_in_order put their
+results together in shot order, and count_batches follows them over the workers (one bar and one log line per
+evaluation).
+
 Each worker initialises Warp itself (solve.common.init_warp, through the gradient's setup); CPU kernels compile once
 per process into the shared kernel cache. Dask is imported only here and only when a pool is used: the package runs
 without it when a config has no `parallel:` section.
@@ -24,8 +30,11 @@ without it when a config has no `parallel:` section.
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import logging
 import os
+import sys
 import time
 import uuid
 
@@ -163,39 +172,90 @@ def _my_device(devices: dict, default: str) -> str:
         return default
 
 
+def _device_of(params) -> str:
+    """The batch's device: this Dask worker's (params["devices"], by worker name), else params["device"]."""
+    return _my_device(params["devices"], params["device"]) if "devices" in params else params["device"]
+
+
 def batch_gradient(model, data, params) -> dict:
-    """The acoustic misfit and velocity gradient of one shot batch (a Dask task). data: {amplitudes, sources,
-    receivers, weights, observed (weights x observed), first (the batch's first shot)}; params: {dx, dt, misfit
-    (a name of solve.misfits.MISFITS), illumination, kw (solve.acoustic.gradient's keywords), devices, device}.
-    The weighted misfit is that of inversion.fwi's single-process loop, operation for operation."""
+    """The acoustic misfit and velocity gradient of one shot batch (a task of a ShotPool or a DevicePool). data:
+    {amplitudes, sources, receivers, weights, observed (both (n_shots, n_receivers, nt): NumPy arrays, or float64
+    Warp arrays on the batch's device, a DevicePool's resident data), first (the batch's first shot)}; params: {dx,
+    dt, misfit (a name of solve.misfits.MISFITS), illumination, kw (solve.acoustic.gradient's keywords), device,
+    [devices]}. The weighted misfit is that of inversion.fwi's single-process loop, operation for operation: "l2"
+    of resident data formed on the device, any other on the host."""
+    import warp as wp
+
     from adseismic.solve.acoustic import gradient
     from adseismic.solve.misfits import misfit as named_misfit
 
     w, o = data["weights"], data["observed"]
     spent = [0.0]
+    kw = dict(params["kw"], device=_device_of(params))
+    if isinstance(o, wp.array) and params["misfit"] == "l2":  # resident: the weighted residual formed on the device
+        misfit = {"observed": o, "weights": w, "misfit": "l2"}
+    else:
+        w, o = (a.numpy() if isinstance(a, wp.array) else a for a in (w, o))
 
-    def weighted(syn):
-        t = time.perf_counter()
-        j, adj = named_misfit(params["misfit"], w * syn, o, params["dt"])
-        adj = w * adj
-        spent[0] += time.perf_counter() - t
-        return j, adj
+        def weighted(syn):
+            t = time.perf_counter()
+            j, adj = named_misfit(params["misfit"], w * syn, w * o, params["dt"])
+            adj = w * adj
+            spent[0] += time.perf_counter() - t
+            return j, adj
+
+        misfit = {"misfit": weighted}
+    t = time.perf_counter()
+    r = gradient(model, params["dx"], params["dt"], data["amplitudes"], data["sources"], data["receivers"],
+                 illumination=params["illumination"], **misfit, **kw)  # fmt: skip
+    syn0 = None
+    if data["first"] == 0:
+        syn0 = r.synthetic[0].numpy() if isinstance(r.synthetic, wp.array) else r.synthetic[0]
+    return {"loss": r.loss, "velocity": r.velocity, "illumination": r.illumination, "first": data["first"],
+            "synthetic0": None if syn0 is None else np.asarray(syn0, float), "seconds": time.perf_counter() - t,
+            "misfit_seconds": spent[0], "pid": os.getpid()}  # fmt: skip
+
+
+def batch_forward(model, data, params) -> dict:
+    """The forward run of one shot batch (a task of either pool): {first, result (scene.run_forward's: a
+    ForwardResult, or an ElasticResult for physics elastic)}. model: {vp[, vs, rho]} (m/s, kg/m^3); data: {amplitudes,
+    sources, receivers, [source_components], first}; params: {dx, dt, kw (the solver's keywords), snapshot_every,
+    source_type, device, [devices]}."""
+    kw = dict(params["kw"], device=_device_of(params), progress=False)
+    if "vs" in model:
+        from adseismic.solve.elastic import forward_elastic
+
+        r = forward_elastic(model["vp"], model["vs"], model["rho"], params["dx"], params["dt"], data["amplitudes"], data["sources"],
+                            data["receivers"], source_type=params["source_type"], source_components=data["source_components"],
+                            **kw)  # fmt: skip
+    else:
+        from adseismic.solve.acoustic import forward
+
+        r = forward(model["vp"], params["dx"], params["dt"], data["amplitudes"], data["sources"], data["receivers"],
+                    snapshot_every=params["snapshot_every"], **kw)  # fmt: skip
+    return {"first": data["first"], "result": r}
+
+
+def count_batches(completions, total: int, desc: str, n_workers: int, progress: bool) -> None:
+    """Follow one evaluation: a bar over its `total` shot batches, advanced as each finishes on any worker
+    (completions: an iterator yielding once per finished batch; a terminal only, with progress), then one log line
+    (the run's log file, e.g. fwi.log) with the batches, the workers and the wall time."""
+    from adseismic.runs import progress_bar
 
     t = time.perf_counter()
-    kw = dict(params["kw"], device=_my_device(params["devices"], params["device"]))
-    r = gradient(model, params["dx"], params["dt"], data["amplitudes"], data["sources"], data["receivers"], misfit=weighted,
-                 illumination=params["illumination"], **kw)  # fmt: skip
-    return {"loss": r.loss, "velocity": r.velocity, "illumination": r.illumination, "first": data["first"],
-            "synthetic0": r.synthetic[0] if data["first"] == 0 else None, "seconds": time.perf_counter() - t,
-            "misfit_seconds": spent[0], "pid": os.getpid()}  # fmt: skip
+    bar = progress_bar(total=total, desc=desc, unit="batch", enabled=progress and sys.stderr.isatty())
+    with contextlib.closing(bar):
+        for _ in completions:
+            bar.update(1)
+    log.info("%s: %d shot batch(es) on %d worker(s) in %.2f s", desc, total, n_workers, time.perf_counter() - t)
 
 
 class ShotPool:
     """A Dask client and its workers for one run; use as a context manager (closes the cluster it started)."""
 
-    def __init__(self, par, sim_device: str, n_shots: int):
+    def __init__(self, par, sim_device: str, n_shots: int, progress: bool = False):
         distributed = _import_dask()
-        self.par, self.cluster, self.token = par, None, uuid.uuid4().hex[:12]
+        self.par, self.cluster, self.token, self.progress = par, None, uuid.uuid4().hex[:12], progress
         # distributed's nanny writes its workers' settings (OMP/MKL/OPENBLAS_NUM_THREADS=1, MALLOC_TRIM_THRESHOLD_) into
         # this process's os.environ and leaves them there: every process started later (a forward, a resumed fwi in a
         # subprocess) would then run one BLAS thread where it ran several, and its sums would differ in the last bit.
@@ -245,17 +305,34 @@ class ShotPool:
                                            workers=[addrs[k % len(addrs)]], allow_other_workers=True)
                         for k, d in enumerate(batches)]  # fmt: skip
 
-    def evaluate(self, model, params: dict, fn=batch_gradient) -> list[dict]:
-        """fn(model, batch data, params) for every kept batch on the workers; the results in batch order."""
+    def evaluate(self, model, params: dict, fn=batch_gradient, desc: str | None = None) -> list[dict]:
+        """fn(model, batch data, params) for every kept batch on the workers; the results in batch order. model: an
+        array or a dict of arrays, sent once; desc: the progress's name (default "evaluation K")."""
+        distributed = _import_dask()
         self.evaluations += 1
         tag = f"{self.token}-{self.generation}-{self.evaluations}"
         params = dict(params, devices=self.devices, device=params.get("device", self.default_device))
-        model = self.client.submit(_identity, np.asarray(model), key=f"adseismic-model-{tag}")
+        model = self.client.submit(_identity, model, key=f"adseismic-model-{tag}")
         futures = [self.client.submit(fn, model, d, params, key=f"adseismic-eval-{tag}-{k}") for k, d in enumerate(self.futures)]
         try:
+            done = distributed.as_completed(futures, loop=self.client.loop)
+            count_batches(done, len(futures), desc or f"evaluation {self.evaluations}", len(self.devices), self.progress)
             return self.client.gather(futures)
         finally:
             del futures, model
+
+
+def gather_forward(results: list[dict]):
+    """The batches' batch_forward results (batch order, consecutive shots) as the result of all shots at once, in shot
+    order: every array with a shot axis concatenated (receiver data and vx, vz, pressure on axis 0, snapshots on
+    axis 1); dt and snapshot_times those of the first batch."""
+    rs = [r["result"] for r in results]
+    joined = {}
+    for f in dataclasses.fields(rs[0]):
+        if f.name in ("dt", "snapshot_times") or getattr(rs[0], f.name) is None:
+            continue
+        joined[f.name] = np.concatenate([getattr(r, f.name) for r in rs], axis=1 if f.name == "snapshots" else 0)
+    return dataclasses.replace(rs[0], **joined)
 
 
 def reduce_in_order(results: list[dict], shape) -> tuple:

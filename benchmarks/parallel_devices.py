@@ -1,0 +1,120 @@
+"""Several devices for one FWI evaluation (issue 25, items 4 and 6): the wall time of one misfit + gradient evaluation
+of SHOTS shots (2D, N x N grid, dx 10 m, NT steps) in one process on one device (fwi's plain loop over shot batches,
+observed data and weights resident there, "l2" formed on the device), on 1, 2, ... devices with the threads engine
+(adseismic.solve.devices.DevicePool: a thread and a stream per device in this process) and on 1 and all devices with
+Dask (solve.distributed.ShotPool, a LocalCluster worker process per device; skipped without dask). Each time is the
+best of REPEATS warm evaluations (a first one builds the kernels and captures the graphs); every path's gradient is
+compared with the plain one. Prints the efficiency of N devices against the plain path, T1 / (N x TN), and the
+overhead of each pool on one device against it.
+
+    python benchmarks/parallel_devices.py                       # every GPU of this host (32 shots, < 3 min on H100s)
+    python benchmarks/parallel_devices.py --device cpu --cpus 2 --shots 4 --n 150 --nt 800   # CPU threads
+"""
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from adseismic.config.parallel import ParallelConfig  # noqa: E402
+from adseismic.solve import distributed  # noqa: E402
+from adseismic.solve.acoustic import forward, gradient  # noqa: E402
+from adseismic.solve.batch import shot_slices  # noqa: E402
+from adseismic.solve.common import init_warp  # noqa: E402
+from adseismic.solve.devices import DevicePool  # noqa: E402
+from adseismic.wavelets import ricker  # noqa: E402
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--shots", type=int, default=32)
+    ap.add_argument("--n", type=int, default=400, help="cells per side (dx 10 m)")
+    ap.add_argument("--nt", type=int, default=1000)
+    ap.add_argument("--device", default=None, help="cuda (every GPU; the default where there is one) or cpu")
+    ap.add_argument("--gpus", type=int, default=None, help="use the first GPUS GPUs (default all)")
+    ap.add_argument("--cpus", type=int, default=2, help="--device cpu: the CPU device threads / Dask workers")
+    ap.add_argument("--per-batch", type=int, default=1, help="shots per batch (inversion.shots_per_batch)")
+    ap.add_argument("--precision", default="float32")
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--no-dask", action="store_true", help="skip the Dask rows")
+    args = ap.parse_args()
+
+    init_warp()
+    import warp as wp
+
+    n_gpu = wp.get_cuda_device_count()
+    cpu = args.device == "cpu" or (args.device is None and n_gpu == 0)
+    devices = ["cpu"] * args.cpus if cpu else [f"cuda:{i}" for i in range(args.gpus or n_gpu)]
+    if not devices:
+        sys.exit("no CUDA device: give --device cpu")
+    n, dx, dt, nt, S = args.n, 10.0, 1e-3, args.nt, args.shots
+    z, x = np.meshgrid(np.arange(n) * dx, np.arange(n) * dx, indexing="ij")
+    v0 = np.full((n, n), 2000.0)
+    v_true = v0 + 200.0 * np.exp(-((z - n * dx / 2) ** 2 + (x - n * dx / 2) ** 2) / (2 * (n * dx / 8) ** 2))
+    src = np.stack([[[20.0, xs]] for xs in np.linspace(0.05, 0.95, S) * (n - 1) * dx])
+    rec = np.broadcast_to(np.stack([np.full(n // 2, 10.0), np.linspace(0, (n - 1) * dx, n // 2)], axis=1), (S, n // 2, 2)).copy()
+    amp = np.broadcast_to(ricker(12.0, nt, dt), (S, 1, nt)).copy()
+    kw = dict(order=4, pml_width=20, device=devices[0], precision=args.precision, pml_frequency=6.0, pml_velocity=2400.0)
+    t = time.perf_counter()
+    obs = forward(v_true, dx, dt, amp, src, rec, **kw).receiver_amplitudes.astype(float)
+    w = np.ones_like(obs)
+    print(f"{S} shots, {n} x {n} cells, {nt} steps, {args.precision}, {args.per_batch} shot(s) per batch; devices "
+          f"{', '.join(devices)}; observed data simulated in {time.perf_counter() - t:.1f} s")  # fmt: skip
+    slices = shot_slices(S, args.per_batch)
+    batches = [{"amplitudes": amp[sl], "sources": src[sl], "receivers": rec[sl], "weights": w[sl], "observed": obs[sl],
+                "first": sl.start} for sl in slices]  # fmt: skip
+    params = {"dx": dx, "dt": dt, "misfit": "l2", "illumination": False, "kw": kw}
+    resident = [tuple(wp.array(a[sl], dtype=wp.float64, device=devices[0]) for a in (obs, w)) for sl in slices]
+
+    def plain():  # fwi's single-process loop: one batch after the other on one device, data resident there
+        loss, grad = 0.0, np.zeros(v0.shape)
+        for sl, (o, ww) in zip(slices, resident):
+            r = gradient(v0, dx, dt, amp[sl], src[sl], rec[sl], o, weights=ww, **kw)
+            loss, grad = loss + r.loss, grad + r.velocity
+        return loss, grad
+
+    def best(fn):
+        out = fn()  # warm: kernels built, graphs captured
+        times = []
+        for _ in range(args.repeats):
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+        return min(times), out
+
+    t1, (loss1, grad1) = best(plain)
+    rows = [("one process, one device (plain)", 1, t1, 0.0)]
+
+    def pooled(name, pool, nd):
+        with pool:
+            pool.keep(batches)
+            tn, (loss, grad, _) = best(lambda: distributed.reduce_in_order(pool.evaluate(v0, params), v0.shape))
+        rows.append((name, nd, tn, float(np.linalg.norm(grad - grad1) / np.linalg.norm(grad1))))
+
+    for nd in range(1, len(devices) + 1):
+        pooled(f"threads, {nd} device(s)", DevicePool(ParallelConfig(engine="threads", devices=devices[:nd]), devices[0], S), nd)
+    try:
+        import distributed as _  # noqa: F401
+
+        dask = not args.no_dask
+    except ImportError:
+        dask = False
+    for nd in sorted({1, len(devices)}) if dask else ():
+        pooled(f"Dask, {nd} worker(s)", distributed.ShotPool(ParallelConfig(devices=devices[:nd]), devices[0], S), nd)
+
+    print("| path | devices | s an evaluation | efficiency T1 / (N TN) | gradient vs plain (rel. L2) |")
+    print("|---|---|---|---|---|")
+    for name, nd, tn, err in rows:
+        print(f"| {name} | {nd} | {tn:.3f} | {t1 / (nd * tn):.0%} | {err:.1e} |")
+    one = {name.split(",")[0]: tn for name, nd, tn, _ in rows if nd == 1 and "plain" not in name}
+    print("overhead on one device against the plain path: "
+          + ", ".join(f"{k} {v / t1 - 1:+.1%}" for k, v in one.items()) + f"; load average {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
