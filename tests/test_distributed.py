@@ -21,7 +21,7 @@ from adseismic.config.parallel import ParallelConfig
 from adseismic.solve import distributed
 
 from .test_fwi import TINY
-from .test_parallel_threads import Problem, write
+from .test_parallel_threads import Problem, assert_fwi_iterates_do_not_depend_on, write
 
 PARALLEL = {"engine": "dask", "scheduler": "local", "devices": ["cpu", "cpu"]}
 
@@ -83,20 +83,7 @@ def test_a_worker_killed_during_an_evaluation_still_gives_the_gradient(problem, 
 
 @pytest.mark.slow
 def test_fwi_iterates_do_not_depend_on_the_workers(tmp_path):
-    cfg = dict(TINY, inversion=dict(TINY["inversion"], iterations=2, bands=[4.0], shots_per_batch=1))
-    one, two = tmp_path / "one", tmp_path / "two"
-    assert main(["fwi", str(write(tmp_path, cfg, "one.yaml")), "-o", str(one), "-q"]) == 0
-    assert main(["fwi", str(write(tmp_path, dict(cfg, parallel=PARALLEL), "two.yaml")), "-o", str(two), "-q"]) == 0
-    log = (two / "fwi.log").read_text()
-    assert "2 Dask worker(s)" in log
-    assert "evaluation 1: 3 shot batch(es) on 2 worker(s) in" in log  # progress over the workers, in fwi.log
-    with h5py.File(one / "history.h5") as a, h5py.File(two / "history.h5") as b:
-        assert sorted(a["band0"]) == sorted(b["band0"]) == ["iter0001", "iter0002"]
-        for it in a["band0"]:
-            np.testing.assert_allclose(b[f"band0/{it}/model"][...], a[f"band0/{it}/model"][...], rtol=1e-12, atol=0)
-            assert b[f"band0/{it}"].attrs["misfit"] == pytest.approx(a[f"band0/{it}"].attrs["misfit"], rel=1e-12)
-    with h5py.File(one / "model.h5") as a, h5py.File(two / "model.h5") as b:
-        np.testing.assert_allclose(b["model"][...], a["model"][...], rtol=1e-12, atol=0)
+    assert "2 Dask worker(s)" in assert_fwi_iterates_do_not_depend_on(PARALLEL, tmp_path, rtol=1e-12)
 
 
 def free_port():
