@@ -121,6 +121,34 @@ def test_a_signal_landing_in_a_finaliser_still_interrupts(sig, capsys):
     assert "Exception ignored" not in capsys.readouterr().err
 
 
+def test_an_interrupt_in_a_threaded_cpu_step_leaves_no_worker_waiting():
+    """A SIGTERM landed in the main thread's share of a threaded CPU step before its barrier: the worker waited there
+    for ever and the interpreter's exit, which joins it, hung (a locate run stopped by `timeout` never exited). The
+    step breaks the barrier on whatever stops the main thread, so the worker fails at once and is free again."""
+    import threading
+
+    import warp as wp
+
+    from adseismic.kernels.acoustic import propagator
+    from adseismic.solve.common import init_warp
+
+    init_warp()
+    prop = propagator.Acoustic((16, 16), 1.0, 0.1, 4, 1, 0, 1e-3, 10.0, 1.0, dtype=wp.float32, device="cpu")
+    prop.threads = 2
+    at_barrier = threading.Event()
+
+    def job(i, barrier):
+        if i == 0:
+            at_barrier.wait(5)
+            raise KeyboardInterrupt  # as the handler of a signal would, in the main thread, before the barrier
+        at_barrier.set()
+        barrier.wait()
+
+    with pytest.raises(KeyboardInterrupt):
+        prop._split(job)
+    assert prop._pool.submit(lambda: "free").result(timeout=5) == "free"  # the worker left the broken barrier
+
+
 def test_progress_in_a_log_is_lines_not_a_bar(caplog, capsys):
     with caplog.at_level(logging.INFO, logger=log.name):
         bar = progress_bar(total=100, desc="time steps", unit="steps")

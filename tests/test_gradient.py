@@ -203,6 +203,22 @@ def test_hand_adjoint_matches_warp_generated(order, shape, free_surface):
         assert np.abs(a - b).max() <= 1e-12 * np.abs(a).max()
 
 
+@pytest.mark.skipif(DEVICE != "cpu", reason="the CPU's threaded steps")
+def test_cpu_threads_do_not_change_the_gradient(monkeypatch):
+    # A CPU step is split among threads (forward: row blocks; adjoint: the tiles shared, the frame, whose CPML
+    # adjoints scatter with Warp's CPU atomics, which are plain adds, in one thread): bitwise the single-thread result.
+    from adseismic.kernels.acoustic import propagator
+
+    v, s, src, rec, obs = problem()
+    runs = []
+    for threads in (1, 3):
+        monkeypatch.setattr(propagator, "CPU_THREADS", threads)
+        monkeypatch.setattr(propagator.os, "cpu_count", lambda: 3)
+        runs.append(gradient(v, DX, DT, s, src, rec, obs, free_surface=True, wrt=G.WRT))
+    for k in ("loss", *G.WRT):
+        assert np.array_equal(getattr(runs[0], k), getattr(runs[1], k)), k
+
+
 @pytest.mark.parametrize("weighted", [False, True])
 def test_l2_formed_on_the_device_equals_the_host_misfit(weighted):
     """observed (and weights) given as device arrays: the "l2" residual and loss are formed by a kernel where the data

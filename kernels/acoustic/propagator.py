@@ -55,6 +55,7 @@ from adseismic.kernels.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 # (docs/benchmarks.md, "Layout timings")
 GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS = 4, 2, 128
 CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over row blocks of a CPU step
+FRAME_CELL_COST = 2.0  # a CPU adjoint step: the time of a frame cell (the per-cell gather, CPML) over a tile's cell
 
 
 @functools.lru_cache(maxsize=None)
@@ -1428,13 +1429,36 @@ class Acoustic:
 
     def _merged(self, kernel, inputs, box, frame_cells: int, part=None):
         """Launch a core-and-frame kernel (_step_core, _adjoint_core) over the tiles of `box`, then, from
-        a block boundary, the frame's cells; part "core" or "frame": only that part (for timing)."""
+        a block boundary, the frame's cells; part "core" or "frame": only that part (for timing). On a CPU
+        the work is split among the step's threads: the frame's cells in one (their CPML adjoints scatter with
+        atomics, which are plain adds on a CPU), the tiles (each writes only its own cells) shared so that the
+        threads' work is about equal, a frame cell counted as FRAME_CELL_COST tile cells."""
         tiles = self.tiles(box)
         frame = -(-tiles // self.core_threads) * self.core_threads
         cells = self.n_shots * frame_cells
-        launches = {"core": (tiles, 0), "frame": (cells, frame)}
-        for dim, offset in [launches[part]] if part else [(frame + cells, 0)]:
-            wp.launch(kernel, dim=dim, inputs=[*inputs, tiles, frame, offset], block_dim=self.core_threads, device=self.device, record_tape=False)
+
+        def launch(dim, offset):
+            if dim > 0:
+                wp.launch(kernel, dim=dim, inputs=[*inputs, tiles, frame, offset], block_dim=self.core_threads, device=self.device, record_tape=False)
+
+        if part:
+            launch(*{"core": (tiles, 0), "frame": (cells, frame)}[part])
+        elif self.cuda or self.threads == 1:
+            launch(frame + cells, 0)
+        else:
+            others = self.threads - 1
+            per_tile = self.core_rows * self.core_cols
+            first = round(min(max((tiles * per_tile / others - FRAME_CELL_COST * cells) / (per_tile + per_tile / others), 0), tiles))
+
+            def job(i, barrier):
+                if i == 0:
+                    launch(cells, frame)
+                    launch(first, 0)
+                else:
+                    a, b = block_rows(tiles - first, i - 1, others)
+                    launch(b - a, first + a)
+
+            self._split(job)
 
     def step_core(self, step_args, u, u_prev, u_next, vpad, part=None):
         """The 2D GPU step but psi (step_args: the reference step's arguments)."""
@@ -1460,19 +1484,14 @@ class Acoustic:
             if len(self._launches) >= 2:
                 self._launches.clear()
             self._launches[key] = (arrays, jobs)  # the arrays stay alive while their pointers are keys
-        barrier = threading.Barrier(self.threads)
 
-        def job(i):
+        def job(i, barrier):
             first, then = jobs[i]
-            try:
-                for cmd in first:
-                    cmd.launch()
-                barrier.wait()
-                for cmd in then:
-                    cmd.launch()
-            except BaseException:
-                barrier.abort()
-                raise
+            for cmd in first:
+                cmd.launch()
+            barrier.wait()
+            for cmd in then:
+                cmd.launch()
 
         self._split(job)
 
@@ -1497,16 +1516,33 @@ class Acoustic:
         return first, then
 
     def _split(self, job):
-        """job(i) for i < self.threads, i > 0 on worker threads (CPU launches release the GIL)."""
+        """job(i, barrier) for i < self.threads, i > 0 on worker threads (CPU launches release the GIL), with a
+        threading.Barrier of them all. Whatever stops this thread (an error, or the KeyboardInterrupt of a SIGINT or
+        SIGTERM, which may land anywhere in here) breaks the barrier, so no worker is left waiting at it for ever
+        (and the interpreter's exit, which joins the workers, hung)."""
+        barrier = threading.Barrier(self.threads)
         if self.threads == 1:
-            job(0)
+            job(0, barrier)
             return
         if self._pool is None:
             self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="adseismic")
-        pending = [self._pool.submit(job, i) for i in range(1, self.threads)]
-        job(0)
+        try:
+            pending = [self._pool.submit(self._breaking, job, i, barrier) for i in range(1, self.threads)]
+            job(0, barrier)
+        except BaseException:
+            barrier.abort()
+            raise
         for f in pending:
             f.result()
+
+    @staticmethod
+    def _breaking(job, i, barrier):
+        """A worker's job(i, barrier), breaking the barrier when it fails (the others then fail too, not wait)."""
+        try:
+            job(i, barrier)
+        except BaseException:
+            barrier.abort()
+            raise
 
     def operator(self, locations, differentiable=False):
         """The source/receiver operator at locations (wp.array (S, n, 3), metres): the locations
