@@ -1,7 +1,8 @@
 """Several devices in one process (issue 25 item 4: `parallel: {engine: threads}`, adseismic.solve.devices) and
 `adseismic forward` on workers (item 2): two CPU device threads give the gradient of one process bit for bit, the same
-FWI iterates, a forward bitwise equal to the one-process forward (either engine), per-device kept CUDA graphs, and
-one progress line per evaluation. CI has no GPU: `devices: [cpu, cpu]` is what runs here."""
+FWI iterates, a forward bitwise equal to the one-process forward (either engine), per-device kept CUDA graphs, one
+progress line per evaluation, one upload of each batch's data per band, and a failing device dropped with its batches
+re-run on the others (the fault-free gradient). CI has no GPU: `devices: [cpu, cpu]` is what runs here."""
 
 import threading
 from types import SimpleNamespace
@@ -17,7 +18,7 @@ from adseismic.cli import main
 from adseismic.config import load_fwi_config
 from adseismic.config.parallel import ParallelConfig
 from adseismic.inversion.fwi import _observed, band_pass, data_weights, prepare_fwi
-from adseismic.solve import distributed, pools
+from adseismic.solve import devices, distributed, pools, residency
 from adseismic.solve.acoustic import gradient
 from adseismic.solve.batch import shot_slices
 from adseismic.solve.devices import DevicePool
@@ -90,6 +91,16 @@ def problem(tmp_path_factory):
     return Problem(tmp_path_factory.mktemp("problem"))
 
 
+def where(model, data, params):
+    """A task that reports where it ran: (thread name without its executor suffix, device)."""
+    return threading.current_thread().name.split("_")[0], params["device"]
+
+
+def uploads(token):
+    """{(batch key, device): uploads} of the pool `token` in this process (solve.residency.resident's count)."""
+    return {at: n for at, n in residency.UPLOADS.items() if at[0].startswith(f"{token}-")}
+
+
 def test_two_cpu_device_threads_give_the_gradient_of_one_process(problem):
     default = wp.get_device()
     with DevicePool(ParallelConfig(**THREADS), "cpu", problem.n_shots) as pool:
@@ -97,15 +108,18 @@ def test_two_cpu_device_threads_give_the_gradient_of_one_process(problem):
         pool.keep(problem.batches())
         rs = pool.evaluate(problem.model, problem.params())
         again = distributed.reduce_in_order(pool.evaluate(problem.model, problem.params()), problem.model.shape)
-
-        def where(model, data, params):
-            return threading.current_thread().name, params["device"], isinstance(data["observed"], wp.array)
-
         probe = pool.evaluate(problem.model, problem.params(), fn=where)
+        # resident data: each batch's observed data and weights went to its device once, in the first evaluation
+        first = {(f"{pool.token}-1-{k}", "cpu"): 1 for k in range(3)}
+        assert uploads(pool.token) == first and {at for at in residency.RESIDENT if at[0].startswith(pool.token)} == set(first)
+        pool.keep(problem.batches(per_batch=3))  # a new band: the previous band's device arrays are freed
+        assert not [at for at in residency.RESIDENT if at[0].startswith(pool.token)] and not uploads(pool.token)
+        pool.evaluate(problem.model, problem.params())
+        assert [at for at in residency.RESIDENT if at[0].startswith(pool.token)] == [(f"{pool.token}-2-0", "cpu")]
+    assert not [at for at in residency.RESIDENT if at[0].startswith(pool.token)] and not uploads(pool.token)  # and at close
     assert wp.get_device() == default  # the caller's default device, whatever the threads' scopes did to it
     assert [r["first"] for r in rs] == [0, 1, 2]  # batch order
-    assert [p[0].split("_")[0] for p in probe] == ["adseismic-0-cpu", "adseismic-1-cpu", "adseismic-0-cpu"]  # round-robin
-    assert all(p[1] == "cpu" and p[2] for p in probe)  # observed data resident as Warp arrays on the batch's device
+    assert probe == [("adseismic-0-cpu", "cpu"), ("adseismic-1-cpu", "cpu"), ("adseismic-0-cpu", "cpu")]  # round-robin
     loss, grad, _ = distributed.reduce_in_order(rs, problem.model.shape)
     # the same batches in one process as fwi runs them (resident data, l2 on the device): bit for bit
     one_loss, one_grad = problem.one_process(per_batch=1, resident=True)
@@ -116,6 +130,60 @@ def test_two_cpu_device_threads_give_the_gradient_of_one_process(problem):
     assert abs(loss - all_loss) <= 1e-12 * abs(all_loss)
     assert np.linalg.norm(grad - all_grad) <= 1e-12 * np.linalg.norm(all_grad)
     assert again[0] == loss and np.array_equal(again[1], grad)  # the data stayed on the devices: only the model went in
+
+
+def test_a_failing_device_is_dropped_and_its_batches_rerun_on_the_others(problem, monkeypatch, caplog):
+    # an injected CUDA-like error in every batch of device 1 (thread adseismic-1-*), in the first evaluation (whose
+    # first batches run one device after the other) and before any of its data reached the device
+    def failing_on_device_1(data, device, misfit, resident=residency.resident):
+        if threading.current_thread().name.startswith("adseismic-1-"):
+            raise RuntimeError("CUDA error 700: an illegal memory access was encountered (injected)")
+        return resident(data, device, misfit)
+
+    monkeypatch.setattr(residency, "resident", failing_on_device_1)
+    with DevicePool(ParallelConfig(**THREADS), "cpu", problem.n_shots) as pool:
+        pool.keep(problem.batches())
+        with caplog.at_level("WARNING", logger="adseismic.solve.devices"):
+            rs = pool.evaluate(problem.model, problem.params())
+        assert pool.workers() == ["0: cpu"]
+        probe = pool.evaluate(problem.model, problem.params(), fn=where)
+    assert [r["first"] for r in rs] == [0, 1, 2]
+    loss, grad, _ = distributed.reduce_in_order(rs, problem.model.shape)
+    one_loss, one_grad = problem.one_process(per_batch=1, resident=True)  # the fault-free result, bit for bit
+    assert loss == one_loss
+    np.testing.assert_array_equal(grad, one_grad)
+    [warning] = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "device 1: cpu (RuntimeError: CUDA error 700" in warning and "dropped for the rest of the run" in warning
+    assert probe == [("adseismic-0-cpu", "cpu")] * 3  # later evaluations on the remaining device only
+
+
+def test_device_faults_move_queued_batches_other_errors_are_raised_as_they_are(caplog):
+    # no simulation: tasks that report where they ran; device 1 fails on its first batch while its other batches
+    # wait in its queue: they move to device 0 (cancelled there, or failing there if already started), and the
+    # results stay in batch order
+    def task(model, data, params):
+        if threading.current_thread().name.startswith("adseismic-1-"):
+            raise MemoryError("out of memory on device (injected)")
+        return data["first"], where(model, data, params)[0]
+
+    with DevicePool(ParallelConfig(**THREADS), "cpu", 6) as pool, caplog.at_level("WARNING", logger="adseismic.solve.devices"):
+        pool.keep([{"first": k} for k in range(6)])
+        assert pool.evaluate(None, {}, fn=task) == [(k, "adseismic-0-cpu") for k in range(6)]
+        assert "its 3 shot batch(es) re-run on cpu" in caplog.text
+        pool.keep([{"first": k} for k in range(2)])  # the next band: every batch on device 0
+
+        def bad_input(model, data, params):
+            raise ValueError("receiver_locations[0, 3] lies outside the grid")
+
+        with pytest.raises(ValueError, match="outside the grid"):  # bad input is no device's fault: raised as it is
+            pool.evaluate(None, {}, fn=bad_input)
+        assert pool.workers() == ["0: cpu"]
+
+        def broken(model, data, params):
+            raise RuntimeError("CUDA error 999: unknown error (injected)")
+
+        with pytest.raises(RuntimeError, match=r"every device failed; the last, 0: cpu \(RuntimeError: CUDA error 999.*parallel.devices"):
+            pool.evaluate(None, {}, fn=broken)
 
 
 def test_kept_graph_loops_are_per_device():

@@ -8,10 +8,16 @@ picks one by engine), so a workflow uses either without branching:
   on a GPU, wp.ScopedDevice on the CPU, and every allocation and launch of the solvers names its device). Kernel
   launches on different GPUs run concurrently; CPU kernels too (Warp calls them with the GIL released), so
   `devices: [cpu, cpu]` uses two cores;
-- resident data: `keep` places batch k on device k % n (round-robin, as the Dask pool does) and uploads its
-  observed data and weights there as float64 Warp arrays, kept until the next keep; an evaluation then moves only
-  the model in and each batch's (misfit, gradient) out. With the "l2" misfit the weighted residual is formed on the
-  device (solve.acoustic.gradient's resident path, that of the single-process loop);
+- resident data: `keep` places batch k on device k % n (round-robin, as the Dask pool does); the first evaluation
+  uploads its observed data and weights there as float64 Warp arrays (solve.residency's `resident`, the same code in a Dask worker
+  process), kept until the next keep or close (`evict`); an evaluation then moves only the model in and each
+  batch's (misfit, gradient) out. With the "l2" misfit the weighted residual is formed on the device
+  (solve.acoustic.gradient's resident path, that of the single-process loop); other misfits read the host arrays;
+- faults: a batch that raises on a device (a CUDA error, out of memory) drops that device for the rest of the run,
+  with a warning naming it and the error, and runs again, with the device's batches not yet started, on the
+  remaining devices; the evaluation's result is the fault-free one (the same batches, reduced in batch order).
+  When every device has failed, a RuntimeError says so. Bad input (ValueError) and a blow-up (PropagationError)
+  are no device's fault: raised as in one process;
 - reduction: `evaluate` returns the batches' results in batch order; the caller sums them on the host in float64 in
   that order (distributed.reduce_in_order), so the result does not depend on the number of devices;
 - the kept CUDA-graph time loops are per device (accel.graphs), so two devices do not evict each other's.
@@ -30,12 +36,14 @@ from __future__ import annotations
 
 import logging
 import threading
-from concurrent.futures import ThreadPoolExecutor, as_completed, wait
+import uuid
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
-import numpy as np
 import warp as wp
 
+from adseismic.solve.common import PropagationError, init_warp, resolve_device
 from adseismic.solve.distributed import batch_gradient, count_batches, local_devices
+from adseismic.solve.residency import evict
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +53,7 @@ def thread_devices(par, sim_device: str, n_shots: int) -> list[str]:
     per core, at most one per shot). ValueError naming the key for a device that does not exist here, a GPU listed
     twice (Warp keeps one current stream and one capture state per GPU for the whole process: two threads on one GPU
     would launch into each other's stream and graph captures) or more devices than shots."""
-    from adseismic.solve.common import resolve_device
+    from adseismic.solve.common import resolve_device  # looked up at call time (tests stand in for it)
 
     devices = [resolve_device(d) for d in local_devices(par, sim_device, n_shots)]
     for i, d in enumerate(devices):
@@ -82,12 +90,11 @@ class DevicePool:
     evaluation counting the finished shot batches (a terminal), and one log line per evaluation."""
 
     def __init__(self, par, sim_device: str, n_shots: int, progress: bool = False):
-        from adseismic.solve.common import init_warp
-
         init_warp()
         _tape_per_thread()
         self.devices = thread_devices(par, sim_device, n_shots)
-        self.progress, self.evaluations, self.placed = progress, 0, []
+        self.token, self.generation, self.progress, self.evaluations = uuid.uuid4().hex[:12], 0, progress, 0
+        self.batches, self.place, self.alive = [], [], list(range(len(self.devices)))
         self.streams = [wp.Stream(d) if wp.get_device(d).is_cuda else None for d in self.devices]
         self.threads = [ThreadPoolExecutor(1, thread_name_prefix=f"adseismic-{i}-{d}") for i, d in enumerate(self.devices)]
         log.info("parallel: %d thread(s) in this process on %s", len(self.devices), ", ".join(self.devices))
@@ -101,62 +108,100 @@ class DevicePool:
     def close(self):
         for t in self.threads:
             t.shutdown(wait=True)
-        self.placed, self.streams = [], []
+        evict(self.token)
+        self.batches, self.streams = [], []
 
     def workers(self) -> list[str]:
-        """One name per thread: "<index>: <device>"."""
-        return [f"{i}: {d}" for i, d in enumerate(self.devices)]
+        """One name per thread still in use (a failed device's is dropped): "<index>: <device>"."""
+        return [f"{i}: {self.devices[i]}" for i in self.alive]
+
+    def keep(self, batches: list[dict]) -> None:
+        """Hold the batches (dicts of NumPy arrays) until the next keep, batch k on device k % n: the data of every later
+        evaluate. The previous batches' resident device arrays are freed; the new ones' are uploaded by the first
+        evaluation that needs them (`resident`) and stay on their device."""
+        evict(self.token)
+        self.generation += 1
+        self.batches = [dict(d, key=f"{self.token}-{self.generation}-{k}") for k, d in enumerate(batches)]
+        self.place = [self.alive[k % len(self.alive)] for k in range(len(batches))]
+
+    def evaluate(self, model, params: dict, fn=batch_gradient, desc: str | None = None) -> list[dict]:
+        """fn(model, batch data, params with its device) for every kept batch on its device's thread; the results in
+        batch order. A device whose batch raises is dropped for the rest of the run (a warning naming it and the
+        error) and its batches re-run on the others; RuntimeError when every device has failed. desc: the progress's
+        name (default "evaluation K")."""
+        self.evaluations += 1
+        results, default = [None] * len(self.batches), wp.get_device()
+        try:
+            count_batches(self._completions(model, params, fn, results), len(results), desc or f"evaluation {self.evaluations}",
+                          len(self.alive), self.progress)  # fmt: skip
+        finally:
+            wp.set_device(default)  # the caller's default device, whatever the threads' scopes did to it
+        return results
+
+    def _call(self, i, fn, model, data, params, after):
+        if after is not None:
+            wait([after])
+        with self._scope(i):
+            return fn(model, data, dict(params, device=self.devices[i]))
 
     def _scope(self, i):
         s = self.streams[i]
         return wp.ScopedStream(s) if s is not None else wp.ScopedDevice(self.devices[i])
 
-    def _run(self, jobs, desc=None):
-        """jobs: (thread index, fn, args) in order; each fn(*args) runs on its thread under its device's scope. The
-        results in the order of jobs (every job finished; the first error raised)."""
-        default = wp.get_device()
+    def _completions(self, model, params, fn, results):
+        """Run every batch on the thread of its device (self.place), filling results; yield once per finished batch.
+        The first evaluation runs each device's first batch after the previous device's (kernels built one thread
+        at a time). A batch that raises drops its device (`_drop`) and runs again where its batches now go, with
+        the dropped device's batches not yet started; a ValueError (bad input) or PropagationError (a blow-up), the
+        same on any device, is raised as in one process, once the running batches have finished."""
+        running = {}  # future -> (batch, device index)
 
-        def call(i, fn, args, after):
-            if after is not None:
-                after.result()
-            with self._scope(i):
-                return fn(*args)
+        def submit(k, after=None):
+            i = self.place[k]
+            f = self.threads[i].submit(self._call, i, fn, model, self.batches[k], params, after)
+            running[f] = (k, i)
+            return f
 
-        futures, started, prev = [], set(), None
-        for i, fn, args in jobs:
-            serial = desc is not None and self.evaluations == 1 and i not in started  # the first evaluation's first batches
-            futures.append(self.threads[i].submit(call, i, fn, args, prev if serial else None))
-            if serial:
-                started.add(i)
-                prev = futures[-1]
+        prev, started = None, set()
+        for k in range(len(self.batches)):
+            if self.evaluations == 1 and self.place[k] not in started:
+                started.add(self.place[k])
+                prev = submit(k, prev)
+            else:
+                submit(k)
         try:
-            if desc is not None:
-                count_batches(as_completed(futures), len(futures), desc, len(self.devices), self.progress)
-            wait(futures)
-            return [f.result() for f in futures]
-        finally:
-            wp.set_device(default)
+            while running:
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for f in done:
+                    k, i = running.pop(f)
+                    try:
+                        results[k] = f.result()
+                    except (ValueError, PropagationError):  # the input's or the physics' error, alike on every device
+                        raise
+                    except Exception as e:  # a device fault (a CUDA error, out of memory): the batch runs elsewhere
+                        if i in self.alive:
+                            self._drop(i, e)
+                            queued = [g for g, (_, j) in running.items() if j == i and g.cancel()]
+                            for g in queued:
+                                submit(running.pop(g)[0])
+                        submit(k)
+                    else:
+                        yield
+        finally:  # on an error: no batch left running on the caller's arrays
+            for f in running:
+                f.cancel()
+            wait(running)
 
-    def keep(self, batches: list[dict]) -> None:
-        """Place batch k's data (a dict of arrays) on device k % n until the next keep, its observed data and weights
-        (when present) uploaded as float64 Warp arrays: the data of every later evaluate."""
-        self.placed = []
-        n = len(self.devices)
-        self.placed = self._run([(k % n, _upload, (d, self.devices[k % n])) for k, d in enumerate(batches)])
-
-    def evaluate(self, model, params: dict, fn=batch_gradient, desc: str | None = None) -> list[dict]:
-        """fn(model, batch data, params with its device) for every kept batch on its device's thread; the results in
-        batch order. desc: the progress's name (default "evaluation K")."""
-        self.evaluations += 1
-        n = len(self.devices)
-        jobs = [(k % n, fn, (model, d, dict(params, device=self.devices[k % n]))) for k, d in enumerate(self.placed)]
-        return self._run(jobs, desc=desc or f"evaluation {self.evaluations}")
-
-
-def _upload(data: dict, device: str) -> dict:
-    """The batch's data with observed and weights (n_shots, n_receivers, nt) as float64 Warp arrays on device."""
-    out = dict(data)
-    for k in ("observed", "weights"):
-        if data.get(k) is not None:
-            out[k] = wp.array(np.ascontiguousarray(data[k], dtype=float), dtype=wp.float64, device=device)
-    return out
+    def _drop(self, i, error):
+        """Stop using device i for the rest of the run: its batches go round-robin to the remaining devices (a
+        warning names it and the error); RuntimeError from the error when no device remains."""
+        self.alive.remove(i)
+        what = f"{i}: {self.devices[i]} ({type(error).__name__}: {error})"
+        if not self.alive:
+            raise RuntimeError(f"parallel: every device failed; the last, {what}; run on fewer or other devices "
+                               f"(parallel.devices), or without a parallel section") from error
+        moved = [k for k, j in enumerate(self.place) if j == i]
+        for n, k in enumerate(moved):
+            self.place[k] = self.alive[n % len(self.alive)]
+        log.warning("parallel: device %s failed; dropped for the rest of the run, its %d shot batch(es) re-run on %s",
+                    what, len(moved), ", ".join(self.devices[j] for j in self.alive))  # fmt: skip

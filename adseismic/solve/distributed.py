@@ -5,11 +5,13 @@ each; CPU workers when there is no GPU) or on a running scheduler (an address: e
 cluster, docs/parallel.md). The workflow hands it, once per band, each shot batch's data (`keep`), and then, per
 evaluation, only the model (`evaluate`):
 
-- resident data: each batch's arrays (wavelets, geometry, weights, weighted observed data) are the result of a task
+- resident data: each batch's arrays (wavelets, geometry, weights, observed data: NumPy) are the result of a task
   `keep` submits once, placed round-robin on the workers; the evaluation tasks that need them run where they are
   (Dask's data locality), so an evaluation moves the model out (one task, fetched by the workers) and the
-  (misfit, gradient) of each batch back, nothing else. The scheduler keeps the batch tasks' inputs, so a batch
-  whose worker is lost is rebuilt on another worker;
+  (misfit, gradient) of each batch back, nothing else. The first evaluation of a batch on a worker also uploads its
+  observed data and weights to the worker's device, where they stay until the next keep or close
+  (solve.residency.resident and evict, the threads engine's code). The scheduler keeps the batch tasks' inputs, so a
+  batch whose worker is lost is rebuilt on another worker (whose first run of it uploads it there);
 - faults: a worker lost mid-evaluation (killed, out of memory) has its tasks re-run by the scheduler elsewhere
   (or on the worker its nanny restarts); the evaluation then completes with the fault-free result, as every task
   is a pure function of the model and its batch's data;
@@ -163,6 +165,13 @@ def _resident(data):
     return data
 
 
+def _evict(token):
+    """solve.residency.evict on a worker."""
+    from adseismic.solve.residency import evict
+
+    evict(token)
+
+
 def _my_device(devices: dict, default: str) -> str:
     try:
         from distributed import get_worker
@@ -179,23 +188,25 @@ def _device_of(params) -> str:
 
 def batch_gradient(model, data, params) -> dict:
     """The acoustic misfit and velocity gradient of one shot batch (a task of a ShotPool or a DevicePool). data:
-    {amplitudes, sources, receivers, weights, observed (both (n_shots, n_receivers, nt): NumPy arrays, or float64
-    Warp arrays on the batch's device, a DevicePool's resident data), first (the batch's first shot)}; params: {dx,
+    {amplitudes, sources, receivers, weights, observed (both (n_shots, n_receivers, nt), NumPy arrays), first (the
+    batch's first shot), key (unique per pool, band and batch: the key of its resident device arrays)}; params: {dx,
     dt, misfit (a name of solve.misfits.MISFITS), illumination, kw (solve.acoustic.gradient's keywords), device,
     [devices]}. The weighted misfit is that of inversion.fwi's single-process loop, operation for operation: "l2"
-    of resident data formed on the device, any other on the host."""
+    formed on the device from the observed data and weights kept there (solve.residency.resident: uploaded once per
+    batch, device and process, whichever pool runs it), any other on the host."""
     import warp as wp
 
     from adseismic.solve.acoustic import gradient
+    from adseismic.solve.residency import resident
     from adseismic.solve.misfits import misfit as named_misfit
 
-    w, o = data["weights"], data["observed"]
     spent = [0.0]
     kw = dict(params["kw"], device=_device_of(params))
-    if isinstance(o, wp.array) and params["misfit"] == "l2":  # resident: the weighted residual formed on the device
+    data = resident(data, kw["device"], params["misfit"])
+    w, o = data["weights"], data["observed"]
+    if params["misfit"] == "l2":  # resident: the weighted residual formed on the device
         misfit = {"observed": o, "weights": w, "misfit": "l2"}
     else:
-        w, o = (a.numpy() if isinstance(a, wp.array) else a for a in (w, o))
 
         def weighted(syn):
             t = time.perf_counter()
@@ -285,6 +296,9 @@ class ShotPool:
 
     def close(self):
         self.futures = []
+        if self.cluster is None:  # a remote cluster's workers outlive the run: free their device arrays of it
+            with contextlib.suppress(OSError, TimeoutError):
+                self.client.run(_evict, self.token, on_error="ignore")
         self.client.close()
         if self.cluster is not None:
             self.cluster.close()
@@ -296,14 +310,18 @@ class ShotPool:
         return sorted(self.client.scheduler_info(n_workers=-1)["workers"])
 
     def keep(self, batches: list[dict]) -> None:
-        """Place each batch's data (a dict of arrays) on a worker, round-robin, until the next keep (which releases
-        them): the data of every later evaluate."""
+        """Place each batch's data (a dict of NumPy arrays) on a worker, round-robin, until the next keep (which
+        releases them, and the workers' resident device arrays of them): the data of every later evaluate. The
+        first evaluation of a batch on a worker uploads its observed data and weights to the worker's device
+        (solve.residency.resident), where they stay."""
         self.futures = []  # releases the previous band's data
+        self.client.run(_evict, self.token)
         self.generation += 1
         addrs = self.workers()
-        self.futures = [self.client.submit(_resident, d, key=f"adseismic-data-{self.token}-{self.generation}-{k}",
+        keys = [f"{self.token}-{self.generation}-{k}" for k in range(len(batches))]
+        self.futures = [self.client.submit(_resident, dict(d, key=key), key=f"adseismic-data-{key}",
                                            workers=[addrs[k % len(addrs)]], allow_other_workers=True)
-                        for k, d in enumerate(batches)]  # fmt: skip
+                        for k, (d, key) in enumerate(zip(batches, keys))]  # fmt: skip
 
     def evaluate(self, model, params: dict, fn=batch_gradient, desc: str | None = None) -> list[dict]:
         """fn(model, batch data, params) for every kept batch on the workers; the results in batch order. model: an

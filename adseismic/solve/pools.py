@@ -5,7 +5,8 @@ run of a scene's shots over the pool's workers.
 - engine threads: solve.devices.DevicePool (one thread and one Warp stream per device in this process).
 
 Both have the same face (keep, evaluate, close, workers) and run the same tasks (distributed.batch_gradient,
-distributed.batch_forward), so a workflow uses either without branching.
+distributed.batch_forward), which keep each batch's observed data on the device that runs it the same way
+(residency.resident, per process, freed at the next keep or close), so a workflow uses either without branching.
 """
 
 from __future__ import annotations
