@@ -19,6 +19,14 @@ the slowest wave (S, or with a free surface the Rayleigh wave) and dt from the s
 the record length from the S-wave straight-ray times (Rayleigh with a free surface). ``physics: acoustic_vd`` (an
 ElasticModel with vs None: a fluid) runs on the same solver: dx from vp_min, dt from the staggered CFL at vp_max, the
 record from P-wave times; its plan also reports what dropping the density would cost (:func:`density_reflection_check`).
+``physics: vti`` (a VTIModel, the pseudo-acoustic VTI solver of docs/vti.md) plans on the same staggered scheme: dx from
+the slowest qP speed (vp_min, vertical, lower where delta < 0), dt from the CFL limit at the fastest, the horizontal
+vp sqrt(1 + 2 epsilon); the record from the qP group velocities along straight rays, and the plan reports the
+travel-time error of dropping the anisotropy (:func:`anisotropy_check`). ``physics: viscoacoustic`` (a
+ViscoacousticModel, docs/viscoacoustic.md) too: dx from the slowest P phase velocity (vp_min at the low end of the Q band),
+dt from the CFL limit at the fastest, the unrelaxed (w -> infinity) speed, ~15% above vp at Q = 5; the record from vp;
+the plan resolves the Q band, f_ref and mechanisms the run uses and reports the amplitude lost to attenuation over the
+longest path (:func:`attenuation_check`).
 """
 
 from __future__ import annotations
@@ -30,9 +38,11 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from adseismic.data.model import Model
-from adseismic.data.models import ElasticModel
+from adseismic.data.models import ElasticModel, ViscoacousticModel, VTIModel
 from adseismic.kernels.acoustic import DESCRIPTION as ACOUSTIC
 from adseismic.kernels.elastic import DESCRIPTION as ELASTIC
+from adseismic.kernels.viscoacoustic import DESCRIPTION as VISCOACOUSTIC
+from adseismic.kernels.vti import DESCRIPTION as VTI
 from adseismic.kernels.numerics import (
     cfl_limit,
     dispersion_error,
@@ -42,7 +52,7 @@ from adseismic.kernels.numerics import (
     staggered_dispersion_error,
 )
 from adseismic.solve.acoustic import forward
-from adseismic.solve.common import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH, check_courant
+from adseismic.solve.common import DEFAULT_PML_REFLECTION, DEFAULT_PML_WIDTH, check_courant, dominant_frequency
 from adseismic.wavelets import duration, make_wavelet, spectral_fmax
 
 # Padded-grid cell updates per second used for the time estimate (forward): the rates measured in
@@ -81,13 +91,18 @@ class Plan:
     reasons: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     physics: str = "acoustic"  # acoustic, elastic or acoustic_vd
+    attenuation: AttenuationCheck | None = None  # physics viscoacoustic: the Q band, f_ref and mechanisms the run uses
 
     def describe(self) -> str:
         grid = " x ".join(str(n) for n in self.shape)
         axes = "z, y, x" if self.ndim == 3 else "z, x"
         what = {"elastic": " (2D velocity-stress, staggered grid; dx for the wave that needs the finest grid, dt from vp_max)",
                 "acoustic_vd": " (2D variable-density acoustic on the elastic solver with vs = 0: velocity-stress, "
-                               "staggered grid; dx from vp_min, dt from vp_max)"}.get(self.physics, " (pressure wave equation)")
+                               "staggered grid; dx from vp_min, dt from vp_max)",
+                "vti": " (2D pseudo-acoustic VTI: velocity-stress, staggered grid; dx from the slowest qP speed, dt from the "
+                       "horizontal vp sqrt(1 + 2 epsilon))",
+                "viscoacoustic": " (2D visco-acoustic, constant Q: velocity-pressure with memory variables, staggered grid; "
+                                 "dx from the slowest P phase velocity, dt from the unrelaxed speed)"}.get(self.physics, " (pressure wave equation)")
         lines = [
             f"physics   {self.physics}{what}",
             f"grid      {grid} cells ({axes}), dx = {self.dx:g} m, origin {tuple(round(o, 3) for o in self.origin)} m",
@@ -106,6 +121,10 @@ class Plan:
             lines.append(f"memory    {self.reasons['memory']}")
         if self.reasons.get("density"):
             lines.append(f"density   {self.reasons['density']}")
+        if self.reasons.get("anisotropy"):
+            lines.append(f"anisotropy {self.reasons['anisotropy']}")
+        if self.attenuation is not None:
+            lines.append(f"attenuation {self.attenuation.describe()}")
         lines += [f"WARNING   {w}" for w in self.warnings]
         return "\n".join(lines)
 
@@ -233,21 +252,33 @@ def check_memory(need: int, sim, what: str, advice: str) -> str:
     return line
 
 
-def wavelet_band(kind: str, params: dict):
-    """(f_max at -20 dB in Hz, duration in s) of a configured wavelet, sampled finely."""
+def _sampled_wavelet(kind: str, params: dict):
+    """(samples, dt in s) of a configured wavelet, sampled finely."""
     if "peak_frequency" in params:
         dt0 = 1.0 / (50.0 * float(params["peak_frequency"]))
         nt0 = int(round((float(params.get("delay") or 0.0) + 10.0 / float(params["peak_frequency"])) / dt0))
     else:
         dt0 = float(params.get("dt_in", 1e-3))
         nt0 = len(params["samples"])
-    w = make_wavelet(kind, nt0, dt0, **params)
+    return make_wavelet(kind, nt0, dt0, **params), dt0
+
+
+def wavelet_dominant_frequency(kind: str, params: dict) -> float:
+    """The peak of a configured wavelet's amplitude spectrum (Hz), sampled finely."""
+    w, dt0 = _sampled_wavelet(kind, params)
+    return dominant_frequency(w[None], dt0)
+
+
+def wavelet_band(kind: str, params: dict):
+    """(f_max at -20 dB in Hz, duration in s) of a configured wavelet, sampled finely."""
+    w, dt0 = _sampled_wavelet(kind, params)
     return spectral_fmax(w, dt0, -20.0), duration(w, dt0)
 
 
-def straight_ray_times(model: Model, sources: np.ndarray, receivers: np.ndarray) -> np.ndarray:
-    """Travel times (s) along straight rays through the model's slowness, (n_sources, n_receivers)."""
-    slow = 1.0 / model.values
+def straight_ray_times(model: Model, sources: np.ndarray, receivers: np.ndarray, slowness=None) -> np.ndarray:
+    """Travel times (s) along straight rays through the model's slowness, (n_sources, n_receivers); ``slowness``: another
+    integrand on the model's grid (e.g. 1 / (v Q), which gives the attenuation time t* in s)."""
+    slow = 1.0 / model.values if slowness is None else slowness
     h = min(model.spacing)
     org, spc = np.array(model.origin), np.array(model.spacing)
     out = np.zeros((len(sources), len(receivers)))
@@ -348,7 +379,12 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
 
     elastic = isinstance(model, ElasticModel)  # elastic or acoustic_vd: the elastic solver
     fluid = elastic and model.vs is None  # acoustic_vd: P waves only
-    if fluid:
+    vti = isinstance(model, VTIModel)  # the pseudo-acoustic VTI solver: qP waves, staggered like the elastic one
+    visco = isinstance(model, ViscoacousticModel)  # the visco-acoustic solver: P waves, staggered like the elastic one
+    if vti:
+        rays = vti_ray_times(model, src, rec)
+        t_direct = float(rays[0].max())
+    elif fluid or visco:
         t_direct = float(straight_ray_times(model.vp, src, rec).max())
     elif elastic:  # the slowest direct wave arrives last: S, or the Rayleigh wave along a free surface
         i = np.unravel_index(int(np.argmin(model.vs.values)), model.shape)
@@ -363,7 +399,7 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
             warnings.append(f"record length {t_record:g} s is shorter than the longest direct arrival ({t_direct:.3g} s)")
     else:
         t_record = t_direct + w_len
-        wave = "P-wave " if fluid else ("Rayleigh-wave " if sim.free_surface else "S-wave ") if elastic else ""
+        wave = "qP-wave (group velocity) " if vti else "P-wave " if fluid or visco else ("Rayleigh-wave " if sim.free_surface else "S-wave ") if elastic else ""
         why_nt = f"longest straight-ray {wave}source-receiver time {t_direct:.3g} s + wavelet duration {w_len:.3g} s"
 
     pts = np.vstack([src, rec])
@@ -383,6 +419,17 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     i1 = np.ceil((hi - org) / spc - 1e-9).astype(int) + 1
     box = model.values[tuple(slice(a, b) for a, b in zip(i0, i1))]
     vmin, vmax = (float(box.min()), float(box.max())) if velocity_range is None else map(float, velocity_range)
+    if vti:  # the slowest qP speed (min over angles of the phase speed = of the group speed) and the horizontal speed
+        sl = tuple(slice(a, b) for a, b in zip(i0, i1))
+        vmin = float((box * qp_min_speed_ratio(model.epsilon[sl], model.delta[sl])).min())
+        vmax = float(model.horizontal_speed()[sl].max())
+    if visco:  # the slowest P phase velocity (at the Q band's low end) and the fastest, the unrelaxed speed
+        attenuation = attenuation_check(model, src, rec, config.wavelet, (i0, i1))
+        vmin, vmax = attenuation.v_slowest, attenuation.v_unrelaxed
+        if not attenuation.q_band[0] <= attenuation.f_dominant <= attenuation.q_band[1]:
+            warnings.append(f"model.q_band: {list(attenuation.q_band)} Hz misses the wavelet's dominant frequency "
+                            f"{attenuation.f_dominant:.3g} Hz; Q is flat (its target) only inside the band: widen it or leave it "
+                            f"out (f_dom / 3 .. 2.5 f_dom)")
 
     pml = DEFAULT_PML_WIDTH if sim.pml_width is None else int(sim.pml_width)
 
@@ -391,18 +438,32 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
         return float(np.prod(n))
 
     pins = {"dx": sim.dx, "dt": sim.dt}
-    if elastic:
-        vs_box = model.materials()["vs"][tuple(slice(a, b) for a, b in zip(i0, i1))]
-        vs_min = float(vs_box.min()) if vs_range is None else float(vs_range[0])
+    if elastic or vti or visco:
+        vs_box = 0.0 if vti or visco else model.materials()["vs"][tuple(slice(a, b) for a, b in zip(i0, i1))]
+        vs_min = float(np.min(vs_box)) if vs_range is None else float(vs_range[0])
         grid = plan_elastic_grid((vmin, vmax), vs_min, f_max, order, float(sim.accuracy), float(sim.cfl_safety),
                                  bool(sim.free_surface), dx=sim.dx, dt=sim.dt)
         dx, dt, why_dx, why_dt = grid.dx, grid.dt, grid.reasons["dx"], grid.reasons["dt"]
         if fluid and pins["dx"] is None:
             why_dx += f"; acoustic_vd: the slowest wave is P at vp_min {vmin:.0f} m/s (vs = 0: no S wave)"
+        if vti:
+            if pins["dx"] is None:
+                why_dx += (f"; vti: the slowest wave is qP at {vmin:.0f} m/s (vp_min {float(box.min()):.0f} m/s, vertical; "
+                           f"lower where delta < 0)")
+            why_dt = why_dt.replace(f"for vp_max {vmax:.0f} m/s", f"for the horizontal speed max vp sqrt(1 + 2 epsilon) = "
+                                                                   f"{vmax:.0f} m/s")
+        if visco:
+            a = attenuation
+            if pins["dx"] is None:
+                why_dx += (f"; viscoacoustic: the slowest wave is P at {vmin:.0f} m/s, the phase velocity at the Q band's low "
+                           f"end {a.q_band[0]:.3g} Hz (vp_min {float(box.min()):.0f} m/s at f_ref {a.f_ref:.3g} Hz)")
+            why_dt = why_dt.replace(f"for vp_max {vmax:.0f} m/s", f"for the unrelaxed (w -> infinity) speed {vmax:.0f} m/s "
+                                    f"({100 * (vmax / float(box.max()) - 1):.1f}% above vp_max {float(box.max()):.0f} m/s at f_ref, "
+                                    f"Q down to {a.q_min:.3g})")
     else:
         dx, dt, why_dx, why_dt = _choose_dx_dt(order, ndim, vmin, vmax, f_max, float(sim.accuracy), float(sim.cfl_safety), pins, cells, t_record)
     try:
-        check_courant(ELASTIC if elastic else ACOUSTIC, order, ndim, vmax, dx, dt)
+        check_courant(VTI if vti else VISCOACOUSTIC if visco else ELASTIC if elastic else ACOUSTIC, order, ndim, vmax, dx, dt)
     except ValueError as e:
         raise ValueError(f"simulation.{e}") from None
     n_cells, n_steps = cells(dx), t_record / dt + 1  # floats: inf for absurd grids, where ints would overflow later
@@ -411,9 +472,10 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
                          f"dt = {dt:g} s, a {t_record:.4g} s record over {' x '.join(f'{e:.4g}' for e in hi - lo)} m), beyond any "
                          f"machine even with simulation.force; check the units of dx, dt, duration, the model's spacing and "
                          f"velocities (m, s, m/s) and the wavelet's frequency (Hz)")
-    limit = grid.cfl_limit if elastic else cfl_limit(order, ndim)
+    staggered = elastic or vti or visco  # the staggered scheme's limit, dispersion and cost
+    limit = grid.cfl_limit if staggered else cfl_limit(order, ndim)
     courant = vmax * dt / dx
-    err = grid.expected_error if elastic else _group_error(order, ndim, vmin, vmax, f_max, dx, dt)
+    err = grid.expected_error if staggered else _group_error(order, ndim, vmin, vmax, f_max, dx, dt)
     v_slow = vs_min if elastic else vmin
     if err > float(sim.accuracy):
         warnings.append(
@@ -429,10 +491,12 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     refl = DEFAULT_PML_REFLECTION[order] if sim.pml_reflection is None else float(sim.pml_reflection)
     padded = math.prod(int(n) + 2 * pml + order for n in shape)  # Python ints: no int64 overflow for absurd grids
     itemsize = 4 if sim.precision == "float32" else 8
-    memory = forward_memory_bytes(padded, len(src), len(rec), nt, itemsize, "elastic" if elastic else "acoustic")
+    # vti: the elastic estimates, an upper bound (4 fields and 4 memory variables where the elastic step has 5 and 8;
+    # docs/vti.md: its CPU step takes 0.5-0.9 of acoustic_vd's)
+    memory = forward_memory_bytes(padded, len(src), len(rec), nt, itemsize, "elastic" if staggered else "acoustic")
     device_kind = "cuda" if str(sim.device).startswith("cuda") else "cpu"
-    seconds = padded * nt / EST_RATE[device_kind] * (ELASTIC_STEP_COST if elastic else 1.0)
-    if elastic and device_kind == "cpu":
+    seconds = padded * nt / EST_RATE[device_kind] * (ELASTIC_STEP_COST if staggered else 1.0)
+    if staggered and device_kind == "cpu":
         seconds += nt * ELASTIC_CPU_STEP_SECONDS
     if seconds * len(src) > LONG_RUN_SECONDS:
         warnings.append(f"long run: an estimated {seconds * len(src) / 3600:.3g} h on {sim.device} for {len(src)} shot(s) "
@@ -450,10 +514,13 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
         pml_width=pml, pml_reflection=refl, free_surface=bool(sim.free_surface), device=str(sim.device),
         precision=str(sim.precision), f_max=float(f_max), expected_error=float(err), courant=float(courant),
         cfl_limit=float(limit), padded_cells=padded, memory_bytes=int(memory),
-        seconds_per_shot=seconds, n_shots=len(src), physics=model.physics if elastic else "acoustic",
+        seconds_per_shot=seconds, n_shots=len(src), physics=model.physics if staggered else "acoustic",
         reasons={"dx": why_dx, "dt": why_dt, "nt": why_nt, "domain": why_domain,
                  **({"memory": reasons_memory} if reasons_memory else {}),
-                 **({"density": density_reflection_check(model, (i0, i1)).describe()} if fluid else {})}, warnings=warnings,
+                 **({"density": density_reflection_check(model, (i0, i1)).describe()} if fluid else {}),
+                 **({"anisotropy": anisotropy_check(model, rays, wavelet_dominant_frequency(config.wavelet.kind, config.wavelet.params),
+                                                    (i0, i1)).describe()}
+                    if vti else {})}, warnings=warnings, attenuation=attenuation if visco else None,
     )  # fmt: skip
 
 
@@ -468,11 +535,11 @@ def build_scene(config, plan: Plan | None = None, model: Model | None = None) ->
     n_shots = len(src)
     wavelet = make_wavelet(config.wavelet.kind, plan.nt, plan.dt, **config.wavelet.params)
     elastic = {}
-    if isinstance(model, ElasticModel):
+    if isinstance(model, (ElasticModel, VTIModel, ViscoacousticModel)):
         from adseismic.solve.receivers import DasOperator, Recording
 
         das = config.geometry.das  # a config built in Python may leave out what parse_config fills in: its defaults
-        default = ("pressure",) if model.vs is None else ("vx", "vz", "pressure")
+        default = ("vx", "vz", "pressure") if getattr(model, "vs", None) is not None else ("pressure",)
         components = tuple(config.geometry.components) or (() if das else default)
         recording = Recording(components, das and DasOperator(das.gauge_length, das.direction))
         rec = recording.locations(rec)
@@ -493,8 +560,29 @@ def build_scene(config, plan: Plan | None = None, model: Model | None = None) ->
 
 def run_forward(scene: Scene, snapshot_every: int = 0, progress: bool = False):
     """Run the planned forward simulation for every shot of the scene at once: a ForwardResult (acoustic) or, for an
-    ElasticModel, adseismic.solve.elastic's ElasticResult at scene.receiver_locations (no snapshots)."""
+    ElasticModel, adseismic.solve.elastic's ElasticResult, for a VTIModel adseismic.solve.vti's VTIResult, for a
+    ViscoacousticModel adseismic.solve.viscoacoustic's ViscoacousticResult (with the plan's q_band, f_ref, mechanisms)
+    (VTI and visco-acoustic: the explosive source's moment M0 x the wavelet), at scene.receiver_locations (no snapshots)."""
     p = scene.plan
+    if isinstance(scene.model, ViscoacousticModel):
+        from adseismic.solve.viscoacoustic import forward_viscoacoustic
+
+        m, a = scene.model.materials(), p.attenuation
+        return forward_viscoacoustic(
+            m["vp"], m["q"], m["rho"], p.dx, p.dt, scene.source_amplitudes * scene.source_components[:, :, :1],
+            scene.source_locations, scene.receiver_locations, q_band=a.q_band, f_ref=a.f_ref, mechanisms=a.mechanisms,
+            order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface,
+            device=p.device, precision=p.precision, progress=progress,
+        )  # fmt: skip
+    if isinstance(scene.model, VTIModel):
+        from adseismic.solve.vti import forward_vti
+
+        m = scene.model.materials()
+        return forward_vti(
+            m["vp"], m["epsilon"], m["delta"], m["rho"], p.dx, p.dt, scene.source_amplitudes * scene.source_components[:, :, :1],
+            scene.source_locations, scene.receiver_locations, order=p.order, pml_width=p.pml_width,
+            pml_reflection=p.pml_reflection, free_surface=p.free_surface, device=p.device, precision=p.precision, progress=progress,
+        )  # fmt: skip
     if isinstance(scene.model, ElasticModel):
         from adseismic.solve.elastic import forward_elastic
 
@@ -647,3 +735,199 @@ def density_reflection_check(model: ElasticModel, box=None) -> DensityCheck:
     first = [0 if s.start is None else s.start for s in sl]
     pos = tuple(float(o + (k + f) * h) for o, k, f, h in zip(model.origin, i, first, model.spacing))
     return DensityCheck(float(err[i]), float(r[i]), float(r0[i]), (pos[0], pos[-1]))
+
+
+# --- Which physics a scene needs: anisotropy (issue 26, item 7) ---------------------------------------------------
+
+ANISOTROPY_PERIODS = 0.25  # travel-time error, in dominant periods, below which dropping the anisotropy is harmless:
+# a quarter period shifts a trace by 90 degrees of phase at the dominant frequency, half way to the half-period shift
+# where a waveform misfit cycle-skips (locks onto the wrong cycle); below it isotropic data still fit the same arrivals
+
+
+def qp_group_speed_ratio(epsilon: float, delta: float, angles) -> np.ndarray:
+    """The qP group speed over vp at group angles (radians from the vertical, 0..pi/2) of a homogeneous pseudo-acoustic
+    VTI medium (C55 = 0; docs/vti.md): the exact phase speed of the Christoffel equation,
+    V^2 / vp^2 = (a + b)/2 + sqrt(((a - b)/2)^2 + (1 + 2 delta) sin^2 cos^2) with a = (1 + 2 epsilon) sin^2, b = cos^2 of
+    the phase angle, and V_g = sqrt(V^2 + V'^2) at the group angle theta + atan(V'/V), interpolated from 4001 phase angles
+    (tests/test_vti.py measures the solver's travel times against it within 0.05%)."""
+    th = np.linspace(0.0, np.pi / 2, 4001)
+    s2, c2 = np.sin(th) ** 2, np.cos(th) ** 2
+    a = (1.0 + 2.0 * epsilon) * s2
+    v = np.sqrt(0.5 * (a + c2) + np.sqrt(0.25 * (a - c2) ** 2 + (1.0 + 2.0 * delta) * s2 * c2))
+    dv = np.gradient(v, th)
+    return np.interp(angles, th + np.arctan2(dv, v), np.hypot(v, dv))
+
+
+def qp_min_speed_ratio(epsilon: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """min over angles of the qP phase speed over vp (= the group speed's minimum) per node, the arrays' shape: 1 where
+    epsilon, delta >= 0 (the vertical is slowest), lower where delta < 0; from 91 phase angles (every 1 degree)."""
+    th = np.linspace(0.0, np.pi / 2, 91)[:, None]
+    s2, c2 = np.sin(th) ** 2, np.cos(th) ** 2
+    e, d = np.ravel(epsilon)[None], np.ravel(delta)[None]
+    a = (1.0 + 2.0 * e) * s2
+    v = np.sqrt(0.5 * (a + c2) + np.sqrt(0.25 * (a - c2) ** 2 + (1.0 + 2.0 * d) * s2 * c2))
+    return v.min(0).reshape(np.shape(epsilon))
+
+
+@dataclass
+class AnisotropyCheck:
+    """The largest travel-time error (s) made by dropping the anisotropy (isotropic vp, the vertical speed) at the
+    scene's propagation angles: for each source-receiver pair, its straight-ray time t_iso through vp times the largest
+    |1 - vp / V_g(theta)| over the domain's (epsilon, delta), theta the pair's angle from the vertical: an upper bound
+    for any wave that travels at that angle (a head wave along an anisotropic layer, a direct wave inside one), beside
+    ``direct`` = max |t_vti - t_iso| of the direct waves along straight rays. ``t_vti``, ``t_iso`` (n_sources,
+    n_receivers) s; ``angle`` (degrees from the vertical) and ``pair`` (source, receiver) of the largest;
+    ``threshold`` = ANISOTROPY_PERIODS / the dominant frequency f_dominant (Hz)."""
+
+    error: float
+    direct: float
+    threshold: float
+    f_dominant: float
+    angle: float
+    pair: tuple
+    t_vti: np.ndarray
+    t_iso: np.ndarray
+
+    @property
+    def needed(self) -> bool:
+        return self.error >= self.threshold
+
+    def describe(self) -> str:
+        i, j = self.pair
+        where = (f"source {i}, receiver {j} at {self.angle:.0f} deg from the vertical, {1e3 * self.t_iso[i, j]:.0f} ms; "
+                 f"the direct waves: {1e3 * self.direct:.1f} ms")
+        bound = (f"{ANISOTROPY_PERIODS:g} of the dominant period 1/{self.f_dominant:.3g} Hz = {1e3 * self.threshold:.3g} ms, "
+                 f"where a waveform misfit starts to cycle-skip")
+        if self.needed:
+            return (f"physics vti needed: dropping the anisotropy (isotropic vp) moves qP arrivals by up to "
+                    f"{1e3 * self.error:.3g} ms (>= {bound}; {where})")
+        return (f"isotropic acoustic suffices (travel-time error {1e3 * self.error:.3g} ms < {bound}; {where}): physics: "
+                f"acoustic with model: the vp spec gives the same arrival times, faster")
+
+
+def _group_speed_ratios(eps, delta, angles) -> np.ndarray:
+    """:func:`qp_group_speed_ratio` of each (eps, delta) sample at the same-shaped angles (radians), one evaluation per
+    distinct (eps, delta) rounded to 1e-4."""
+    keys, inverse = np.unique(np.round(np.stack([np.ravel(eps), np.ravel(delta)], 1), 4), axis=0, return_inverse=True)
+    out, angles = np.empty(np.size(eps)), np.ravel(angles)
+    for k, (e, d) in enumerate(keys):
+        at = inverse.ravel() == k
+        out[at] = qp_group_speed_ratio(e, d, angles[at])
+    return out.reshape(np.shape(eps))
+
+
+def vti_ray_times(model: VTIModel, sources: np.ndarray, receivers: np.ndarray) -> tuple:
+    """(t_vti, t_iso, angle), each (n_sources, n_receivers): qP travel times (s) along straight rays with the group speed
+    at the ray's angle and with vp alone, and the ray's angle (radians from the vertical, rounded to 1e-3); sources
+    (n_s, 2), receivers (n_r, 2) world metres (z, x); vp, epsilon, delta sampled every half cell (linear
+    interpolation, as :func:`straight_ray_times`)."""
+    sources, receivers = np.asarray(sources, float), np.asarray(receivers, float)
+    org, spc = np.array(model.origin), np.array(model.spacing)
+    fields = (1.0 / model.vp.values, model.epsilon, model.delta)
+    n_s, n_r = len(sources), len(receivers)
+    t_vti, t_iso, angle = np.zeros((n_s, n_r)), np.zeros((n_s, n_r)), np.zeros((n_s, n_r))
+    for i, s in enumerate(sources):
+        seg = receivers - s
+        length = np.linalg.norm(seg, axis=1)
+        n = max(int(np.ceil(length.max() / (0.5 * min(spc)))), 1) + 1
+        frac = np.linspace(0.0, 1.0, n)
+        idx = ((s[None, None] + frac[None, :, None] * seg[:, None] - org) / spc).reshape(-1, 2).T
+        slow, eps, delta = (map_coordinates(f, idx, order=1, mode="nearest").reshape(n_r, n) for f in fields)
+        angle[i] = np.round(np.arctan2(np.abs(seg[:, 1]), np.abs(seg[:, 0])), 3)  # ~0.06 degree
+        t_iso[i] = np.trapezoid(slow, frac, axis=1) * length
+        rays = np.broadcast_to(angle[i][:, None], slow.shape)
+        t_vti[i] = np.trapezoid(slow / _group_speed_ratios(eps, delta, rays), frac, axis=1) * length
+    return t_vti, t_iso, angle
+
+
+def anisotropy_check(model: VTIModel, rays: tuple, f_dominant: float, box=None) -> AnisotropyCheck:
+    """:class:`AnisotropyCheck` of ``model`` for the scene's ``rays`` (:func:`vti_ray_times`), over the index box ``box``
+    = (i0, i1) (per axis, end exclusive; None: the whole model); f_dominant (Hz) the wavelet's dominant frequency."""
+    t_vti, t_iso, angle = rays
+    sl = tuple(slice(None) for _ in range(2)) if box is None else tuple(slice(a, b) for a, b in zip(*box))
+    media = np.unique(np.round(np.stack([model.epsilon[sl].ravel(), model.delta[sl].ravel()], 1), 4), axis=0)
+    angles = np.unique(angle)
+    grid = _group_speed_ratios(*np.broadcast_arrays(media[:, :1], media[:, 1:], angles[None]))  # (n_media, n_angles)
+    worst = np.abs(1.0 - 1.0 / grid).max(0)
+    bound = t_iso * worst[np.searchsorted(angles, angle)]
+    k = np.unravel_index(int(np.argmax(bound)), bound.shape)
+    return AnisotropyCheck(float(bound[k]), float(np.abs(t_vti - t_iso).max()), ANISOTROPY_PERIODS / f_dominant,
+                           float(f_dominant), float(np.degrees(angle[k])), (int(k[0]), int(k[1])), t_vti, t_iso)
+
+
+# --- Which physics a scene needs: attenuation (issue 26, item 7) ---------------------------------------------------
+
+ATTENUATION_LOSS = 0.01  # relative amplitude lost to Q below which a lossless physics suffices: issue 26's amplitude
+# target for every physics (items 1, 2, 4: amplitudes within 1% of the analytic solutions); a smaller loss is below the
+# accuracy the solvers themselves are held to
+
+
+@dataclass
+class AttenuationCheck:
+    """The settings a physics viscoacoustic run uses and what its Q does in the scene. ``q_band`` (f_min, f_max) Hz,
+    ``f_ref`` Hz, ``mechanisms``: the model's, or the solver's defaults from the wavelet's dominant frequency
+    ``f_dominant`` (Hz); over the planning box ``v_slowest`` (m/s) the slowest P phase velocity (at q_band's low end),
+    ``v_unrelaxed`` (m/s) the fastest (w -> infinity) speed, ``q_min``, ``q_max`` its quality factors. ``loss`` = 1 -
+    exp(-pi f_dominant t_longest / q_min): the amplitude lost at f_dominant by a wave that travels the longest direct
+    time ``t_longest`` (s, straight rays through vp) at the smallest Q, the bound the decision uses (it covers a
+    direct wave or a reflection through the low-Q parts); ``loss_ray`` = 1 - exp(-pi f_dominant t*) the largest along
+    the straight source-receiver rays themselves, t* = integral ds / (vp Q) (``t_star`` (n_sources, n_receivers) s),
+    on the ray ``pair`` (source, receiver)."""
+
+    q_band: tuple
+    f_ref: float
+    mechanisms: int
+    f_dominant: float
+    v_slowest: float
+    v_unrelaxed: float
+    q_min: float
+    q_max: float
+    t_longest: float
+    loss: float
+    loss_ray: float
+    pair: tuple
+    t_star: np.ndarray
+
+    @property
+    def needed(self) -> bool:
+        return self.loss >= ATTENUATION_LOSS
+
+    def describe(self) -> str:
+        i, j = self.pair
+        setup = (f"Q {self.q_min:.3g}..{self.q_max:.3g}, flat over {self.q_band[0]:.3g}-{self.q_band[1]:.3g} Hz with "
+                 f"{self.mechanisms} mechanisms, vp at f_ref {self.f_ref:.3g} Hz")
+        where = (f"at the dominant {self.f_dominant:.3g} Hz over the longest direct path ({1e3 * self.t_longest:.3g} ms) at "
+                 f"Q {self.q_min:.3g}; {100 * self.loss_ray:.2g}% along the straight rays themselves (source {i} to "
+                 f"receiver {j}, t* = {1e3 * self.t_star[i, j]:.3g} ms)")
+        if self.needed:
+            return (f"{setup}; Q matters: up to {100 * self.loss:.3g}% of the amplitude is lost (>= "
+                    f"{100 * ATTENUATION_LOSS:g}%) {where}; a lossless physics (acoustic, acoustic_vd) would overstate it")
+        return (f"{setup}; lossless acoustic suffices (amplitude error {100 * self.loss:.2g}% < {100 * ATTENUATION_LOSS:g}% "
+                f"{where}): physics acoustic_vd (acoustic where the density is constant) gives the same amplitudes, faster")
+
+
+def attenuation_check(model: ViscoacousticModel, sources: np.ndarray, receivers: np.ndarray, wavelet, box=None) -> AttenuationCheck:
+    """:class:`AttenuationCheck` of ``model`` for sources (n_s, 2) and receivers (n_r, 2) (world metres, (z, x)) and the
+    config's ``wavelet`` (kind, params); speeds and Q over the index box ``box`` = (i0, i1) (per axis, end exclusive;
+    None: the whole model), travel times over the whole model."""
+    from adseismic.kernels.viscoacoustic import fit_mechanisms
+    from adseismic.solve.viscoacoustic import DEFAULT_MECHANISMS, unrelaxed_velocity
+
+    w, dt0 = _sampled_wavelet(wavelet.kind, wavelet.params)
+    f_dom = dominant_frequency(w[None], dt0)
+    band = model.q_band or (f_dom / 3.0, 2.5 * f_dom)  # the solver's defaults (adseismic.solve.viscoacoustic)
+    f_ref, count = model.f_ref or f_dom, model.mechanisms or DEFAULT_MECHANISMS
+    mech = fit_mechanisms(*band, count)
+    sl = tuple(slice(None) for _ in range(2)) if box is None else tuple(slice(a, b) for a, b in zip(*box))
+    vp, q = model.vp.values[sl], model.q[sl]
+    y = mech.y(q)
+    unrelaxed = unrelaxed_velocity(vp, q, mech, f_ref)
+    wt = 2.0 * math.pi * band[0] * mech.tau
+    c_low = unrelaxed / np.sqrt(1.0 + y.sum(-1)) * np.sqrt(1.0 + (y * (1j * wt) / (1.0 + 1j * wt)).sum(-1))  # sqrt(M / rho)
+    t_longest = float(straight_ray_times(model.vp, sources, receivers).max())
+    t_star = straight_ray_times(model.vp, sources, receivers, slowness=1.0 / (model.vp.values * model.q))
+    k = np.unravel_index(int(np.argmax(t_star)), t_star.shape)
+    return AttenuationCheck(tuple(float(f) for f in band), float(f_ref), int(count), float(f_dom),
+                            float((1.0 / np.real(1.0 / c_low)).min()), float(unrelaxed.max()), float(q.min()), float(q.max()),
+                            t_longest, float(1.0 - np.exp(-math.pi * f_dom * t_longest / q.min())),
+                            float(1.0 - np.exp(-math.pi * f_dom * t_star[k])), (int(k[0]), int(k[1])), t_star)

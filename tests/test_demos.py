@@ -15,7 +15,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DEMOS = {"example_2d": "forward", "example_3d": "forward", "fwi_demo": "fwi", "locate_demo": "locate",
          "elastic_forward": "forward", "das_forward": "forward", "elastic_fwi": "fwi", "nn_fwi": "fwi",
-         "locate_mt_demo": "locate", "image_marmousi": "image", "image_elastic": "image", "acoustic_vd_forward": "forward"}
+         "locate_mt_demo": "locate", "image_marmousi": "image", "image_elastic": "image", "acoustic_vd_forward": "forward",
+         "vti_forward": "forward", "viscoacoustic_forward": "forward"}
 
 
 def stated_seconds(path: Path) -> float:

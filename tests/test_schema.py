@@ -15,7 +15,7 @@ from adseismic.config.schema import SCHEMAS, validate_section
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
 EXAMPLES = {"forward": ["example_2d", "example_3d", "marmousi_forward", "elastic_forward", "das_forward",
-                        "acoustic_vd_forward"],
+                        "acoustic_vd_forward", "vti_forward", "viscoacoustic_forward"],
             "fwi": ["fwi_demo", "marmousi_fwi", "elastic_fwi", "nn_fwi"], "locate": ["locate_demo", "locate_mt_demo"],
             "image": ["image_marmousi", "image_elastic"]}
 

@@ -346,11 +346,12 @@ def cmd_forward(args) -> int:
         pngs = [plotting.plot_model(outdir / "model.png", scene.model.values, plan.dx,
                                     plan.origin, src_world, rec_world,
                                     title=config.model.name or "velocity model")]
-        if config.physics != "acoustic":  # model.png is vp; acoustic_vd has no vs (0)
-            pngs += [plotting.plot_model(outdir / f"model_{name}.png", getattr(scene.model, name).values, plan.dx, plan.origin,
+        if config.physics != "acoustic":  # model.png is vp; acoustic_vd has no vs (0); vti has epsilon and delta, viscoacoustic q (arrays)
+            fields = {"vs": "S velocity (m/s)", "epsilon": "Thomsen epsilon", "delta": "Thomsen delta",
+                      "q": "quality factor Q (blank: lossless)", "rho": "density (kg/m^3)"}
+            pngs += [plotting.plot_model(outdir / f"model_{name}.png", getattr(f, "values", f), plan.dx, plan.origin,
                                          src_world, rec_world, title=f"{name} on the simulation grid", label=label)
-                     for name, label in (("vs", "S velocity (m/s)"), ("rho", "density (kg/m^3)"))
-                     if getattr(scene.model, name) is not None]
+                     for name, label in fields.items() if (f := getattr(scene.model, name, None)) is not None]
         for k in range(n_shots):
             where = ", ".join(f"{a}={v:g}" for a, v in zip("zyx" if ndim == 3 else "zx",
                                                             src_world[k]))

@@ -31,7 +31,7 @@ from adseismic.config import schema
 from adseismic.config.common import ConfigError, _check_keys, _integer, _mapping, _number, _read_yaml, _short
 from adseismic.config.parallel import ParallelConfig, parse_parallel
 from adseismic.config.schema import given, validate_section
-from adseismic.data.models import ElasticModel, Model, ModelError, load_physics_model
+from adseismic.data.models import ElasticModel, Model, ModelError, VTIModel, load_physics_model
 
 __all__ = [
     "GeometryConfig",
@@ -128,15 +128,15 @@ class OutputConfig:
 
 @dataclass
 class ForwardConfig:
-    model: Model | ElasticModel  # ElasticModel with physics elastic
+    model: Model | ElasticModel | VTIModel  # ElasticModel with physics elastic, acoustic_vd; VTIModel with vti
     geometry: GeometryConfig
     wavelet: WaveletConfig
     simulation: SimulationConfig
     output: OutputConfig
     path: Path | None = None  # the YAML file (None when parsed from a dict)
     raw: dict = field(default_factory=dict)  # the parsed YAML, kept for provenance
-    physics: str = "acoustic"  # acoustic, elastic or acoustic_vd (an ElasticModel with vs None)
-    source: SourceConfig | None = None  # physics elastic, acoustic_vd: the mechanism (None for acoustic physics)
+    physics: str = "acoustic"  # acoustic, elastic, acoustic_vd (an ElasticModel with vs None) or vti (a VTIModel)
+    source: SourceConfig | None = None  # physics elastic, acoustic_vd, vti: the mechanism (None for acoustic physics)
     parallel: ParallelConfig | None = None  # a forward file's parallel section (config.parallel): shots over workers
 
     @property
@@ -368,8 +368,9 @@ def _parse_source(raw, physics: str, key="source") -> SourceConfig | None:
         return None
     v = given(validate_section(schema.ElasticSource, raw, key))
     kind, comp = v.get("type", "explosive"), v.get("components")
-    if physics == "acoustic_vd" and kind != "explosive":
-        raise ConfigError(f"{key}.type: {kind!r} with physics acoustic_vd; a fluid model takes the explosive (pressure) "
+    if physics in ("acoustic_vd", "vti", "viscoacoustic") and kind != "explosive":
+        what = {"vti": "the pseudo-acoustic VTI solver (P waves only)"}.get(physics, "a fluid model")
+        raise ConfigError(f"{key}.type: {kind!r} with physics {physics}; {what} takes the explosive (pressure) "
                           f"source only: set type: explosive (components: M0 in N m/m), or physics: elastic for force and "
                           f"moment-tensor sources")
     if kind == "explosive":
@@ -403,6 +404,18 @@ def _parse_physics(raw) -> str:
     return physics
 
 
+# the physics only adseismic forward runs, by name: fwi, locate and image run the acoustic and elastic solvers, which
+# would drop the anisotropy or the attenuation; nor do the parallel workers run them yet
+FORWARD_ONLY = {"vti": "VTI", "viscoacoustic": "visco-acoustic (constant Q)"}
+
+
+def refuse_forward_only(physics: str, workflow: str, fix: str) -> None:
+    """ConfigError for a FORWARD_ONLY physics in ``adseismic <workflow>``; ``fix``: what to use instead."""
+    if isinstance(physics, str) and physics in FORWARD_ONLY:
+        raise ConfigError(f"physics: {physics} is not available for adseismic {workflow} yet ({FORWARD_ONLY[physics]} is "
+                          f"forward modelling only: adseismic forward); {fix}")
+
+
 # ------------------------------------------------------------------------------ public API
 
 def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None,
@@ -428,8 +441,10 @@ def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | Non
     simulation = _parse_simulation(raw.get("simulation"))
     output = _parse_output(raw.get("output"))
     if physics != "acoustic" and output.snapshot_interval:
-        raise ConfigError(f"output.snapshot_interval: {output.snapshot_interval:g} s, but the elastic solver (which runs "
-                          f"physics {physics}) keeps no wavefield snapshots; set it to 0 (or leave it out) with physics "
+        solver = (f"the {FORWARD_ONLY[physics]} solver" if physics in FORWARD_ONLY else
+                  f"the elastic solver (which runs physics {physics})")
+        raise ConfigError(f"output.snapshot_interval: {output.snapshot_interval:g} s, but {solver} keeps no wavefield "
+                          f"snapshots; set it to 0 (or leave it out) with physics "
                           f"{physics}")
     wavelet = _parse_wavelet(raw["wavelet"], base_dir)
     source = _parse_source(raw.get("source"), physics)
@@ -444,6 +459,9 @@ def load_config(path) -> ForwardConfig:
     folder. Raises ConfigError naming the key, the value and the fix."""
     raw, path = _read_yaml(path)
     config = parse_config(raw, base_dir=path.resolve().parent, path=path, extra_sections=("parallel",))
+    if config.physics in FORWARD_ONLY and raw.get("parallel") is not None:  # the workers run the acoustic and elastic solvers
+        raise ConfigError(f"parallel: given with physics {config.physics}; the shots of a {FORWARD_ONLY[config.physics]} run "
+                          f"are not spread over workers yet: drop the parallel section (one process simulates every shot at once)")
     config.parallel = parse_parallel(raw.get("parallel"), config.n_shots)
     return config
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from adseismic.config import schema
 from adseismic.config.common import ConfigError, _check_keys, _choice, _mapping, _positive, _read_yaml, _short
-from adseismic.config.forward import AXES, ForwardConfig, parse_config
+from adseismic.config.forward import AXES, ForwardConfig, parse_config, refuse_forward_only
 from adseismic.config.parallel import ParallelConfig, parse_parallel
 from adseismic.config.schema import given, validate_section
 from adseismic.data.models import ElasticModel, Model, ModelError, load_physics_model
@@ -205,6 +205,9 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
     """Validate an inversion config: the forward sections (model = start model) plus `inversion`
     and exactly one of `true_model` (synthetic study) or `observed` (data files)."""
     base_dir = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
+    if isinstance(raw, dict):  # forward_vti and gradient_viscoacoustic exist, the inversion has no model space for them yet
+        refuse_forward_only(raw.get("physics"), "fwi", "invert with physics: acoustic (model: the vp spec) or acoustic_vd / "
+                            "elastic")
     network, raw_forward = _parse_network(raw)
     forward = parse_config(raw_forward, base_dir, path, extra_sections=FWI_SECTIONS)
     forward.raw = raw

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from adseismic.config import forward, schema
 from adseismic.config.common import ConfigError, _check_keys, _choice, _read_yaml
-from adseismic.config.forward import ForwardConfig
+from adseismic.config.forward import ForwardConfig, refuse_forward_only
 from adseismic.config.fwi import parse_fwi_config
 from adseismic.config.schema import given, validate_section
 from adseismic.data.model import Model
@@ -79,6 +79,7 @@ def parse_image_config(raw: dict, base_dir: Path | str | None = None, path: Path
                           f"{', '.join(forward.REQUIRED_SECTIONS + IMAGE_SECTIONS)} (and optionally physics, simulation)")
     _check_keys(raw, "", forward.SECTIONS + IMAGE_SECTIONS)
     physics = _choice(raw.get("physics") or "acoustic", "physics", schema.PHYSICS)
+    refuse_forward_only(physics, "image", "migrate with physics: acoustic (model: the vp spec) or physics: elastic")
     if physics == "acoustic_vd":  # migration needs a smooth background's kinematics, which density does not change
         raise ConfigError("physics: acoustic_vd is not available for adseismic image (there is no density image, and "
                           "the migration background's travel times do not depend on the density); use physics: acoustic "

@@ -15,7 +15,7 @@ import numpy as np
 
 from adseismic.config import schema
 from adseismic.config.common import ConfigError, _check_keys, _mapping, _number, _read_yaml, _short
-from adseismic.config.forward import AXES, SimulationConfig, _check_inside, _load_model, _parse_physics, _parse_simulation, _point
+from adseismic.config.forward import AXES, SimulationConfig, _check_inside, _load_model, _parse_physics, _parse_simulation, _point, refuse_forward_only
 from adseismic.config.schema import given, validate_section
 from adseismic.data.models import Model
 
@@ -149,6 +149,7 @@ def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Pat
     if (raw.get("simulation") or {}).get("precision") is None:
         simulation.precision = "float64"  # the covariance comes from differences of simulations
     physics = _parse_physics(raw.get("physics"))
+    refuse_forward_only(physics, "locate", "locate with physics: acoustic (model: the vp spec) or physics: elastic")
     if physics == "acoustic_vd":  # a location fits travel times (and a source amplitude), not interface amplitudes
         raise ConfigError("physics: acoustic_vd is not available for adseismic locate (an event's location comes from "
                           "travel times, which density does not change); use physics: acoustic with model: the vp spec, "

@@ -226,7 +226,55 @@ class AcousticVDModelSpec(_Section):
     rho: ModelSpec | Gardner = F(..., "the density (kg/m^3), >= 100; or {gardner: true}", "kg/m^3")
 
 
-PHYSICS = ("acoustic", "elastic", "acoustic_vd")  # adseismic.data.models.PHYSICS (tests/test_elastic_config.py keeps them equal)
+class FieldSpec(_Section):
+    """A dimensionless field on vp's grid (physics vti: Thomsen's epsilon or delta, may be 0 or negative;
+    viscoacoustic: the quality factor Q, > 0, .inf lossless): horizontal layers, or read from a file (spacing and origin
+    default to vp's). A constant is written as a number. Checked by adseismic.data.models.load_physics_model."""
+
+    kind: Literal["layered", "raw", "npy", "hdf5", "segy"] = F(..., "layered (generated on vp's grid) or raw, npy, hdf5, "
+                                                                  "segy (read from a file on vp's grid)")
+    name: str | None = F(None, "a name for logs and plots")
+    values: list[float] | None = F(None, "layered: the layers' values, top to bottom (dimensionless)")
+    interfaces: list[float] | None = F(None, "layered: depths of the interfaces between the layers", "m")
+    path: str | None = F(None, "files: the file, relative to the config's folder")
+    axes: str | None = F(None, "files: stored axis order, slowest first (default zx; xz for SEG-Y)")
+    spacing: float | list[float] | None = F(None, "files: grid spacing (default vp's)", "m")
+    origin: list[float] | None = F(None, "files: world coordinates of node 0 (default vp's)", "m")
+    shape: list[int] | None = F(None, "raw: the stored array shape, slowest axis first")
+    dtype: str | None = F(None, "raw: sample type (default float32)")
+    endian: Literal["little", "big"] | None = F(None, "raw: byte order (default little)")
+    dataset: str | None = F(None, "hdf5: the dataset holding the field")
+    spacing_dataset: str | None = F(None, "hdf5: a dataset holding the spacing (stored axis order)")
+
+
+class VTIModelSpec(_Section):
+    """physics vti (2D pseudo-acoustic VTI, docs/vti.md): the vertical P speed, Thomsen's epsilon and delta and the
+    density. epsilon >= delta > -0.5 everywhere (refused otherwise). Checked by adseismic.data.models.load_physics_model."""
+
+    vp: ModelSpec = F(..., "the vertical P-wave speed (m/s)", "m/s")
+    epsilon: float | FieldSpec = F(..., "Thomsen's epsilon (dimensionless, >= delta): a number or a field spec")
+    delta: float | FieldSpec = F(..., "Thomsen's delta (dimensionless, > -0.5): a number or a field spec")
+    rho: ModelSpec | Gardner | None = F(None, "the density (kg/m^3), >= 100; or {gardner: true}; null: 1000 (water)",
+                                        "kg/m^3")
+
+
+class ViscoacousticModelSpec(_Section):
+    """physics viscoacoustic (2D visco-acoustic, constant Q over a band, docs/viscoacoustic.md): the P speed, the
+    quality factor and the density, and the band of the relaxation mechanisms. Checked by
+    adseismic.data.models.load_physics_model."""
+
+    vp: ModelSpec = F(..., "the P-wave phase velocity at f_ref (m/s)", "m/s")
+    q: float | FieldSpec = F(..., "the quality factor Q (dimensionless, > 0; .inf: lossless): a number or a field spec")
+    rho: ModelSpec | Gardner | None = F(None, "the density (kg/m^3), >= 100; or {gardner: true}; null: 1000 (water)",
+                                        "kg/m^3")
+    q_band: list[float] | None = F(None, "[f_min, f_max]: the band over which Q is flat; null: the wavelet's dominant "
+                                         "frequency / 3 .. x 2.5", "Hz")
+    f_ref: float | None = F(None, "the frequency at which vp is the phase velocity; null: the wavelet's dominant "
+                                  "frequency", "Hz")
+    mechanisms: int | None = F(None, "standard linear solids fitted to the flat Q; null: 3")
+
+
+PHYSICS = ("acoustic", "elastic", "acoustic_vd", "vti", "viscoacoustic")  # adseismic.data.models.PHYSICS (tests/test_elastic_config.py keeps them equal)
 
 
 class Point(_Section):
@@ -371,14 +419,17 @@ class ForwardSchema(_Section):
     """A forward simulation (adseismic forward): model, geometry, wavelet; optionally simulation and output."""
 
     physics: Annotated[Literal[PHYSICS] | None, OneOf(*PHYSICS)] = F(
-        "acoustic", "acoustic (model: a velocity model), elastic (2D; model: {vp, vs, rho}) or acoustic_vd (2D "
-                    "acoustic with variable density, on the elastic solver with vs = 0; model: {vp, rho})")
-    model: ModelSpec | ElasticModelSpec | AcousticVDModelSpec = F(
-        ..., "the velocity model (m/s); physics elastic: {vp, vs, rho}; acoustic_vd: {vp, rho}")
+        "acoustic", "acoustic (model: a velocity model), elastic (2D; model: {vp, vs, rho}), acoustic_vd (2D "
+                    "acoustic with variable density, on the elastic solver with vs = 0; model: {vp, rho}), vti (2D "
+                    "pseudo-acoustic VTI, forward only; model: {vp, epsilon, delta, rho}) or viscoacoustic (2D "
+                    "constant-Q attenuation, forward only; model: {vp, q, rho})")
+    model: ModelSpec | ElasticModelSpec | AcousticVDModelSpec | VTIModelSpec | ViscoacousticModelSpec = F(
+        ..., "the velocity model (m/s); physics elastic: {vp, vs, rho}; acoustic_vd: {vp, rho}; vti: {vp, epsilon, "
+             "delta, rho}; viscoacoustic: {vp, q, rho}")
     geometry: Geometry = F(..., "sources (one shot each) and receivers, world metres")
     wavelet: Wavelet = F(..., "the source time function")
-    source: ElasticSource | None = F(None, "physics elastic: the source mechanism; null: explosive; acoustic_vd: "
-                                           "explosive only (M0 in N m/m)")
+    source: ElasticSource | None = F(None, "physics elastic: the source mechanism; null: explosive; acoustic_vd, vti, "
+                                           "viscoacoustic: explosive only (M0 in N m/m)")
     simulation: Simulation | None = F(None, "numerical settings; null: all planned / defaults")
     output: Output | None = F(None, "extra outputs")
 

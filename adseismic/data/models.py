@@ -2,7 +2,9 @@
 from raw, .npy, HDF5 and SEG-Y files (ObsPy imported only for SEG-Y), in m/s, cropped and smoothed.
 Axis order (z, [y,] x); the `Model` object is adseismic.data.model's. With ``physics: elastic`` the section holds
 ``{vp, vs, rho}``, each such a spec (or ``vs: {vp_ratio: R}``, ``rho: {gardner: true}``), with ``physics: acoustic_vd``
-``{vp, rho}`` (a fluid: vs = 0), loaded by :func:`load_physics_model` into an :class:`ElasticModel`."""
+``{vp, rho}`` (a fluid: vs = 0), loaded by :func:`load_physics_model` into an :class:`ElasticModel`; with ``physics: vti``
+``{vp, epsilon, delta, rho}`` (Thomsen's epsilon and delta dimensionless: a number, layers or a file) into a
+:class:`VTIModel`."""
 from __future__ import annotations
 
 import math
@@ -194,6 +196,23 @@ def _generate(kind: str, spec: dict) -> Model:
 
 
 def _load_file(kind: str, spec: dict, base_dir: pathlib.Path) -> Model:
+    units = spec.get("units", "m/s")
+    if not isinstance(units, str) or units not in _UNITS:
+        raise ModelError(f"model.units: {units!r} is not one of {', '.join(_UNITS)}; "
+                         f"set the units the file stores")
+    data, spacing, path = _read_grid(kind, spec, base_dir)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        values = _UNITS[units](data)
+    check_velocities(values, f"model.path ({path.name})", f" (converted from {units})")
+    try:
+        return Model(values, spacing, spec.get("origin"), path.stem)
+    except ModelError as e:
+        raise ModelError(f"model.{e}") from None
+
+
+def _read_grid(kind: str, spec: dict, base_dir: pathlib.Path) -> tuple[np.ndarray, tuple, pathlib.Path]:
+    """(values float64 in axis order (z, [y,] x) as stored (no unit conversion), spacing (m) per axis, the file's path)
+    of a file spec (raw, npy, hdf5, segy); ModelError naming ``model.<key>``."""
     # --- validate the spec and the file before reading anything
     raw_path = _require(spec, "path", "the path of the file to read")
     path = pathlib.Path(raw_path).expanduser()
@@ -201,10 +220,6 @@ def _load_file(kind: str, spec: dict, base_dir: pathlib.Path) -> Model:
     if not path.is_file():
         raise ModelError(f"model.path: {str(raw_path)!r} does not exist (looked for {path}); "
                          f"give an absolute path or one relative to {base_dir}")
-    units = spec.get("units", "m/s")
-    if not isinstance(units, str) or units not in _UNITS:
-        raise ModelError(f"model.units: {units!r} is not one of {', '.join(_UNITS)}; "
-                         f"set the units the file stores")
     if "spacing" in spec and "spacing_dataset" in spec:
         raise ModelError(f"model.spacing_dataset: {spec['spacing_dataset']!r} given together "
                          f"with model.spacing; keep only one of them")
@@ -241,18 +256,12 @@ def _load_file(kind: str, spec: dict, base_dir: pathlib.Path) -> Model:
                          f"the {data.ndim}D stored array of shape {data.shape}; name the stored "
                          f"axes slowest first, e.g. {AXES[data.ndim][::-1]!r}")
     order = [axes.index(a) for a in AXES[data.ndim]]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        values = _UNITS[units](np.transpose(data, order).astype(np.float64))
-    check_velocities(values, f"model.path ({path.name})", f" (converted from {units})")
     if "spacing" in spec:
         spacing = per_axis(spec["spacing"], data.ndim, "model.spacing")
     else:
         spacing = tuple(np.asarray(per_axis(spacing_stored, data.ndim,
                                              f"model.spacing_dataset ({spec['spacing_dataset']})"))[order])
-    try:
-        return Model(values, spacing, spec.get("origin"), path.stem)
-    except ModelError as e:
-        raise ModelError(f"model.{e}") from None
+    return np.transpose(data, order).astype(np.float64), spacing, path
 
 
 def _check_stored(data, path: pathlib.Path) -> np.ndarray:
@@ -353,7 +362,7 @@ def _read_segy(path: pathlib.Path) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------- elastic models
 
-PHYSICS = ("acoustic", "elastic", "acoustic_vd")
+PHYSICS = ("acoustic", "elastic", "acoustic_vd", "vti", "viscoacoustic")
 ELASTIC_SOLVER = ("elastic", "acoustic_vd")  # the physics the elastic solver runs (acoustic_vd: vs = 0, a fluid)
 ELASTIC_KEYS = ("vp", "vs", "rho")
 ACOUSTIC_VD_KEYS = ("vp", "rho")
@@ -362,8 +371,25 @@ MIN_DENSITY = 100.0  # kg/m^3: below this a density is a unit error (g/cm^3 type
 GARDNER = (310.0, 0.25)  # rho = 310 vp^0.25 kg/m^3 with vp in m/s (Gardner, Gardner & Gregory 1974, Geophysics 39)
 
 
+class _OnVpGrid:
+    """The Model-like grid of a model of several fields on vp's grid: ``ndim``, ``shape``, ``spacing``, ``origin``,
+    ``extent``, ``name``, ``contains`` are vp's grid's, ``values`` vp's (m/s)."""
+
+    ndim = property(lambda self: self.vp.ndim)
+    shape = property(lambda self: self.vp.shape)
+    spacing = property(lambda self: self.vp.spacing)
+    origin = property(lambda self: self.vp.origin)
+    extent = property(lambda self: self.vp.extent)
+    name = property(lambda self: self.vp.name)
+    values = property(lambda self: self.vp.values)
+
+    def contains(self, points) -> np.ndarray:
+        """:meth:`Model.contains` of the grid."""
+        return self.vp.contains(points)
+
+
 @dataclass(frozen=True, eq=False)
-class ElasticModel:
+class ElasticModel(_OnVpGrid):
     """An isotropic elastic model: ``vp``, ``vs`` (m/s) and ``rho`` (kg/m^3), three :class:`Model` objects on one grid
     (shape (nz, nx), spacing and origin in m, axis order (z, x)); 0 < vs <= vp / sqrt(2) (Lame lambda >= 0).
     ``vs`` None: a fluid everywhere (vs = 0), the variable-density acoustic model of ``physics: acoustic_vd``, which
@@ -401,19 +427,8 @@ class ElasticModel:
         vs = np.zeros(self.shape) if self.vs is None else self.vs.values
         return {"vp": np.asarray(self.vp.values, float), "vs": np.asarray(vs, float), "rho": np.asarray(self.rho.values, float)}
 
-    ndim = property(lambda self: self.vp.ndim)
-    shape = property(lambda self: self.vp.shape)
-    spacing = property(lambda self: self.vp.spacing)
-    origin = property(lambda self: self.vp.origin)
-    extent = property(lambda self: self.vp.extent)
-    name = property(lambda self: self.vp.name)
-    values = property(lambda self: self.vp.values)
     vmin = property(lambda self: self.vp.vmin)
     vmax = property(lambda self: self.vp.vmax)
-
-    def contains(self, points) -> np.ndarray:
-        """:meth:`Model.contains` of the grid."""
-        return self.vp.contains(points)
 
     def resample(self, spacing: float, origin: tuple, shape: tuple) -> ElasticModel:
         """The three models on the regular grid of :meth:`Model.resample` (spacing m, origin m, shape nodes), each by
@@ -475,6 +490,10 @@ def load_physics_model(spec, physics: str = "acoustic", base_dir: pathlib.Path |
     if physics not in PHYSICS:
         raise ModelError(f"physics: {_short(physics)} is not one of {', '.join(PHYSICS)}; pick one of them")
     is_elastic_spec = isinstance(spec, dict) and bool(set(spec) & set(ELASTIC_KEYS))
+    if physics == "vti":
+        return _load_vti(spec, base_dir)
+    if physics == "viscoacoustic":
+        return _load_viscoacoustic(spec, base_dir)
     if physics == "acoustic":
         if is_elastic_spec:
             raise ModelError(f"model: {', '.join(k for k in ELASTIC_KEYS if k in spec)} are the keys of an elastic model "
@@ -540,3 +559,258 @@ def _load_density(rho_spec, base_dir, vp: Model) -> Model:
         raise ModelError(f"model.rho: densities down to {rho.vmin:g} kg/m^3, below {MIN_DENSITY:g} kg/m^3 (water: "
                          f"1000, rocks 1500-3000); g/cm^3? multiply by 1000 (densities are in kg/m^3)")
     return rho
+
+
+# ----------------------------------------------------------------------------------- VTI models
+
+VTI_KEYS = ("vp", "epsilon", "delta", "rho")
+WATER_DENSITY = 1000.0  # kg/m^3: physics vti's density when model.rho is left out
+_FIELD_KEYS = {"layered": {"values", "interfaces"}, **{k: v | {"axes", "spacing", "origin", "path"} for k, v in _FILE_KEYS.items()}}
+# the dimensionless fields on vp's grid (_load_field): key -> (what it is, an example value, whether +inf is a value)
+_FIELDS = {"epsilon": ("Thomsen's epsilon (dimensionless)", "0.1", False),
+           "delta": ("Thomsen's delta (dimensionless)", "0.05", False),
+           "q": ("the quality factor Q (dimensionless, > 0; .inf: lossless)", "30", True)}
+
+
+@dataclass(frozen=True, eq=False)
+class VTIModel(_OnVpGrid):
+    """A 2D VTI model for the pseudo-acoustic solver (adseismic.solve.vti, docs/vti.md): ``vp`` the vertical P speed
+    (m/s) and ``rho`` (kg/m^3), :class:`Model` objects on one grid (shape (nz, nx), axis order (z, x)), and Thomsen's
+    ``epsilon`` and ``delta`` (dimensionless) as read-only float64 arrays (nz, nx) on that grid; epsilon >= delta and
+    delta > -1/2 everywhere (refused otherwise: the solver's thomsen_check). Model-like as :class:`ElasticModel`:
+    ``values`` and ``vmin`` are vp's, ``vmax`` the fastest speed, max of the horizontal vp sqrt(1 + 2 epsilon)."""
+
+    vp: Model
+    epsilon: np.ndarray
+    delta: np.ndarray
+    rho: Model
+
+    physics = "vti"
+
+    def __post_init__(self):
+        from adseismic.kernels.vti import thomsen_check
+
+        if self.rho.shape != self.vp.shape or self.rho.spacing != self.vp.spacing or self.rho.origin != self.vp.origin:
+            raise ModelError(f"model.rho: its grid (shape {list(self.rho.shape)}, spacing {list(self.rho.spacing)} m) differs "
+                             f"from model.vp's (shape {list(self.vp.shape)}, spacing {list(self.vp.spacing)} m); give both on one grid")
+        for name in ("epsilon", "delta"):
+            a = np.array(getattr(self, name), dtype=np.float64)
+            if a.shape != self.vp.shape:
+                raise ModelError(f"model.{name}: shape {list(a.shape)} differs from model.vp's {list(self.vp.shape)} (z, x); "
+                                 f"give {name} on vp's grid")
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+        try:
+            thomsen_check(self.epsilon, self.delta)
+        except ValueError as e:
+            raise ModelError(f"model.epsilon, model.delta: {e}") from None
+
+    vmin = property(lambda self: self.vp.vmin)
+    vmax = property(lambda self: float(self.horizontal_speed().max()))
+
+    def horizontal_speed(self) -> np.ndarray:
+        """vp sqrt(1 + 2 epsilon) (m/s, (nz, nx)): the horizontal P speed, the fastest of the medium."""
+        return self.vp.values * np.sqrt(1.0 + 2.0 * self.epsilon)
+
+    def materials(self) -> dict:
+        """{vp, epsilon, delta, rho}: float64 arrays (nz, nx) as forward_vti takes them (m/s, 1, 1, kg/m^3)."""
+        return {"vp": np.asarray(self.vp.values, float), "epsilon": np.asarray(self.epsilon, float),
+                "delta": np.asarray(self.delta, float), "rho": np.asarray(self.rho.values, float)}
+
+    def resample(self, spacing: float, origin: tuple, shape: tuple) -> VTIModel:
+        """The model on the regular grid of :meth:`Model.resample` (spacing m, origin m, shape nodes): vp by its
+        slowness, rho by its buoyancy (as ElasticModel), epsilon and delta linearly, with the same anti-alias filter
+        and interpolation weights (Model.resample of 1 / (1 + 2 t), a positive field whose inverse is linear in t);
+        equal weights at every node keep epsilon >= delta."""
+        return VTIModel(self.vp.resample(spacing, origin, shape), _resample_linear(self.vp, self.epsilon, spacing, origin, shape),
+                        _resample_linear(self.vp, self.delta, spacing, origin, shape), self.rho.resample(spacing, origin, shape))
+
+
+def _resample_linear(grid: Model, t: np.ndarray, spacing: float, origin: tuple, shape: tuple) -> np.ndarray:
+    """A field ``t`` > -1/2 on ``grid``'s nodes (same shape) resampled linearly in t with the anti-alias filter and
+    interpolation weights of ``grid.resample(spacing, origin, shape)``: Model.resample of 1 / (1 + 2 t), a positive
+    field whose inverse is linear in t."""
+    m = replace(grid, values=1.0 / (1.0 + 2.0 * t)).resample(spacing, origin, shape)
+    return 0.5 * (1.0 / m.values - 1.0)
+
+
+def _load_vti(spec, base_dir) -> VTIModel:
+    """``model: {vp, epsilon, delta, rho}`` of physics vti: vp a model spec (m/s), epsilon and delta Thomsen fields
+    (:func:`_load_field`), rho a model spec (kg/m^3), ``{gardner: true}`` or left out (WATER_DENSITY)."""
+    if not (isinstance(spec, dict) and set(spec) & set(VTI_KEYS)):
+        raise ModelError(f"model: {_short(spec)} is one velocity model, but physics vti needs {{vp, epsilon, delta}} (and "
+                         f"optionally rho): write model: {{vp: {{kind: ...}}, epsilon: 0.1, delta: 0.05}} (vp in m/s, "
+                         f"Thomsen's epsilon and delta dimensionless), or set physics: acoustic")
+    unknown = sorted(set(spec) - set(VTI_KEYS), key=str)
+    if unknown:
+        raise ModelError(f"model.{unknown[0]}: unknown key of a vti model; allowed: {', '.join(VTI_KEYS)} (vp, rho model "
+                         f"specs; epsilon, delta a number or a Thomsen field spec)")
+    for k in VTI_KEYS[:3]:
+        if spec.get(k) is None:
+            raise ModelError(f"model.{k}: missing; a physics vti model needs vp (m/s), epsilon and delta (Thomsen, "
+                             f"dimensionless: a number or {{kind: layered | npy | hdf5 | raw | segy, ...}}) and optionally "
+                             f"rho (kg/m^3, {{gardner: true}}, default {WATER_DENSITY:g})")
+    base_dir = pathlib.Path.cwd() if base_dir is None else base_dir
+    vp = _load_part(spec["vp"], "vp", base_dir, None)
+    if vp.ndim != 2:
+        raise ModelError(f"model.vp: a 3D model (shape {list(vp.shape)}) with physics vti; the VTI solver is 2D (3D is not "
+                         f"built yet): give a 2D model [nz, nx], or use physics: acoustic in 3D")
+    eps, delta = (_load_field(spec[k], k, base_dir, vp) for k in ("epsilon", "delta"))
+    rho = (replace(vp, values=np.full(vp.shape, WATER_DENSITY), name="water density") if spec.get("rho") is None
+           else _load_density(spec["rho"], base_dir, vp))
+    return VTIModel(vp, eps, delta, rho)
+
+
+def _load_field(spec, key: str, base_dir, vp: Model) -> np.ndarray:
+    """``model.<key>``, a dimensionless field of :data:`_FIELDS` (epsilon, delta: may be 0 or negative; q: may be
+    .inf) on vp's grid (nz, nx): a number (constant),
+    ``{kind: layered, values: [...], interfaces: [...]}`` (depths in m, on vp's grid; a node on an interface belongs to
+    the layer below, as the velocity generator) or a file kind (npy, hdf5, raw, segy: spacing and origin default to
+    vp's; the grid must be vp's). ModelError naming ``model.<key>.<field>``."""
+    k, (what, example, infinite) = f"model.{key}", _FIELDS[key]
+
+    def number(x, where, want):
+        return math.inf if infinite and isinstance(x, float) and x == math.inf else _real(x, where, want)
+
+    if not isinstance(spec, dict):
+        return np.full(vp.shape, number(spec, k, f"{what}, e.g. {example}, or a spec {{kind: layered | npy | hdf5 | raw | segy, ...}}"))
+    kind = spec.get("kind")
+    if kind not in _FIELD_KEYS:
+        raise ModelError(f"{k}.kind: {_short(kind)} is not one of {', '.join(_FIELD_KEYS)} (a constant {key} is a number: "
+                         f"{key}: {example}); {key} is dimensionless, so the velocity generators do not apply")
+    allowed = {"kind", "name"} | _FIELD_KEYS[kind]
+    unknown = sorted(set(spec) - allowed, key=str)
+    if unknown:
+        why = {"units": " (it is dimensionless)", "crop": " (give it on vp's final grid)", "smoothing": " (give it smoothed)",
+               "shape": " (it takes vp's grid)"}.get(unknown[0], "")
+        raise ModelError(f"{k}.{unknown[0]}: {_short(spec[unknown[0]])} is not a key of a {kind!r} {key}{why}; use only "
+                         f"{', '.join(sorted(allowed))}")
+    if kind == "layered":
+        values = _require(spec, "values", f"the layers' {key} values, top to bottom")
+        if not isinstance(values, (list, tuple)) or not values:
+            raise ModelError(f"{k}.values: {_short(values)} is not a non-empty list; give the layers' {key}, top to bottom")
+        t = np.array([number(x, f"{k}.values[{i}]", f"a number: {what}") for i, x in enumerate(values)])
+        interfaces = _require(spec, "interfaces", "the interface depths in m, top to bottom")
+        try:  # the generator's layers (validation, the node-on-an-interface rule) with the layer numbers 1, 2, ...
+            layer = generators.layered(vp.shape, vp.spacing, list(range(1, len(t) + 1)), interfaces, vp.origin).values
+        except ModelError as e:
+            raise ModelError(f"{k}.{e}".replace("velocities", "values")) from None
+        return t[layer.astype(int) - 1]
+    grid = {"spacing": list(vp.spacing), "origin": list(vp.origin)}
+    spec = {**{g: v for g, v in grid.items() if g not in spec and not (g == "spacing" and "spacing_dataset" in spec)}, **spec}
+    try:
+        values, spacing, path = _read_grid(kind, spec, base_dir)
+        origin = per_axis(spec["origin"], values.ndim, "model.origin")
+    except ModelError as e:
+        raise ModelError(f"{k}{str(e)[5:]}") from None
+    bad = ~(np.isfinite(values) | (infinite & (values == math.inf)))
+    if bad.any():
+        i = tuple(int(j) for j in np.argwhere(bad)[0])
+        raise ModelError(f"{k}.path: {path.name} holds {int(bad.sum())} non-finite values (the first, {values[i]}, at index "
+                         f"{i}); give finite {key} values{' (or +inf)' if infinite else ''}")
+    if values.shape != vp.shape or not np.allclose(spacing, vp.spacing) or not np.allclose(origin, vp.origin):
+        raise ModelError(f"{k}.path: {path.name} holds a grid of shape {list(values.shape)}, spacing {list(spacing)} m, "
+                         f"origin {list(origin)} m, not model.vp's (shape {list(vp.shape)}, spacing {list(vp.spacing)} m, "
+                         f"origin {list(vp.origin)} m); give {key} on vp's grid (axis order z, x; axes: xz for a stored "
+                         f"(x, z) array)")
+    return values
+
+
+# ----------------------------------------------------------------------------------- visco-acoustic models
+
+VISCOACOUSTIC_KEYS = ("vp", "q", "rho", "q_band", "f_ref", "mechanisms")
+
+
+@dataclass(frozen=True, eq=False)
+class ViscoacousticModel(_OnVpGrid):
+    """A 2D visco-acoustic model for adseismic.solve.viscoacoustic (docs/viscoacoustic.md): ``vp`` the phase velocity
+    (m/s) at ``f_ref`` and ``rho`` (kg/m^3), :class:`Model` objects on one grid (shape (nz, nx), axis order (z, x)),
+    ``q`` the quality factor (dimensionless, > 0, inf: lossless) as a read-only float64 array (nz, nx) on that grid;
+    ``q_band`` (f_min, f_max) Hz over which Q is flat, ``f_ref`` Hz and ``mechanisms`` (standard linear solids): None
+    for the solver's defaults (band and f_ref from the wavelet's dominant frequency, 3 mechanisms), resolved by the
+    planner (adseismic.scene.attenuation_check). Model-like as :class:`ElasticModel`: ``values``, ``vmin``, ``vmax``
+    are vp's."""
+
+    vp: Model
+    q: np.ndarray
+    rho: Model
+    q_band: tuple | None = None
+    f_ref: float | None = None
+    mechanisms: int | None = None
+
+    physics = "viscoacoustic"
+
+    def __post_init__(self):
+        if self.rho.shape != self.vp.shape or self.rho.spacing != self.vp.spacing or self.rho.origin != self.vp.origin:
+            raise ModelError(f"model.rho: its grid (shape {list(self.rho.shape)}, spacing {list(self.rho.spacing)} m) differs "
+                             f"from model.vp's (shape {list(self.vp.shape)}, spacing {list(self.vp.spacing)} m); give both on one grid")
+        q = np.array(self.q, dtype=np.float64)
+        if q.shape != self.vp.shape:
+            raise ModelError(f"model.q: shape {list(q.shape)} differs from model.vp's {list(self.vp.shape)} (z, x); give q on "
+                             f"vp's grid")
+        bad = ~(q > 0)  # NaN too
+        if bad.any():
+            i = tuple(int(j) for j in np.argwhere(bad)[0])
+            z, x = (o + j * h for o, j, h in zip(self.vp.origin, i, self.vp.spacing))
+            raise ModelError(f"model.q: {q[i]} at z = {z:g} m, x = {x:g} m (index {i}; {int(bad.sum())} such values); Q must be "
+                             f"> 0 (30 is a lossy sediment, 100-1000 rock; .inf: lossless): give positive quality factors")
+        q.setflags(write=False)
+        object.__setattr__(self, "q", q)
+
+    vmin = property(lambda self: self.vp.vmin)
+    vmax = property(lambda self: self.vp.vmax)
+
+    def materials(self) -> dict:
+        """{vp, q, rho}: float64 arrays (nz, nx) as forward_viscoacoustic takes them (m/s, 1, kg/m^3)."""
+        return {"vp": np.asarray(self.vp.values, float), "q": np.asarray(self.q, float), "rho": np.asarray(self.rho.values, float)}
+
+    def resample(self, spacing: float, origin: tuple, shape: tuple) -> ViscoacousticModel:
+        """The model on the regular grid of :meth:`Model.resample` (spacing m, origin m, shape nodes): vp by its
+        slowness, rho by its buoyancy (as ElasticModel), q by 1 / Q (the attenuation, 0 where lossless) linearly."""
+        with np.errstate(divide="ignore"):
+            q = 1.0 / _resample_linear(self.vp, 1.0 / self.q, spacing, origin, shape)
+        return replace(self, vp=self.vp.resample(spacing, origin, shape), q=q, rho=self.rho.resample(spacing, origin, shape))
+
+
+def _load_viscoacoustic(spec, base_dir) -> ViscoacousticModel:
+    """``model: {vp, q, rho, q_band, f_ref, mechanisms}`` of physics viscoacoustic: vp a model spec (m/s), q a number
+    or a field (:func:`_load_field`; .inf lossless), rho a model spec (kg/m^3), ``{gardner: true}`` or left out
+    (WATER_DENSITY); optional q_band [f_min, f_max] Hz, f_ref Hz, mechanisms (an integer >= 1)."""
+    if not (isinstance(spec, dict) and set(spec) & set(VISCOACOUSTIC_KEYS)):
+        raise ModelError(f"model: {_short(spec)} is one velocity model, but physics viscoacoustic needs {{vp, q}} (and "
+                         f"optionally rho): write model: {{vp: {{kind: ...}}, q: 50}} (vp in m/s, the quality factor Q "
+                         f"dimensionless), or set physics: acoustic")
+    unknown = sorted(set(spec) - set(VISCOACOUSTIC_KEYS), key=str)
+    if unknown:
+        raise ModelError(f"model.{unknown[0]}: unknown key of a viscoacoustic model; allowed: {', '.join(VISCOACOUSTIC_KEYS)} "
+                         f"(vp, rho model specs; q a number or a field spec; q_band [f_min, f_max] Hz, f_ref Hz, mechanisms)")
+    for k in ("vp", "q"):
+        if spec.get(k) is None:
+            raise ModelError(f"model.{k}: missing; a physics viscoacoustic model needs vp (m/s) and q (the quality factor: a "
+                             f"number, .inf for lossless, or {{kind: layered | npy | hdf5 | raw | segy, ...}}) and optionally "
+                             f"rho (kg/m^3, {{gardner: true}}, default {WATER_DENSITY:g})")
+    band = spec.get("q_band")
+    if band is not None:
+        if not isinstance(band, (list, tuple)) or len(band) != 2:
+            raise ModelError(f"model.q_band: {_short(band)} is not [f_min, f_max]; give the band (Hz) over which Q is flat, "
+                             f"e.g. [3, 30], or leave it out (the wavelet's dominant frequency / 3 .. x 2.5)")
+        band = tuple(_real(f, f"model.q_band[{i}]", "a frequency in Hz") for i, f in enumerate(band))
+        if not 0 < band[0] < band[1]:
+            raise ModelError(f"model.q_band: {list(band)} Hz is not 0 < f_min < f_max; give the band as [f_min, f_max] Hz")
+    f_ref = spec.get("f_ref")
+    if f_ref is not None and not (f_ref := _real(f_ref, "model.f_ref", "a frequency in Hz")) > 0:
+        raise ModelError(f"model.f_ref: {f_ref:g} Hz is not > 0; give the frequency (Hz) at which vp is the phase velocity, "
+                         f"or leave it out (the wavelet's dominant frequency)")
+    n = spec.get("mechanisms")
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
+        raise ModelError(f"model.mechanisms: {_short(n)} is not an integer >= 1; give the number of standard linear solids "
+                         f"(3 keeps Q within 5% of its target over a band of a factor 10; 5 over two decades)")
+    base_dir = pathlib.Path.cwd() if base_dir is None else base_dir
+    vp = _load_part(spec["vp"], "vp", base_dir, None)
+    if vp.ndim != 2:
+        raise ModelError(f"model.vp: a 3D model (shape {list(vp.shape)}) with physics viscoacoustic; the visco-acoustic "
+                         f"solver is 2D (3D is not built yet): give a 2D model [nz, nx], or use physics: acoustic in 3D")
+    q = _load_field(spec["q"], "q", base_dir, vp)
+    rho = (replace(vp, values=np.full(vp.shape, WATER_DENSITY), name="water density") if spec.get("rho") is None
+           else _load_density(spec["rho"], base_dir, vp))
+    return ViscoacousticModel(vp, q, rho, band, f_ref, n)

@@ -37,9 +37,9 @@ from adseismic.kernels.numerics import check_order
 from adseismic.runs import progress_bar
 from adseismic.solve import common, loop, sweep
 from adseismic.solve.misfits import misfit as named_misfit
+from adseismic.solve.staggered import COMPONENTS, StaggeredSetup
 
 SOURCE_TYPES = {"force": 2, "moment": 3, "explosive": 3}
-COMPONENTS = ("vx", "vz", "pressure")
 WRT = ("vp", "vs", "rho", "source_amplitudes", "source_components", "source_locations")
 
 
@@ -150,7 +150,7 @@ def check_elastic_inputs(shape, vmax, dx, dt, source_amplitudes, source_location
 
 
 @dataclass
-class ElasticSetup:
+class ElasticSetup(StaggeredSetup):
     """Device-side inputs of one elastic simulation (see :func:`setup_elastic`) and the verbs of the shared solver
     (solve/loop.py). models: physical (vp, vs, rho) wp.array2d; source_op: the sources' fixed operator (None where
     their locations are differentiated); receiver_op: the receivers' (Elastic.operator)."""
@@ -167,16 +167,10 @@ class ElasticSetup:
     source_op: tuple | None = None
 
     physics = DESCRIPTION
-    period = 2  # a captured loop steps into a second state and back
-    lookahead = 1  # a moment source reads sample n + 1
 
     def model(self, on_tape=False):
         """The padded model's MATERIALS (kernels/elastic); differentiable under a tape."""
         return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape)
-
-    def fill_model(self, mat):
-        for a, b in zip(mat, self.model()):
-            wp.copy(a, b)
 
     def sources_of(self, amplitudes, fixed=True):
         """The step's sources: samples `amplitudes`, through the fixed operator (no Kaiser-sinc weights evaluated each
@@ -184,31 +178,8 @@ class ElasticSetup:
         where = self.source_op if fixed and self.source_op is not None else self.sources
         return (self.kind, amplitudes, self.components, where)
 
-    def advance(self, st, mat, src, data, k, n, out, clock):
-        self.prop.record(st, data, self.receiver_op, k, clock)
-        return self.prop.step(st, mat, src, n, out, clock)
-
-    def record(self, st, data, k, clock):
-        self.prop.record(st, data, self.receiver_op, k, clock)
-
-    def new_data(self, n, requires_grad=False):
-        shape = (self.prop.n_shots, self.receivers.shape[1], n)
-        return tuple(wp.zeros(shape, dtype=self.prop.dtype, device=self.prop.device, requires_grad=requires_grad) for _ in COMPONENTS)
-
-    def new_level(self):
-        return self.prop.new_state(requires_grad=True)
-
     def fields(self, st):
         return (st.vx, st.vz)
-
-    def spare(self, st):
-        return self.prop.new_state()
-
-    def out_state(self, st, spare):
-        return spare
-
-    def freed(self, st):
-        return st
 
     def key(self):
         p = self.prop

@@ -1867,6 +1867,22 @@ def cpml_axis(n_lo: int, n_hi: int, length: int, halo: int, dx: float, dt: float
     return (store, max(len(cells), 1), *profile(0.0), *profile(0.5))
 
 
+def cpml_axes(Axis, lo, n_hi: int, padded, halo: int, dx: float, dt: float, vmax: float, reflection: float, frequency: float,
+              dtype, device):  # fmt: skip
+    """The CPML of each axis of a staggered grid: ([Axis() with store, a, b, ah, bh as Warp arrays per axis], [strip
+    width per axis]) from cpml_axis; lo: the layer's cells at each axis's low end, n_hi: at its high end."""
+    axes, widths = [], []
+    for a in range(len(padded)):
+        store, width, *profiles = cpml_axis(lo[a], n_hi, padded[a], halo, dx, dt, vmax, reflection, frequency)
+        axis = Axis()
+        axis.store = wp.array(store, dtype=wp.int32, device=device)
+        for name, val in zip(("a", "b", "ah", "bh"), profiles):
+            setattr(axis, name, wp.array(val, dtype=dtype, device=device))
+        axes.append(axis)
+        widths.append(width)
+    return axes, widths
+
+
 class State:
     """Fields at one time level n: vx, vz at t = (n - 1/2) dt, sxx, szz, sxz at t = n dt, and the CPML
     memory variables psi (dict, see PSI)."""
@@ -1899,15 +1915,7 @@ class Elastic:
         self.padded = tuple(self.shape[a] + lo[a] + nb + 2 * R for a in range(2))
         self.origin = wp.vec2i(R + lo[0], R + lo[1])
         self.top = R
-        self.axes, self.strip_width = [], []
-        for a in range(2):
-            store, width, ca, cb, cah, cbh = cpml_axis(lo[a], nb, self.padded[a], R, dx, dt, vmax, pml_reflection, pml_frequency)
-            axis = self.k.Axis()
-            axis.store = wp.array(store, dtype=wp.int32, device=device)
-            for name, val in (("a", ca), ("b", cb), ("ah", cah), ("bh", cbh)):
-                setattr(axis, name, wp.array(val, dtype=dtype, device=device))
-            self.axes.append(axis)
-            self.strip_width.append(width)
+        self.axes, self.strip_width = cpml_axes(self.k.Axis, lo, nb, self.padded, R, dx, dt, vmax, pml_reflection, pml_frequency, dtype, device)
         Lz, Lx = self.padded
         # the cells that need neither CPML (cpml_axis's strips) nor the free surface's folded or shortened stencils
         # (rows top .. top + R - 1); the core (padded rows core[0]:core[1], columns core[2]:core[3]), their columns from

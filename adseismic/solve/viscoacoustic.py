@@ -1,0 +1,254 @@
+"""2D visco-acoustic propagation (constant Q over a band, kernels/viscoacoustic/) and its exact, checkpointed gradients.
+
+Conventions (as adseismic.solve.elastic; z depth, positive down):
+- vp (m/s): the phase velocity at f_ref (Hz); q: the quality factor (dimensionless, > 0; inf: lossless); rho
+  (kg/m^3): (nz, nx) arrays on a regular grid of spacing dx (m), node (0, 0) at 0 m.
+- q_band (f_min, f_max) Hz: the band over which Q is flat (L = `mechanisms` standard linear solids, relaxation.py);
+  default (f_dom / 3, 2.5 f_dom) and f_ref f_dom, f_dom the sources' dominant frequency.
+- locations: metres (z, x), shape (n_shots, n, 2).
+- source_amplitudes (n_shots, n_src, nt): S(t_k), the explosive source's isotropic moment in N m per metre of line
+  (as the elastic solver's explosive source: dp/dt gains dS/dt delta(x - x_s), so p in Pa is what physics
+  acoustic_vd gives for the same S when Q -> infinity).
+- receiver data: pressure p (Pa) sample n at t = n dt; vx, vz (m/s) at t = (n - 1/2) dt; each (n_shots, n_rec, nt).
+
+The time loop is solve/loop.py's and the gradient solve/sweep.py's taped sweep (Warp's generated adjoints of the
+kernels, checkpointed segments); this module maps the kernels onto them (ViscoacousticSetup).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from adseismic.kernels.numerics import check_order
+from adseismic.kernels.viscoacoustic import DESCRIPTION, PSI, Viscoacoustic, fit_mechanisms
+from adseismic.runs import progress_bar
+from adseismic.solve import common, loop, sweep
+from adseismic.solve.misfits import misfit as named_misfit
+from adseismic.solve.staggered import COMPONENTS, StaggeredSetup
+
+MODELS = ("vp", "q", "rho")
+WRT = (*MODELS, "source_amplitudes")
+DEFAULT_MECHANISMS = 3
+
+
+@dataclass
+class ViscoacousticResult:
+    """Output of :func:`forward_viscoacoustic`: pressure (Pa), vx, vz (m/s), each (n_shots, n_receivers, nt) NumPy
+    arrays in the simulation's precision; dt (s); vmax_unrelaxed (m/s), the fastest (w -> infinity) speed that set
+    the CFL check."""
+
+    pressure: np.ndarray
+    vx: np.ndarray
+    vz: np.ndarray
+    dt: float
+    vmax_unrelaxed: float
+
+
+@dataclass
+class ViscoacousticGradient:
+    """Misfit and its gradients: vp (per m/s), q (per unit Q), rho (per kg/m^3) (nz, nx), source_amplitudes (n_shots,
+    n_src, nt); None where not requested. synthetic: {"vx", "vz", "pressure"} data (n_shots, n_receivers, nt);
+    segment_length (steps) and n_segments of the checkpointed sweep, peak_bytes_estimate its planned memory."""
+
+    loss: float
+    synthetic: dict
+    vp: np.ndarray | None = None
+    q: np.ndarray | None = None
+    rho: np.ndarray | None = None
+    source_amplitudes: np.ndarray | None = None
+    segment_length: int = 0
+    n_segments: int = 0
+    peak_bytes_estimate: int = 0
+
+
+def check_model_values(vp, q, rho):
+    """Raise ValueError at the first bad value of the NumPy models (nz, nx): vp, rho finite and > 0, q > 0 (inf
+    allowed: no loss there; NaN refused)."""
+    for name, a, ok in (("vp", vp, np.isfinite(vp) & (vp > 0)), ("rho", rho, np.isfinite(rho) & (rho > 0)), ("q", q, q > 0)):
+        bad = ~ok
+        if bad.any():
+            i = tuple(int(k) for k in np.argwhere(bad)[0])
+            raise ValueError(f"{name} has {int(bad.sum())} non-finite or non-positive values (first {a[i]!r} at index {i}); "
+                             f"vp, rho must be finite and > 0, q > 0 (q = inf: lossless)")  # fmt: skip
+
+
+def unrelaxed_velocity(vp, q, mechanisms, f_ref: float) -> np.ndarray:
+    """sqrt(M_U / rho) (m/s): the speed at w -> infinity of a medium of phase velocity vp (m/s) at f_ref (Hz) and
+    quality factor q (arrays of one shape), the fastest the scheme carries (its CFL speed)."""
+    q = np.asarray(q, dtype=float)
+    y = mechanisms.y(q)
+    wt = 2.0 * math.pi * f_ref * mechanisms.tau
+    m_ref = 1.0 + (y * (1j * wt) / (1.0 + 1j * wt)).sum(axis=-1)
+    return np.asarray(vp, dtype=float) * np.real(m_ref**-0.5) * np.sqrt(1.0 + y.sum(axis=-1))
+
+
+@dataclass
+class ViscoacousticSetup(StaggeredSetup):
+    """Device-side inputs of one visco-acoustic simulation (see :func:`setup_viscoacoustic`) and the verbs of the
+    shared solver (solve/loop.py). models: physical (vp, q, rho) wp.array2d; source_op, receiver_op: the sources' and
+    receivers' fixed operators (Viscoacoustic.operator)."""
+
+    prop: Viscoacoustic
+    nt: int
+    models: tuple
+    amplitudes: wp.array
+    receivers: wp.array
+    source_op: tuple
+    receiver_op: tuple
+    vmax_unrelaxed: float
+
+    physics = DESCRIPTION
+
+    def model(self, on_tape=False):
+        """The padded model's MATERIALS (kernels/viscoacoustic); differentiable under a tape."""
+        return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape)
+
+    def sources_of(self, amplitudes, fixed=True):
+        return (amplitudes, self.source_op)
+
+    def fields(self, st):
+        return (st.p,)
+
+    def key(self):
+        p = self.prop
+        return ("viscoacoustic", p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, self.nt, self.amplitudes.shape,
+                self.receivers.shape)  # fmt: skip
+
+    def loop_kernels(self):
+        k = self.prop.k
+        return [k.velocity, k.pressure, k.inject, k.record]
+
+    def inputs(self, src):
+        """The arrays a kept loop copies from a later setup: CPML coefficients, the mechanisms' constants and the
+        sources' and receivers' operators."""
+        p = self.prop
+        return [*(getattr(ax, f) for ax in p.axes for f in ("a", "b", "ah", "bh")), p.c1, p.c2, *src[1], *self.receiver_op]
+
+
+def setup_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, q_band=None, f_ref=None,
+                        mechanisms=DEFAULT_MECHANISMS, order=4, pml_width=None, pml_reflection=None, pml_frequency=None,
+                        pml_velocity=None, free_surface=False, device="cpu", precision="float32",
+                        requires_grad=()) -> ViscoacousticSetup:  # fmt: skip
+    """Validate the inputs (ValueError naming the argument) and move them to the device; requires_grad names the
+    arrays (WRT) to differentiate."""
+    check_order(order)
+    dtype = common.precision_dtype(precision)
+    device = common.resolve_device(device)
+    models = [np.asarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float) for a in (vp, q, rho)]
+    if models[0].ndim != 2 or any(m.shape != models[0].shape for m in models):
+        raise ValueError(f"vp, q, rho must be (nz, nx) arrays of one shape; got {[m.shape for m in models]}")
+    check_model_values(*models)
+    amp = np.asarray(source_amplitudes, dtype=float)
+    common.check_geometry(models[0].shape, dx, amp, source_locations, receiver_locations, "z, x")
+    f_dom = common.dominant_frequency(amp, dt)
+    band = (f_dom / 3.0, 2.5 * f_dom) if q_band is None else tuple(float(f) for f in np.atleast_1d(q_band))
+    if len(band) != 2:
+        raise ValueError(f"q_band {q_band!r} must be [f_min, f_max] Hz")
+    mech = fit_mechanisms(*band, mechanisms)
+    f_ref = f_dom if f_ref is None else float(f_ref)
+    if not f_ref > 0:
+        raise ValueError(f"f_ref = {f_ref} Hz must be > 0 (the frequency at which vp is the phase velocity)")
+    vmax = float(unrelaxed_velocity(models[0], models[1], mech, f_ref).max())
+    common.check_courant(DESCRIPTION, order, 2, vmax, dx, dt)
+    pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
+    prop = Viscoacoustic(models[0].shape, dx, dt, order, amp.shape[0], mech, f_ref, *pml, free_surface=free_surface, dtype=dtype,
+                         device=device)  # fmt: skip
+
+    def put(x, name):
+        return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)
+
+    receivers = put(receiver_locations, "")
+    return ViscoacousticSetup(prop, amp.shape[2], tuple(put(m, n) for m, n in zip(models, MODELS)), put(amp, "source_amplitudes"),
+                              receivers, prop.operator(put(source_locations, "")), prop.operator(receivers), vmax)  # fmt: skip
+
+
+def forward_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, q_band=None, f_ref=None,
+                          mechanisms=DEFAULT_MECHANISMS, order=4, pml_width=None, pml_reflection=None, pml_frequency=None,
+                          pml_velocity=None, free_surface=False, device="cpu", precision="float32", check_every=25,
+                          progress=False) -> ViscoacousticResult:  # fmt: skip
+    """Simulate the 2D visco-acoustic wave equation for all shots at once (conventions: module docstring).
+
+    vp (m/s at f_ref), q, rho (kg/m^3): (nz, nx); dx m; dt s; source_amplitudes (n_shots, n_src, nt) N m/m;
+    source/receiver_locations (n_shots, n, 2) metres (z, x); q_band (f_min, f_max) Hz and f_ref Hz (defaults: module
+    docstring); mechanisms: number of standard linear solids; order 2, 4 or 8; PML settings as forward_elastic's
+    (the CPML reference speed defaults to the unrelaxed maximum); free_surface: p = 0 at z = 0. Returns pressure (Pa),
+    vx, vz (m/s), each (n_shots, n_receivers, nt). Raises ValueError on bad input or a dt above the CFL limit of the
+    unrelaxed speed, PropagationError if the run blows up."""
+    su = setup_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, q_band=q_band, f_ref=f_ref,
+                             mechanisms=mechanisms, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
+                             pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
+                             precision=precision)  # fmt: skip
+    guard = common.BlowupGuard(su.prop, DESCRIPTION, su.fields, common.source_end(source_amplitudes, lag=2, rate=True), check_every, "p")
+    data, kept = loop.run(su, guard, progress)
+    vx, vz, p = (loop.traces(d, su.nt, False, kept) for d in data)
+    return ViscoacousticResult(pressure=p, vx=vx, vz=vz, dt=float(dt), vmax_unrelaxed=su.vmax_unrelaxed)
+
+
+def plan_segments(prop: Viscoacoustic, nt: int, memory_budget: float | None = None, segment_length: int | None = None):
+    """(segment_length, estimated peak bytes) of the taped checkpointed sweep: the checkpoints (States) plus one
+    segment's levels, each with its adjoint on Warp's tape; memory_budget bytes (None: the memory minimum, ~sqrt(nt)
+    steps) or segment_length pins it (sweep.choose_segment)."""
+    item = 4 if prop.dtype == wp.float32 else 8
+    fields = prop.n_shots * math.prod(prop.padded)
+    state = item * ((3 + prop.mechanisms.count) * fields + sum(math.prod(prop.psi_shape(k)) for k in PSI))
+
+    def total(seg):
+        return (math.ceil(nt / seg) - 1) * state + (seg + 2) * 2 * state
+
+    return sweep.choose_segment(nt, 1, total, memory_budget, segment_length)
+
+
+def gradient_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
+                           misfit="l2", components=("pressure",), wrt=MODELS, q_band=None, f_ref=None,
+                           mechanisms=DEFAULT_MECHANISMS, order=4, pml_width=None, pml_reflection=None, pml_frequency=None,
+                           pml_velocity=None, free_surface=False, device="cpu", precision="float32", memory_budget=None,
+                           segment_length=None, progress=False) -> ViscoacousticGradient:  # fmt: skip
+    """Misfit between simulated and observed data and its exact gradient (the discrete adjoint: Warp's generated
+    adjoints of the kernels through checkpointed segments, sweep.taped_sweep).
+
+    observed: {component: (n_shots, n_receivers, nt)} for the names in `components` (of COMPONENTS); misfit: a name
+    in misfits.MISFITS (summed over components) or a callable synthetic dict -> (J, {name: dJ/d synthetic}); wrt: any
+    of WRT. memory_budget (bytes) / segment_length: plan_segments. Other arguments as forward_viscoacoustic's; the
+    PML settings and the mechanisms (q_band, f_ref) are fixed (pin pml_velocity, pml_frequency, q_band and f_ref when
+    the model changes between calls). A model with q = inf has gradient 0 in q there."""
+    unknown = set(wrt) - set(WRT)
+    if unknown:
+        raise ValueError(f"wrt: {sorted(unknown)} not among {WRT}")
+    if not callable(misfit):
+        bad = set(components) - set(COMPONENTS)
+        if bad:
+            raise ValueError(f"components: {sorted(bad)} not among {COMPONENTS}")
+        for c in components:
+            if observed is None or c not in observed:
+                raise ValueError(f"observed: no {c!r} data; give observed[{c!r}] (n_shots, n_receivers, nt) for each of `components`")
+    su = setup_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, q_band=q_band, f_ref=f_ref,
+                             mechanisms=mechanisms, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
+                             pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
+                             precision=precision, requires_grad=set(wrt))  # fmt: skip
+
+    def loss(synthetic):
+        syn = dict(zip(COMPONENTS, synthetic))
+        if callable(misfit):
+            J, adj = misfit(syn)
+        else:
+            J, adj = 0.0, {}
+            for c in components:
+                j, adj[c] = named_misfit(misfit, syn[c], np.asarray(observed[c], dtype=float), dt)
+                J += j
+        return J, tuple(None if adj.get(c) is None else np.asarray(adj[c], dtype=float) for c in COMPONENTS)
+
+    seg, peak = plan_segments(su.prop, su.nt, memory_budget, segment_length)
+    n_seg = math.ceil(su.nt / seg)
+    bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
+    synthetic, J = sweep.taped_sweep(su, seg, n_seg, loss, bar)
+    bar.close()
+    res = ViscoacousticGradient(loss=float(J), synthetic=dict(zip(COMPONENTS, synthetic)), segment_length=seg, n_segments=n_seg,
+                                peak_bytes_estimate=peak)  # fmt: skip
+    grads = {**dict(zip(MODELS, su.models)), "source_amplitudes": su.amplitudes}
+    for name in wrt:
+        setattr(res, name, np.array(grads[name].grad.numpy()))
+    return res

@@ -1,0 +1,230 @@
+"""2D pseudo-acoustic VTI propagation and its checkpointed gradients (kernels/vti/, docs/vti.md).
+
+Conventions (as adseismic.solve.elastic; z depth, positive down):
+- vp (m/s, the vertical P speed), epsilon, delta (Thomsen, dimensionless), rho (kg/m^3): (nz, nx) NumPy or Warp
+  arrays on a regular grid of spacing dx (m); node (0, 0) at 0 m. Stable iff epsilon >= delta everywhere (refused
+  otherwise); delta > -1/2.
+- locations: metres (z, x), shape (n_shots, n_per_shot, 2).
+- source_amplitudes (n_shots, n_src, nt): the explosive source's moment M(t) = s(t) at t_k = k dt (N m per metre of
+  line, as the elastic solver's "explosive" source), injected into both stresses through its rate; s must start at 0.
+- receiver data: vx, vz (m/s) sample n at t = (n - 1/2) dt, pressure -(sH + sV)/2 (Pa) at t = n dt, each
+  (n_shots, n_receivers, nt).
+
+The time loop is solve/loop.py's (VTISetup maps the kernels onto it) and the gradient Warp's generated adjoints of
+every kernel under wp.Tape in checkpointed segments (solve/sweep.py's taped_sweep).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from adseismic.kernels.numerics import check_order
+from adseismic.kernels.vti import DESCRIPTION, PSI, VTI, thomsen_check
+from adseismic.runs import progress_bar
+from adseismic.solve import common, loop, sweep
+from adseismic.solve.misfits import misfit as named_misfit
+from adseismic.solve.staggered import COMPONENTS, StaggeredSetup
+
+MODELS = ("vp", "epsilon", "delta", "rho")
+WRT = (*MODELS, "source_amplitudes")
+
+
+@dataclass
+class VTIResult:
+    """Output of :func:`forward_vti`: vx, vz (m/s) and pressure (Pa), each (n_shots, n_receivers, nt) NumPy arrays in
+    the simulation's precision; dt (s)."""
+
+    vx: np.ndarray
+    vz: np.ndarray
+    pressure: np.ndarray
+    dt: float
+
+
+@dataclass
+class VTIGradient:
+    """Misfit and its gradients: vp (per m/s), epsilon, delta (per unit), rho (per kg/m^3) (nz, nx), source_amplitudes
+    (n_shots, n_src, nt); None where not requested. synthetic: {"vx", "vz", "pressure"} (n_shots, n_receivers, nt).
+    segment_length (steps) and n_segments of the checkpointed sweep, peak_bytes_estimate its planned memory."""
+
+    loss: float
+    synthetic: dict
+    vp: np.ndarray | None = None
+    epsilon: np.ndarray | None = None
+    delta: np.ndarray | None = None
+    rho: np.ndarray | None = None
+    source_amplitudes: np.ndarray | None = None
+    segment_length: int = 0
+    n_segments: int = 0
+    peak_bytes_estimate: int = 0
+
+
+def check_model_values(vp, epsilon, delta, rho):
+    """Raise ValueError at the first bad value of the NumPy models (nz, nx): finite, vp, rho > 0, delta > -1/2 and
+    epsilon >= delta (thomsen_check)."""
+    for name, a, ok in (("vp", vp, vp > 0), ("rho", rho, rho > 0), ("epsilon", epsilon, True), ("delta", delta, True)):
+        bad = ~(np.isfinite(a) & ok)
+        if bad.any():
+            raise ValueError(f"{name} has {int(bad.sum())} non-finite or out-of-range values (first at index "
+                             f"{tuple(int(i) for i in np.argwhere(bad)[0])}: {a[tuple(np.argwhere(bad)[0])]:g}); vp, rho > 0, all finite")
+    thomsen_check(epsilon, delta)
+
+
+def horizontal_speed(vp, epsilon):
+    """The horizontal P speed vp sqrt(1 + 2 epsilon) (m/s), the fastest of a pseudo-acoustic VTI medium."""
+    return vp * np.sqrt(1.0 + 2.0 * epsilon)
+
+
+@dataclass
+class VTISetup(StaggeredSetup):
+    """Device-side inputs of one VTI simulation (see :func:`setup_vti`) and the verbs of the shared solver
+    (solve/loop.py). models: physical (vp, epsilon, delta, rho) wp.array2d; source_op, receiver_op: fixed operators
+    (VTI.operator)."""
+
+    prop: VTI
+    nt: int
+    models: tuple
+    amplitudes: wp.array
+    receivers: wp.array
+    receiver_op: tuple
+    source_op: tuple
+
+    physics = DESCRIPTION
+
+    def model(self, on_tape=False):
+        """The padded MATERIALS (kernels/vti); differentiable under a tape."""
+        return self.prop.materials(*self.models, requires_grad=on_tape)
+
+    def sources_of(self, amplitudes, fixed=True):
+        return (amplitudes, self.source_op)
+
+    def fields(self, st):
+        return (st.vx, st.vz)
+
+    def key(self):
+        p = self.prop
+        return ("vti", p.order, p.free_surface, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, p.dtype, self.nt,
+                self.amplitudes.shape, self.receivers.shape)  # fmt: skip
+
+    def loop_kernels(self):
+        k = self.prop.k
+        return [k.velocity, k.stress, k.inject, k.record]
+
+    def inputs(self, src):
+        """The arrays a kept loop copies from a later setup: CPML coefficients and the receivers' and sources' operators."""
+        return [getattr(ax, f) for ax in self.prop.axes for f in ("a", "b", "ah", "bh")] + [*self.receiver_op, *src[1]]
+
+
+def setup_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4,
+              pml_width=None, pml_reflection=None, pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu",
+              precision="float32", requires_grad=()) -> VTISetup:  # fmt: skip
+    """Validate the inputs (model values, geometry, the CFL limit with the horizontal P speed) and move them to the
+    device; requires_grad names the arrays (WRT) to differentiate."""
+    check_order(order)
+    models = [np.ascontiguousarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float) for a in (vp, epsilon, delta, rho)]
+    shapes = [m.shape for m in models]
+    if len(shapes[0]) != 2 or any(s != shapes[0] for s in shapes):
+        raise ValueError(f"vp, epsilon, delta, rho must be (nz, nx) arrays of one shape; got {', '.join(map(str, shapes))}")
+    check_model_values(*models)
+    amp = np.asarray(source_amplitudes, dtype=float)
+    common.check_geometry(shapes[0], dx, amp, source_locations, receiver_locations, "z, x")
+    vmax = float(horizontal_speed(models[0], models[1]).max())
+    common.check_courant(DESCRIPTION, order, 2, vmax, dx, dt)
+    dtype = common.precision_dtype(precision)
+    device = common.resolve_device(device)
+    pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
+    prop = VTI(shapes[0], dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
+
+    def put(x, grad=False):
+        return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=device, requires_grad=grad)
+
+    receivers = put(receiver_locations)
+    return VTISetup(prop, amp.shape[2], tuple(put(m, n in requires_grad) for m, n in zip(models, MODELS)),
+                    put(amp, "source_amplitudes" in requires_grad), receivers, prop.operator(receivers),
+                    prop.operator(put(source_locations)))
+
+
+def forward_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4,
+                pml_width=None, pml_reflection=None, pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu",
+                precision="float32", check_every=25, progress=False) -> VTIResult:  # fmt: skip
+    """Simulate 2D pseudo-acoustic VTI for all shots at once (conventions: module docstring).
+
+    vp (m/s), epsilon, delta, rho (kg/m^3): (nz, nx) arrays; dx m; dt s; source_amplitudes (n_shots, n_src, nt) the
+    explosive sources' moment; source/receiver_locations (n_shots, n, 2) metres (z, x). Returns vx, vz (m/s) and
+    pressure (Pa), each (n_shots, n_receivers, nt). order 2, 4 or 8; pml_width cells (default 20); pml_reflection
+    target; pml_frequency CPML alpha frequency (Hz, default the sources' dominant frequency); pml_velocity CPML reference
+    speed (m/s, default max(vp sqrt(1 + 2 epsilon))); free_surface: pressure-release top at z = 0. Raises ValueError on
+    bad input (epsilon < delta, an unstable dt), PropagationError if the run blows up."""
+    su = setup_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, order=order,
+                   pml_width=pml_width, pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
+                   free_surface=free_surface, device=device, precision=precision)  # fmt: skip
+    guard = common.BlowupGuard(su.prop, DESCRIPTION, su.fields, common.source_end(source_amplitudes, lag=2, rate=True), check_every, "v")
+    data, kept = loop.run(su, guard, progress)
+    return VTIResult(*(loop.traces(d, su.nt, False, kept) for d in data), dt=float(dt))
+
+
+def plan_segments(prop: VTI, nt: int, memory_budget: float | None = None, segment_length: int | None = None):
+    """(segment_length, estimated peak bytes) of the taped checkpointed sweep: a State (4 fields, 4 memory variables)
+    per checkpoint, and per taped level a State and its adjoint (sweep.choose_segment)."""
+    item = 4 if prop.dtype == wp.float32 else 8
+    state = item * (4 + len(PSI)) * prop.n_shots * math.prod(prop.padded)
+
+    def total(seg):
+        return (math.ceil(nt / seg) - 1) * state + (seg + 2) * 2 * state
+
+    return sweep.choose_segment(nt, 1, total, memory_budget, segment_length)
+
+
+def gradient_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
+                 misfit="l2", components=("pressure",), wrt=MODELS, order=4, pml_width=None, pml_reflection=None,
+                 pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu", precision="float32",
+                 memory_budget=None, segment_length=None, progress=False) -> VTIGradient:  # fmt: skip
+    """Misfit between simulated and observed data and its exact gradient (the discrete adjoint, Warp's generated adjoints
+    of every kernel under wp.Tape, checkpointed).
+
+    observed: {"vx", "vz", "pressure"} arrays (n_shots, n_receivers, nt) for the names in `components`; misfit: a name in
+    misfits.MISFITS (summed over components) or a callable synthetic dict -> (J, {name: dJ/d synthetic}). wrt: any of
+    WRT. Memory: memory_budget bytes (None: the minimum, ~sqrt(nt) steps per segment) or segment_length steps. Other
+    arguments as in forward_vti; the PML settings are fixed (pin pml_velocity and pml_frequency when the model changes
+    between calls)."""
+    unknown = set(wrt) - set(WRT)
+    if unknown:
+        raise ValueError(f"wrt: {sorted(unknown)} not among {WRT}")
+    su = setup_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, order=order,
+                   pml_width=pml_width, pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
+                   free_surface=free_surface, device=device, precision=precision, requires_grad=set(wrt))  # fmt: skip
+    if callable(misfit):
+        loss_fn = misfit
+    else:
+        for c in components:
+            if c not in COMPONENTS:
+                raise ValueError(f"components: {c!r} is not one of {COMPONENTS}")
+            if observed is None or c not in observed or np.shape(observed[c]) != (su.prop.n_shots, su.receivers.shape[1], su.nt):
+                shape = (su.prop.n_shots, su.receivers.shape[1], su.nt)
+                raise ValueError(f"observed[{c!r}]: give an array (n_shots, n_receivers, nt) = {shape} for each of `components`")
+
+        def loss_fn(syn):
+            total, adj = 0.0, {}
+            for c in components:
+                j, adj[c] = named_misfit(misfit, syn[c], np.asarray(observed[c], dtype=float), dt)
+                total += j
+            return total, adj
+
+    def loss(synthetic):
+        J, adj = loss_fn(dict(zip(COMPONENTS, synthetic)))
+        return J, tuple(adj.get(c) for c in COMPONENTS)
+
+    seg, peak = plan_segments(su.prop, su.nt, memory_budget, segment_length)
+    n_seg = math.ceil(su.nt / seg)
+    bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
+    synthetic, J = sweep.taped_sweep(su, seg, n_seg, loss, bar)
+    bar.close()
+    res = VTIGradient(loss=float(J), synthetic=dict(zip(COMPONENTS, synthetic)), segment_length=seg, n_segments=n_seg,
+                      peak_bytes_estimate=peak)
+    arrays = dict(zip(MODELS, su.models), source_amplitudes=su.amplitudes)
+    for name in wrt:
+        setattr(res, name, np.array(arrays[name].grad.numpy()))
+    return res

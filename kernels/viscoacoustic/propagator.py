@@ -1,0 +1,383 @@
+"""Warp kernels for the 2D visco-acoustic wave equation: pressure-velocity on a staggered grid with L standard
+linear solids (memory variables; Robertsson, Blanch & Symes 1994; Blanch, Robertsson & Symes 1995).
+
+Equations (z down, x right; b = 1/rho; M_R, M_U the relaxed and unrelaxed moduli, g_l = M_R y_l: relaxation.py):
+
+    dv/dt  = -b grad p,
+    dp/dt  = -M_U div v - sum_l r_l + dS/dt delta(x - x_s),
+    dr_l/dt = -(r_l + g_l div v) / tau_l,
+
+so that in the frequency domain i w p = -M(w) div v, M(w) = M_R (1 + sum_l y_l i w tau_l / (1 + i w tau_l)).
+S(t) is the explosive source's isotropic moment (N m per metre of line, as the elastic solver's explosive source:
+a volume injection times the modulus), so p (Pa) is what acoustic_vd's pressure is for the same S; Q -> infinity
+(y = 0, M_U = M_R = rho vp^2) is acoustic_vd's scheme exactly.
+
+Staggering (as kernels/elastic): positions in cells from padded node (0, 0) as (z, x); the array index (i, k) of
+
+    p, r_l, vp, q, rho, M_U, g_l   (i, k)        vx   (i, k + 1/2)        vz   (i + 1/2, k)
+
+the buoyancy at a velocity node the arithmetic mean of 1/rho at its two neighbours. Staggered derivatives of
+order 2/4/8 (numerics.STAGGERED_DERIVATIVE). Time (leapfrog): level n holds v at t = (n - 1/2) dt and p, r at
+t = n dt; one step is v^{n+1/2} = v^{n-1/2} - dt b grad p^n, then, with D = div v^{n+1/2} and the memory
+variables by the trapezoidal rule (Crank-Nicolson: stable for any dt / tau_l),
+
+    r_l^{n+1} = c1_l r_l^n - c2_l g_l D,   c1_l = (1 - dt / (2 tau_l)) / (1 + dt / (2 tau_l)),
+                                           c2_l = (dt / tau_l) / (1 + dt / (2 tau_l)),
+    p^{n+1}   = p^n - dt (M_U D + sum_l (r_l^n + r_l^{n+1}) / 2) + (S(t_{n+1}) - S(t_n)) w / dx^2.
+
+A recorded sample n of vx or vz is v at t = (n - 1/2) dt, of p at t = n dt.
+
+Layout (as kernels/elastic): fields (n_shots, Lz, Lx), memory variables (n_shots, L, Lz, Lx), models (Lz, Lx), every
+axis padded as [halo R][PML][physical grid][PML][halo R], R = order / 2, halo cells zero and never written. CPML
+(Komatitsch & Martin 2007, kappa = 1; elastic.propagator.cpml_axis): one memory variable psi per spatial derivative
+(PSI), stored in strips along its axis, its profile at the derivative's own (integer or half) position.
+
+Free surface (pressure release): p = 0 on the top row of p nodes (padded row `top`, physical z = 0); above it p is
+the odd image and vz the even image of the field below (p(-z) = -p(z), vz(-z) = vz(z)), so every stencil keeps its
+full order. Sources and receivers use the Kaiser-windowed sinc operator of kernels/common.py at each field's
+staggered position, folded across a free surface with the images' signs (elastic.propagator.make_point: odd for p
+and vx, even for vz); their weights are computed once per run (`weights`).
+
+Kernels, plain per-cell Warp kernels that Warp differentiates (Tape): `velocity` and `pressure` (a half step each,
+in place or out of place: a cell reads only its own old value of a field it writes), `inject`, `record`,
+`weights`, `materials` (vp, q, rho -> b_x, b_z, M_U, g_l; Warp's adjoint is the chain rule to vp, q, rho).
+"""
+
+import functools
+from types import SimpleNamespace
+
+import numpy as np
+import warp as wp
+
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, unique_kernel
+from adseismic.kernels.elastic.propagator import build as elastic_build
+from adseismic.kernels.elastic.propagator import cpml_axes, make_point
+from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
+from adseismic.kernels.viscoacoustic.relaxation import SERIES_TERMS, Mechanisms
+
+# the CPML memory variables: the axis of their derivative (and strips); vx_x: dp/dx at vx nodes, vz_z: dp/dz at vz
+# nodes, p_x: dvx/dx and p_z: dvz/dz at p nodes
+PSI = {"vx_x": 1, "vz_z": 0, "p_x": 1, "p_z": 0}
+MATERIALS = ("bx", "bz", "mu", "g")  # buoyancy at vx and vz nodes, M_U, g_l = M_R y_l (L, Lz, Lx)
+
+
+@functools.lru_cache(maxsize=None)
+def build(order: int, dtype, free_surface: bool, mechanisms: int):
+    """Kernels for one (order, dtype, free_surface, number of mechanisms), compiled once per process."""
+    M = order // 2
+    C = STAGGERED_DERIVATIVE[order]
+    L = int(mechanisms)
+    K = SERIES_TERMS
+    fs = bool(free_surface)
+    W = 2 * HICKS_RADIUS
+    arr1, arr2, arr3, arr4 = wp.array(dtype=dtype), wp.array2d(dtype=dtype), wp.array3d(dtype=dtype), wp.array4d(dtype=dtype)
+    iarr1 = wp.array(dtype=wp.int32)
+    idx4 = wp.array4d(dtype=wp.vec2i)
+    ns = SimpleNamespace(HR=HICKS_RADIUS, W=W, fs=fs, dtype=dtype, arr3=arr3)
+
+    @wp.struct
+    class Axis:
+        store: wp.array(dtype=wp.int32)  # strip index per padded index, -1 outside the PML strips
+        a: wp.array(dtype=dtype)  # CPML a, b at integer positions
+        b: wp.array(dtype=dtype)
+        ah: wp.array(dtype=dtype)  # at half positions (index p stands for p + 1/2)
+        bh: wp.array(dtype=dtype)
+
+    @wp.func
+    def p_at(p: arr3, s: int, z: int, x: int, top: int) -> dtype:
+        # p, the odd image of the row 2 top - z above a free surface
+        if wp.static(fs):
+            if z < top:
+                return -p[s, 2 * top - z, x]
+        return p[s, z, x]
+
+    @wp.func
+    def vz_at(vz: arr3, s: int, z: int, x: int, top: int) -> dtype:
+        # vz (index z at z + 1/2), the even image of index 2 top - 1 - z above a free surface
+        if wp.static(fs):
+            if z < top:
+                return vz[s, 2 * top - 1 - z, x]
+        return vz[s, z, x]
+
+    @wp.func
+    def dp_dx(p: arr3, s: int, z: int, x: int) -> dtype:
+        # dp/dx times dx at (z, x + 1/2)
+        acc = dtype(0.0)
+        for m in range(wp.static(M)):
+            acc += dtype(wp.static(C[m])) * (p[s, z, x + m + 1] - p[s, z, x - m])
+        return acc
+
+    @wp.func
+    def dp_dz(p: arr3, s: int, z: int, x: int, top: int) -> dtype:
+        # dp/dz times dx at (z + 1/2, x)
+        acc = dtype(0.0)
+        for m in range(wp.static(M)):
+            acc += dtype(wp.static(C[m])) * (p_at(p, s, z + m + 1, x, top) - p_at(p, s, z - m, x, top))
+        return acc
+
+    @wp.func
+    def dvx_dx(vx: arr3, s: int, z: int, x: int) -> dtype:
+        # dvx/dx times dx at (z, x)
+        acc = dtype(0.0)
+        for m in range(wp.static(M)):
+            acc += dtype(wp.static(C[m])) * (vx[s, z, x + m] - vx[s, z, x - m - 1])
+        return acc
+
+    @wp.func
+    def dvz_dz(vz: arr3, s: int, z: int, x: int, top: int) -> dtype:
+        # dvz/dz times dx at (z, x)
+        acc = dtype(0.0)
+        for m in range(wp.static(M)):
+            acc += dtype(wp.static(C[m])) * (vz_at(vz, s, z + m, x, top) - vz_at(vz, s, z - m - 1, x, top))
+        return acc
+
+    @wp.func
+    def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr3, new: arr3, s: int, row: int, col: int) -> dtype:
+        # d + psi, psi = b psi_old + a d stored at strip cell (row, col) (profile index i); d outside the strips (j < 0)
+        if j < 0:
+            return d
+        psi = b[i] * old[s, row, col] + a[i] * d
+        new[s, row, col] = psi
+        return d + psi
+
+    @unique_kernel
+    def velocity(
+        vx: arr3, vz: arr3, p: arr3, bx: arr2, bz: arr2, o_vx_x: arr3, o_vz_z: arr3, n_vx_x: arr3, n_vz_z: arr3,
+        vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        # v_new = v - dt b grad p at every interior velocity node
+        s, zi, xi = wp.tid()
+        z = zi + wp.static(M)
+        x = xi + wp.static(M)
+        jz = az.store[z]
+        jx = ax.store[x]
+        gx = cpml(dp_dx(p, s, z, x) * inv_dx, jx, x, ax.ah, ax.bh, o_vx_x, n_vx_x, s, z, jx)
+        gz = cpml(dp_dz(p, s, z, x, top) * inv_dx, jz, z, az.ah, az.bh, o_vz_z, n_vz_z, s, jz, x)
+        vx_new[s, z, x] = vx[s, z, x] - dt * bx[z, x] * gx
+        vz_new[s, z, x] = vz[s, z, x] - dt * bz[z, x] * gz
+
+    @unique_kernel
+    def pressure(
+        vx: arr3, vz: arr3, p: arr3, r: arr4, mu: arr2, g: arr3, c1: arr1, c2: arr1, o_p_x: arr3, o_p_z: arr3,
+        n_p_x: arr3, n_p_z: arr3, p_new: arr3, r_new: arr4, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        # p and the memory variables r_l from level n to n + 1 (module docstring); 0 on a free surface's row
+        s, zi, xi = wp.tid()
+        z = zi + wp.static(M)
+        x = xi + wp.static(M)
+        jz = az.store[z]
+        jx = ax.store[x]
+        d = cpml(dvx_dx(vx, s, z, x) * inv_dx, jx, x, ax.a, ax.b, o_p_x, n_p_x, s, z, jx)
+        d = d + cpml(dvz_dz(vz, s, z, x, top) * inv_dx, jz, z, az.a, az.b, o_p_z, n_p_z, s, jz, x)
+        keep = dtype(1.0)
+        if wp.static(fs):
+            if z == top:
+                keep = dtype(0.0)
+        rsum = dtype(0.0)
+        for l in range(wp.static(L)):
+            old = r[s, l, z, x]
+            new = keep * (c1[l] * old - c2[l] * g[l, z, x] * d)
+            r_new[s, l, z, x] = new
+            rsum += old + new
+        p_new[s, z, x] = keep * (p[s, z, x] - dt * (mu[z, x] * d + dtype(0.5) * rsum))
+
+    @wp.func
+    def weight(series: arr2, l: int, iq: dtype) -> dtype:
+        # y_l = sum_k series[k, l] iq^(k + 1) (Horner), iq = 1 / Q
+        y = dtype(0.0)
+        for k in range(wp.static(K)):
+            y = (y + series[wp.static(K - 1) - k, l]) * iq
+        return y
+
+    @unique_kernel
+    def materials(
+        vp: arr2, q: arr2, rho: arr2, series: arr2, tau: arr1, w_ref: dtype, bx: arr2, bz: arr2, mu: arr2, g: arr3,
+    ):  # fmt: skip
+        # MATERIALS at the interior nodes from the padded vp (m/s, phase velocity at w_ref rad/s), q and rho (kg/m^3):
+        # y_l = sum_k series[k, l] q^-(k+1), m = 1 + sum_l y_l i w tau_l / (1 + i w tau_l) at w_ref = A + i B,
+        # M_R = rho vp^2 Re(m^-1/2)^2 = rho vp^2 (1 + A / |m|) / (2 |m|), M_U = M_R (1 + sum y_l), g_l = M_R y_l
+        zi, xi = wp.tid()
+        z = zi + wp.static(M)
+        x = xi + wp.static(M)
+        r = rho[z, x]
+        bx[z, x] = dtype(0.5) * (dtype(1.0) / r + dtype(1.0) / rho[z, x + 1])
+        bz[z, x] = dtype(0.5) * (dtype(1.0) / r + dtype(1.0) / rho[z + 1, x])
+        iq = dtype(1.0) / q[z, x]
+        re = dtype(1.0)
+        im = dtype(0.0)
+        ysum = dtype(0.0)
+        for l in range(wp.static(L)):
+            y = weight(series, l, iq)
+            wt = w_ref * tau[l]
+            den = dtype(1.0) + wt * wt
+            re += y * wt * wt / den
+            im += y * wt / den
+            ysum += y
+        norm = wp.sqrt(re * re + im * im)
+        relaxed = r * vp[z, x] * vp[z, x] * (dtype(1.0) + re / norm) / (dtype(2.0) * norm)
+        mu[z, x] = relaxed * (dtype(1.0) + ysum)
+        for l in range(wp.static(L)):
+            g[l, z, x] = relaxed * weight(series, l, iq)
+
+    hicks = hicks_axis(dtype)
+    pt_p = make_point(ns, hicks, 0.0, 0.0, True)
+    pt_vx = make_point(ns, hicks, 0.0, 0.5, True)
+    pt_vz = make_point(ns, hicks, 0.5, 0.0, False)
+
+    @unique_kernel
+    def weights(loc: arr3, origin: wp.vec2i, inv_dx: dtype, top: int, idx: idx4, w: arr4):
+        # the operator of location r (metres (z, x)), computed once per run: node and weight of its point q for p, vx,
+        # vz (first index)
+        s, r, q = wp.tid()
+        i, wq = pt_p(loc, s, r, q, origin, inv_dx, top)
+        idx[0, s, r, q] = i
+        w[0, s, r, q] = wq
+        i, wq = pt_vx(loc, s, r, q, origin, inv_dx, top)
+        idx[1, s, r, q] = i
+        w[1, s, r, q] = wq
+        i, wq = pt_vz(loc, s, r, q, origin, inv_dx, top)
+        idx[2, s, r, q] = i
+        w[2, s, r, q] = wq
+
+    @unique_kernel
+    def inject(p: arr3, amp: arr3, idx: idx4, w: arr4, n: int, clock: iarr1, scale: dtype):
+        # p += (S(t_{n+1}) - S(t_n)) w / dx^2 (scale = 1 / dx^2) at the p operator's points; the sample is n + clock[0]
+        # (a device counter, for graph replays), here and in record
+        s, src, q = wp.tid()
+        t = n + clock[0]
+        wq = w[0, s, src, q]
+        if wq != dtype(0.0):
+            i = idx[0, s, src, q]
+            wp.atomic_add(p, s, i[0], i[1], scale * (amp[s, src, t + 1] - amp[s, src, t]) * wq)
+
+    @unique_kernel
+    def record(vx: arr3, vz: arr3, p: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4, n: int, clock: iarr1):
+        # sample n of each receiver's p, vx, vz through its operator
+        s, r, q = wp.tid()
+        t = n + clock[0]
+        wq = w[0, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[0, s, r, q]
+            wp.atomic_add(d_p, s, r, t, wq * p[s, i[0], i[1]])
+        wq = w[1, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[1, s, r, q]
+            wp.atomic_add(d_vx, s, r, t, wq * vx[s, i[0], i[1]])
+        wq = w[2, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[2, s, r, q]
+            wp.atomic_add(d_vz, s, r, t, wq * vz[s, i[0], i[1]])
+
+    return Kernels(Axis=Axis, velocity=velocity, pressure=pressure, materials=materials, weights=weights, inject=inject,
+                   record=record, pad_model=elastic_build(order, dtype, fs).pad_model, halo=M, operator_points=W * W)  # fmt: skip
+
+
+class State:
+    """Fields at one time level n: vx, vz (m/s) at t = (n - 1/2) dt, p (Pa) and the memory variables r (Pa/s,
+    (n_shots, L, Lz, Lx)) at t = n dt, and the CPML memory variables psi (dict, see PSI)."""
+
+    def __init__(self, vx, vz, p, r, psi):
+        self.vx, self.vz, self.p, self.r, self.psi = vx, vz, p, r, psi
+
+    def arrays(self):
+        return [self.vx, self.vz, self.p, self.r, *(self.psi[k] for k in PSI)]
+
+
+class Viscoacoustic:
+    """Launch helper: padded grid, CPML coefficients, mechanisms and one time step of the 2D visco-acoustic scheme.
+
+    shape: physical grid (nz, nx); dx (m), dt (s); mechanisms: relaxation.Mechanisms; f_ref: the frequency (Hz) at
+    which vp is the phase velocity; pml_width cells on every absorbing side (all four, or three with free_surface);
+    vmax: CPML reference speed (m/s). Locations passed to `operator` are metres (z, x) from the physical node 0."""
+
+    def __init__(self, shape, dx, dt, order, n_shots, mechanisms: Mechanisms, f_ref, pml_width, pml_reflection,
+                 pml_frequency, vmax, free_surface=False, dtype=wp.float32, device="cpu"):  # fmt: skip
+        self.ndim = 2
+        self.shape = tuple(int(n) for n in shape)
+        self.dx, self.dt, self.order, self.n_shots = float(dx), float(dt), int(order), int(n_shots)
+        self.dtype, self.device, self.free_surface = dtype, device, bool(free_surface)
+        self.mechanisms, self.f_ref = mechanisms, float(f_ref)
+        self.k = build(self.order, dtype, self.free_surface, mechanisms.count)
+        R = self.k.halo
+        nb = int(pml_width)
+        lo = (0 if free_surface else nb, nb)
+        self.padded = tuple(self.shape[a] + lo[a] + nb + 2 * R for a in range(2))
+        self.origin = wp.vec2i(R + lo[0], R + lo[1])
+        self.top = R
+        self.axes, self.strip_width = cpml_axes(self.k.Axis, lo, nb, self.padded, R, dx, dt, vmax, pml_reflection, pml_frequency, dtype, device)
+        half = dt / (2.0 * mechanisms.tau)
+        self.c1 = wp.array((1.0 - half) / (1.0 + half), dtype=dtype, device=device)
+        self.c2 = wp.array(2.0 * half / (1.0 + half), dtype=dtype, device=device)
+        self.series = wp.array(mechanisms.series, dtype=dtype, device=device)
+        self.tau = wp.array(mechanisms.tau, dtype=dtype, device=device)
+        self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * R)
+        self.inv_dx = dtype(1.0 / dx)
+        self.dt_device = dtype(dt)
+        self.cuda = wp.get_device(device).is_cuda
+        self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
+
+    def psi_shape(self, name):
+        axis = PSI[name]
+        shape = [self.n_shots, *self.padded]
+        shape[axis + 1] = self.strip_width[axis]
+        return tuple(shape)
+
+    def new_state(self, requires_grad=False) -> State:
+        def zeros(shape):
+            return wp.zeros(shape, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+
+        full = (self.n_shots, *self.padded)
+        return State(zeros(full), zeros(full), zeros(full), zeros((self.n_shots, self.mechanisms.count, *self.padded)),
+                     {k: zeros(self.psi_shape(k)) for k in PSI})  # fmt: skip
+
+    def pad_model(self, m, requires_grad=False):
+        """Padded model (Lz, Lx) from a physical one (wp.array2d (nz, nx)), extended by edge replication."""
+        out = wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+        wp.launch(self.k.pad_model, dim=self.padded, inputs=[m, out, self.origin], device=self.device)
+        return out
+
+    def materials(self, vp, q, rho, requires_grad=False):
+        """MATERIALS (padded arrays, interior nodes set) from the padded vp (m/s), q and rho (kg/m^3)."""
+
+        def zeros(shape):
+            return wp.zeros(shape, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+
+        out = (zeros(self.padded), zeros(self.padded), zeros(self.padded), zeros((self.mechanisms.count, *self.padded)))
+        w_ref = self.dtype(2.0 * np.pi * self.f_ref)
+        wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, q, rho, self.series, self.tau, w_ref, *out], device=self.device)
+        return out
+
+    def operator(self, loc: wp.array):
+        """The fixed operator of locations loc (S, n, 2) metres (z, x): (idx (3, S, n, points) vec2i, weights (3, S, n,
+        points)) for p, vx, vz."""
+        shape = (3, *loc.shape[:2], self.k.operator_points)
+        idx = wp.zeros(shape, dtype=wp.vec2i, device=self.device)
+        w = wp.zeros(shape, dtype=self.dtype, device=self.device)
+        wp.launch(self.k.weights, dim=shape[1:], inputs=[loc, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
+        return idx, w
+
+    def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
+        """Advance st (level n) to level n + 1 with the explosive sources' samples n and n + 1 (+ clock[0]); sources:
+        (amplitudes (S, n_src, >= n + 2), their operator (operator)) or None. mat: MATERIALS (materials). With
+        out=None in place; else into out's arrays (st unchanged), as under a tape (each level its own arrays)."""
+        out = st if out is None else out
+        clock = self.clock if clock is None else clock
+        bx, bz, mu, g = mat
+        common = [*self.axes, self.dt_device, self.inv_dx, self.top]
+        wp.launch(self.k.velocity, dim=self.interior, device=self.device,
+                  inputs=[st.vx, st.vz, st.p, bx, bz, st.psi["vx_x"], st.psi["vz_z"], out.psi["vx_x"], out.psi["vz_z"], out.vx,
+                          out.vz, *common])  # fmt: skip
+        wp.launch(self.k.pressure, dim=self.interior, device=self.device,
+                  inputs=[out.vx, out.vz, st.p, st.r, mu, g, self.c1, self.c2, st.psi["p_x"], st.psi["p_z"], out.psi["p_x"],
+                          out.psi["p_z"], out.p, out.r, *common])  # fmt: skip
+        if sources is not None:
+            amplitudes, (idx, w) = sources
+            wp.launch(self.k.inject, dim=idx.shape[1:], inputs=[out.p, amplitudes, idx, w, n, clock, self.dtype(1.0 / self.dx**2)],
+                      device=self.device)  # fmt: skip
+        return out
+
+    def record(self, st: State, data, receiver_op, k: int, clock=None):
+        """Add sample k (+ clock[0]) of the receivers' vx, vz, p into data (vx, vz, pressure arrays (S, n_rec, >= k + 1))."""
+        idx, w = receiver_op
+        clock = self.clock if clock is None else clock
+        wp.launch(self.k.record, dim=idx.shape[1:], inputs=[st.vx, st.vz, st.p, *data, idx, w, k, clock], device=self.device)
