@@ -1,7 +1,7 @@
 """Adjoint tests of every physics, written once (as Devito runs one adjoint test over all its seismic examples).
 
 For each physics (CASES: acoustic 2D and 3D, elastic 2D with a point force, elastic 2D with a free surface and a
-moment-tensor source), in float64 on the test device:
+moment-tensor source, vti 2D with a free surface, viscoacoustic 2D), in float64 on the test device:
 
 - test_adjoint_dot_product: <J dm, dd> = <dm, J^T dd>, J the derivative of the receiver data along a perturbation
   (acoustic: the Born modelling for the velocity; data linear in the source wavelet and components: the forward
@@ -32,6 +32,8 @@ from scipy.ndimage import gaussian_filter
 
 import adseismic.solve.acoustic as A
 import adseismic.solve.elastic as E
+import adseismic.solve.viscoacoustic as Q
+import adseismic.solve.vti as V
 from adseismic.solve.misfits import MISFITS
 from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.wavelets import ricker
@@ -210,11 +212,83 @@ def elastic_case(free_surface: bool, source_type: str) -> Case:
                 host_misfit=lambda name, syn: sum(named_misfit(name, syn[c], named_obs[c], DT)[0] for c in E.COMPONENTS))  # fmt: skip
 
 
+# --- staggered physics on Warp's taped adjoints: vti, viscoacoustic ----------------------------------------------
+
+
+def taped_case(physics: str, free_surface: bool) -> Case:
+    """vti (vp, epsilon, delta, rho) or viscoacoustic (vp, q, rho): a smooth 24 x 30 model, one source, six pressure
+    receivers, float64; observed data from a model 3% off in vp and rho (and 30% in q). Their gradients are Warp's
+    generated adjoints, so adjoint="warp" is the one gradient there is (the checkpoint test still compares segments)."""
+    rng = np.random.default_rng(0)
+    shape, nt = (24, 30), 200
+    smooth = gaussian_filter(rng.random(shape), 2)
+    z = np.arange(shape[0])[:, None] * np.ones(shape)
+    base = {"vp": 2000.0 + 10.0 * z + 200.0 * smooth, "rho": 1500.0 + 20.0 * z}
+    if physics == "vti":
+        models, extra = V.MODELS, {}
+        base.update(epsilon=0.2 + 0.002 * z + 0.05 * smooth, delta=0.05 + 0.001 * z)
+        true = dict(base, vp=base["vp"] * 1.03, rho=base["rho"] * 0.97)
+        sizes = {"vp": 50.0, "epsilon": 0.02, "delta": 0.02, "rho": 50.0}  # epsilon - delta >= 0.1 stays >= 0 (stability)
+        forward, gradient_fn = V.forward_vti, V.gradient_vti
+    else:
+        models, extra = Q.MODELS, {"q_band": (3.0, 25.0), "f_ref": 10.0}
+        base.update(q=40.0 - 20.0 * smooth)
+        true = dict(base, vp=base["vp"] * 1.03, rho=base["rho"] * 0.97, q=base["q"] * 1.3)
+        sizes = {"vp": 50.0, "q": 5.0, "rho": 50.0}
+        forward, gradient_fn = Q.forward_viscoacoustic, Q.gradient_viscoacoustic
+    params = dict(base, source_amplitudes=ricker(15.0, nt, DT)[None, None])
+    src = np.array([[[75.3, 141.7]]])
+    rec = np.array([[[5.0 if free_surface else 30.0, x] for x in np.linspace(20.0, 270.0, 6)]])
+    kw = dict(precision="float64", pml_velocity=3000.0, pml_frequency=15.0, pml_width=6, free_surface=free_surface, device=DEVICE,
+              **extra)  # fmt: skip
+
+    def args(changes):
+        a = dict(params, **changes)
+        return (*(a[m] for m in models), DX, DT, a["source_amplitudes"], src, rec)
+
+    obs = forward(*args(true), **kw).pressure
+
+    def data(**changes):
+        return forward(*args(changes), **kw).pressure
+
+    def gradient(misfit, wrt, segment_length=None, adjoint="hand", **changes):
+        return gradient_fn(*args(changes), {"pressure": obs}, misfit=misfit, wrt=wrt, segment_length=segment_length, **kw)
+
+    def l2(syn):
+        r = syn["pressure"] - obs
+        return 0.5 * float(np.sum(r * r)), {"pressure": r}
+
+    def tangent(kind, rng):
+        # as the elastic case's: the data are linear in the source wavelet (the forward run is J: target 1e-10), and
+        # the models' adjoint against central differences along a smooth dm of 1e-4 relative size (the O(h^2)
+        # truncation; measured in test_vti / test_viscoacoustic 1e-10 .. 6e-8: target 1e-6)
+        if kind == "source_amplitudes":
+            ds = rng.standard_normal(params[kind].shape)
+            return ds, data(source_amplitudes=ds), 1e-10
+        dm = gaussian_filter(rng.standard_normal(shape), 2)
+        dm *= 1e-4 * params[kind].mean() / np.abs(dm).max()
+        return dm, (data(**{kind: params[kind] + dm}) - data(**{kind: params[kind] - dm})) / 2.0, 1e-6
+
+    def direction(kind, rng):
+        d = rng.standard_normal(params[kind].shape)
+        return d if kind == "source_amplitudes" else gaussian_filter(d, 2)
+
+    kinds = (*models, "source_amplitudes")
+    return Case(params=params, kinds=kinds, dot_kinds=kinds, nt=nt, gradient=gradient, l2=l2, loss=lambda **changes: l2({"pressure": data(**changes)})[0],
+                random_data=lambda rng: rng.standard_normal(obs.shape),
+                projection=lambda dd: lambda syn: (float(np.sum(syn["pressure"] * dd)), {"pressure": dd}),
+                inner=lambda a, b: float(np.sum(a * b)), tangent=tangent, direction=direction,
+                sizes=dict(sizes, source_amplitudes=0.05),
+                host_misfit=lambda name, syn: named_misfit(name, syn["pressure"], obs, DT)[0])  # fmt: skip
+
+
 CASES = {
     "acoustic-2d": functools.partial(acoustic_case, 2),
     "acoustic-3d": functools.partial(acoustic_case, 3),
     "elastic-2d-force": functools.partial(elastic_case, False, "force"),
     "elastic-2d-free-surface-moment": functools.partial(elastic_case, True, "moment"),
+    "vti-2d-free-surface": functools.partial(taped_case, "vti", True),
+    "viscoacoustic-2d": functools.partial(taped_case, "viscoacoustic", False),
 }
 
 

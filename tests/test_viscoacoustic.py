@@ -1,12 +1,12 @@
 """Visco-acoustic physics with constant Q (issue 26 item 2; kernels/viscoacoustic/, adseismic.solve.viscoacoustic):
 (a) the fitted Q over the band, (b) a homogeneous medium against the frequency-domain analytic solution with the same
 mechanisms, (c) the lossless limit against acoustic_vd (the elastic solver with vs = 0), (d) gradients in vp, q, rho
-(dot-product and Taylor tests, checkpointed == one segment), and the input checks. All float64."""
+where q = inf and in float32 (the dot-product, Taylor and checkpoint tests are the shared ones, tests/test_adjoint.py),
+and the input checks. All float64."""
 
 import numpy as np
 import pytest
 from scipy.fft import irfft, next_fast_len, rfft, rfftfreq
-from scipy.ndimage import gaussian_filter
 from scipy.special import hankel2
 
 from adseismic.kernels.viscoacoustic import fit_mechanisms
@@ -188,69 +188,6 @@ def data(base, src, rec, **changes):
 def gradient(base, src, rec, misfit, observed=None, **kw):
     return gradient_viscoacoustic(base["vp"], base["q"], base["rho"], DX, DT, base["source_amplitudes"], src, rec, observed,
                                   misfit=misfit, pml_velocity=2600.0, pml_frequency=F_PEAK, **KW, **kw)  # fmt: skip
-
-
-def test_adjoint_dot_product():
-    # Warp's tape through the checkpointed segments is F^T: the data are linear in the source samples, so
-    # <F ds, d> = <ds, F^T d> to rounding (measured ~1e-15; target 1e-10). For vp, q, rho, the tape's adjoint against
-    # central differences of the forward run along a smooth dm of 1e-4 relative size: the O(h^2) truncation (measured
-    # 1e-9 .. 1e-8; target 1e-6, as tests/test_elastic.py's).
-    base, src, rec = small_problem(shots=2)
-    rng = np.random.default_rng(3)
-    d = {c: rng.standard_normal((2, 4, NT)) for c in COMPONENTS}
-
-    def project(syn):
-        return float(sum(np.sum(syn[c] * d[c]) for c in COMPONENTS)), d
-
-    adj = gradient(base, src, rec, project, wrt=("vp", "q", "rho", "source_amplitudes"))
-    assert adj.n_segments > 4  # checkpointed
-    ds = rng.standard_normal(base["source_amplitudes"].shape)
-    lhs = project(data(base, src, rec, source_amplitudes=ds))[0]
-    rhs = float(np.sum(ds * adj.source_amplitudes))
-    assert abs(lhs - rhs) <= 1e-10 * abs(lhs), (lhs, rhs)
-    for kind in ("vp", "q", "rho"):
-        dm = gaussian_filter(rng.standard_normal((NZ, NX)), 2)
-        dm *= 1e-4 * base[kind].mean() / np.abs(dm).max()
-        plus, minus = (project(data(base, src, rec, **{kind: base[kind] + sign * dm}))[0] for sign in (1.0, -1.0))
-        lhs = (plus - minus) / 2
-        rhs = float(np.sum(dm * getattr(adj, kind)))
-        assert abs(lhs - rhs) <= 1e-6 * abs(lhs), (kind, lhs, rhs)
-
-
-def test_taylor_and_checkpointing():
-    # The "l2" misfit against data of another model: the first-order remainder falls as h (slope 1) and the second-
-    # order one as h^2 (slope 2) within 0.1, for vp, q and rho (reference.md sec. 5), h = 1e-1 .. 1e-4 of a direction
-    # of up to 50 m/s, 10 in Q, 50 kg/m^3 (smooth random plus half along the gradient). The checkpointed gradient
-    # (~sqrt(nt) steps a segment) equals one segment's (every level on the tape) to rounding (measured ~1e-15).
-    base, src, rec = small_problem()
-    true = dict(base, vp=base["vp"] + 30.0 * gaussian_filter(np.random.default_rng(0).standard_normal((NZ, NX)), 3),
-                q=base["q"] * 1.3, rho=base["rho"] * 1.02)  # fmt: skip
-    obs = data(true, src, rec)
-    kinds = ("vp", "q", "rho")
-    g = gradient(base, src, rec, "l2", obs, wrt=kinds)
-    whole = gradient(base, src, rec, "l2", obs, wrt=kinds, segment_length=NT)
-    assert g.n_segments > 4 and whole.n_segments == 1
-    for kind in kinds:
-        a, b = getattr(g, kind), getattr(whole, kind)
-        assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max(), kind
-
-    def loss(**changes):
-        syn = data(base, src, rec, **changes)
-        return 0.5 * float(np.sum((syn["pressure"] - obs["pressure"]) ** 2)) * DT
-
-    assert abs(g.loss - loss()) <= 1e-12 * g.loss
-    steps = np.array([1e-1, 1e-2, 1e-3, 1e-4])
-    fit = lambda r: np.polyfit(np.log(steps), np.log(r), 1)[0]  # noqa: E731
-    rng = np.random.default_rng(1)
-    for kind, size in zip(kinds, (50.0, 10.0, 50.0)):
-        grad = getattr(g, kind)
-        d = gaussian_filter(rng.standard_normal(grad.shape), 2)
-        d = d / np.abs(d).max() + grad / np.abs(grad).max()
-        d = size * d / np.abs(d).max()
-        j = np.array([loss(**{kind: base[kind] + h * d}) for h in steps])
-        r1, r2 = np.abs(j - g.loss), np.abs(j - g.loss - steps * np.sum(grad * d))
-        assert abs(fit(r1) - 1.0) <= 0.1, (kind, fit(r1))
-        assert abs(fit(r2) - 2.0) <= 0.1, (kind, fit(r2))
 
 
 def test_lossless_cells_and_float32():

@@ -1,15 +1,14 @@
 """Pseudo-acoustic VTI (kernels/vti, adseismic.solve.vti; issue 26 item 3): wavefront travel times against the exact
 qP group velocity across angles, epsilon = delta = 0 against acoustic_vd (the elastic kernels with vs = 0), the free
-surface against the image solution, the refusals (epsilon < delta, dt from the horizontal speed), the gradients
-(dot-product against the source, central differences and a Taylor test for vp, epsilon, delta, rho; checkpointed equal
-to one segment) and the qSV artefact. Numbers: docs/vti.md."""
+surface against the image solution, the refusals (epsilon < delta, dt from the horizontal speed) and the qSV artefact.
+The gradients' dot-product, Taylor and checkpoint tests are the shared ones (tests/test_adjoint.py). Numbers:
+docs/vti.md."""
 
 import numpy as np
 import pytest
-from scipy.ndimage import gaussian_filter
 
 from adseismic.solve.elastic import forward_elastic
-from adseismic.solve.vti import forward_vti, gradient_vti
+from adseismic.solve.vti import forward_vti
 from adseismic.wavelets import ricker
 
 # --------------------------------------------------------------------------- travel times against the group velocity
@@ -209,87 +208,3 @@ def test_qsv_artefact_and_its_removal():
     assert with_artefact > 0.1
     assert with_artefact > 10.0 * without
 
-
-# --------------------------------------------------------------------------- gradients (Warp's tape, checkpointed)
-
-GSHAPE, GNT = (24, 28), 140
-GKW = {"order": 4, "pml_width": 8, "pml_velocity": 3000.0, "pml_frequency": 18.0, "precision": "float64"}
-
-
-def _gmodel():
-    z = np.arange(GSHAPE[0])[:, None] * np.ones(GSHAPE)
-    return {"vp": 2000.0 + 10.0 * z, "epsilon": 0.2 + 0.002 * z, "delta": 0.05 + 0.001 * z, "rho": 1500.0 + 20.0 * z}
-
-
-def _gshots():
-    amp = ricker(18.0, GNT, DT)[None, None]
-    src = np.array([[[30.0, 60.0]]])
-    rec = np.stack([np.full(12, 20.0), np.linspace(20.0, 250.0, 12)], -1)[None]
-    return amp, src, rec
-
-
-def _pressure(m, amp, src, rec, free_surface=False):
-    return forward_vti(m["vp"], m["epsilon"], m["delta"], m["rho"], DX, DT, amp, src, rec, free_surface=free_surface, **GKW).pressure
-
-
-@pytest.mark.parametrize("free_surface", [False, True])
-def test_gradient_dot_product_and_finite_differences(free_surface):
-    # The data are linear in the source wavelet: the tape's adjoint seeded with d is F^T, <F ds, d> = <ds, F^T d> to
-    # rounding (float64; target 1e-11, reference.md sec. 5). For vp, epsilon, delta, rho the gradient against central
-    # differences of the forward run along a smooth dm of 1e-4 relative size (truncation O(h^2) ~ 1e-8; target 1e-6).
-    # With and without the free surface (its images and zeroed row under the tape).
-    base = _gmodel()
-    amp, src, rec = _gshots()
-    rng = np.random.default_rng(3)
-    d = rng.standard_normal((1, 12, GNT))
-
-    def project(syn):
-        return float(np.sum(syn["pressure"] * d)), {"pressure": d}
-
-    g = gradient_vti(*base.values(), DX, DT, amp, src, rec, misfit=project, wrt=("vp", "epsilon", "delta", "rho", "source_amplitudes"),
-                     segment_length=40, free_surface=free_surface, **GKW)  # fmt: skip
-    ds = rng.standard_normal(amp.shape)
-    lhs, rhs = float(np.sum(_pressure(base, ds, src, rec, free_surface) * d)), float(np.sum(ds * g.source_amplitudes))
-    print("dot product", lhs, rhs, abs(lhs - rhs) / abs(lhs))
-    assert abs(lhs - rhs) <= 1e-11 * abs(lhs)
-    for name in ("vp", "epsilon", "delta", "rho"):
-        dm = gaussian_filter(rng.standard_normal(GSHAPE), 2)
-        dm *= 1e-4 * base[name].mean() / np.abs(dm).max()
-        plus, minus = (_pressure({**base, name: base[name] + s * dm}, amp, src, rec, free_surface) for s in (1, -1))
-        lhs = float(np.sum((plus - minus) * d)) / 2.0
-        rhs = float(np.sum(dm * getattr(g, name)))
-        print(name, lhs, rhs, abs(lhs - rhs) / abs(lhs))
-        assert abs(lhs - rhs) <= 1e-6 * abs(lhs), name
-
-
-def test_gradient_taylor_and_checkpoints():
-    # Taylor test of the l2 misfit against data of a model with a bump in all four parameters, along a smooth direction
-    # in all four: the remainder |J(m + h dm) - J(m) - h g.dm| falls ~4x per halving of h (second order; a wrong or
-    # missing parameter's gradient leaves an O(h) remainder, ratio ~2). The checkpointed sweep (segments of 20 steps)
-    # gives the one-segment gradient to rounding (1e-10).
-    base = _gmodel()
-    amp, src, rec = _gshots()
-    bump = np.exp(-((np.arange(GSHAPE[0])[:, None] - 12) ** 2 + (np.arange(GSHAPE[1])[None, :] - 14) ** 2) / 18.0)
-    true = {k: v * (1.0 + 0.05 * bump) for k, v in base.items()}
-    observed = {"pressure": _pressure(true, amp, src, rec)}
-    names = tuple(base)
-    g = gradient_vti(*base.values(), DX, DT, amp, src, rec, observed, wrt=names, segment_length=GNT, **GKW)
-    g_seg = gradient_vti(*base.values(), DX, DT, amp, src, rec, observed, wrt=names, segment_length=20, **GKW)
-    assert g_seg.n_segments == 7 and g.n_segments == 1
-    for k in names:
-        np.testing.assert_allclose(getattr(g_seg, k), getattr(g, k), rtol=0, atol=1e-10 * np.abs(getattr(g, k)).max())
-    rng = np.random.default_rng(0)
-    dm = {k: gaussian_filter(rng.standard_normal(GSHAPE), 2) for k in names}
-    dm = {k: v * 0.02 * np.abs(base[k]).mean() / np.abs(v).max() for k, v in dm.items()}
-    slope = sum(float(np.sum(getattr(g, k) * dm[k])) for k in names)
-
-    def J(h):
-        p = _pressure({k: base[k] + h * dm[k] for k in names}, amp, src, rec)
-        return 0.5 * float(np.sum((p - observed["pressure"]) ** 2)) * DT
-
-    assert J(0.0) == pytest.approx(g.loss, rel=1e-12)
-    rem = [abs(J(h) - g.loss - h * slope) for h in (0.4, 0.2, 0.1)]
-    ratios = [rem[i] / rem[i + 1] for i in range(2)]
-    print("Taylor remainders", rem, "ratios", ratios)
-    assert abs(slope) > 0
-    assert all(3.5 < r < 4.5 for r in ratios), (rem, ratios)

@@ -1,7 +1,15 @@
-"""What the Setups of the staggered velocity-stress physics (elastic, vti, viscoacoustic) share: the receivers'
-components and the verbs of the shared time loop (solve/loop.py) that do not depend on the physics."""
+"""What the staggered velocity-stress physics (elastic, vti, viscoacoustic) share: the receivers' components, the
+verbs of the shared time loop (solve/loop.py) that do not depend on the physics, and (vti, viscoacoustic) the taped
+checkpointed gradient with its misfit."""
 
+import math
+
+import numpy as np
 import warp as wp
+
+from adseismic.runs import progress_bar
+from adseismic.solve import sweep
+from adseismic.solve.misfits import misfit as named_misfit
 
 COMPONENTS = ("vx", "vz", "pressure")  # the order of the data arrays new_data gives and the launch helpers' record fills
 
@@ -40,3 +48,47 @@ class StaggeredSetup:
 
     def freed(self, st):
         return st
+
+
+def taped_gradient(su, state_bytes: int, misfit, components, observed, wrt, arrays: dict, result, memory_budget=None,
+                   segment_length=None, progress=False):
+    """The misfit and its exact gradients through Warp's generated adjoints of every kernel under wp.Tape, in
+    checkpointed segments (sweep.taped_sweep), for a Setup `su` without hand-written adjoints (vti, viscoacoustic).
+
+    misfit: a name in misfits.MISFITS, summed over `components` against observed[name] (n_shots, n_receivers, nt), or a
+    callable {name: data} -> (J, {name: dJ/d data}); state_bytes: one State's size, for the memory model (the
+    checkpoints plus one segment's levels, each with its adjoint on the tape); memory_budget (bytes; None: the
+    minimum, ~sqrt(nt) steps a segment) or segment_length (steps) sets the segments; arrays: name -> the Setup's
+    differentiated wp.array for each name in wrt; result: the physics' result class, filled with loss, synthetic (a
+    dict over COMPONENTS), the segments and a NumPy gradient per name in wrt."""
+    if not callable(misfit):
+        shape = (su.prop.n_shots, su.receivers.shape[1], su.nt)
+        for c in components:
+            if c not in COMPONENTS:
+                raise ValueError(f"components: {c!r} is not one of {COMPONENTS}")
+            if observed is None or c not in observed or np.shape(observed[c]) != shape:
+                raise ValueError(f"observed[{c!r}]: give an array (n_shots, n_receivers, nt) = {shape} for each of `components`")
+
+    def loss(synthetic):
+        syn = dict(zip(COMPONENTS, synthetic))
+        if callable(misfit):
+            J, adj = misfit(syn)
+        else:
+            J, adj = 0.0, {}
+            for c in components:
+                j, adj[c] = named_misfit(misfit, syn[c], np.asarray(observed[c], dtype=float), su.prop.dt)
+                J += j
+        return J, tuple(None if adj.get(c) is None else np.asarray(adj[c], dtype=float) for c in COMPONENTS)
+
+    def total(seg):
+        return (math.ceil(su.nt / seg) - 1) * state_bytes + (seg + 2) * 2 * state_bytes
+
+    seg, peak = sweep.choose_segment(su.nt, 1, total, memory_budget, segment_length)
+    n_seg = math.ceil(su.nt / seg)
+    bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
+    synthetic, J = sweep.taped_sweep(su, seg, n_seg, loss, bar)
+    bar.close()
+    res = result(loss=float(J), synthetic=dict(zip(COMPONENTS, synthetic)), segment_length=seg, n_segments=n_seg, peak_bytes_estimate=peak)
+    for name in wrt:
+        setattr(res, name, np.array(arrays[name].grad.numpy()))
+    return res

@@ -25,10 +25,8 @@ import warp as wp
 
 from adseismic.kernels.numerics import check_order
 from adseismic.kernels.viscoacoustic import DESCRIPTION, PSI, Viscoacoustic, fit_mechanisms
-from adseismic.runs import progress_bar
-from adseismic.solve import common, loop, sweep
-from adseismic.solve.misfits import misfit as named_misfit
-from adseismic.solve.staggered import COMPONENTS, StaggeredSetup
+from adseismic.solve import common, loop
+from adseismic.solve.staggered import COMPONENTS, StaggeredSetup, taped_gradient
 
 MODELS = ("vp", "q", "rho")
 WRT = (*MODELS, "source_amplitudes")
@@ -188,20 +186,6 @@ def forward_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_location
     return ViscoacousticResult(pressure=p, vx=vx, vz=vz, dt=float(dt), vmax_unrelaxed=su.vmax_unrelaxed)
 
 
-def plan_segments(prop: Viscoacoustic, nt: int, memory_budget: float | None = None, segment_length: int | None = None):
-    """(segment_length, estimated peak bytes) of the taped checkpointed sweep: the checkpoints (States) plus one
-    segment's levels, each with its adjoint on Warp's tape; memory_budget bytes (None: the memory minimum, ~sqrt(nt)
-    steps) or segment_length pins it (sweep.choose_segment)."""
-    item = 4 if prop.dtype == wp.float32 else 8
-    fields = prop.n_shots * math.prod(prop.padded)
-    state = item * ((3 + prop.mechanisms.count) * fields + sum(math.prod(prop.psi_shape(k)) for k in PSI))
-
-    def total(seg):
-        return (math.ceil(nt / seg) - 1) * state + (seg + 2) * 2 * state
-
-    return sweep.choose_segment(nt, 1, total, memory_budget, segment_length)
-
-
 def gradient_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
                            misfit="l2", components=("pressure",), wrt=MODELS, q_band=None, f_ref=None,
                            mechanisms=DEFAULT_MECHANISMS, order=4, pml_width=None, pml_reflection=None, pml_frequency=None,
@@ -212,43 +196,18 @@ def gradient_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locatio
 
     observed: {component: (n_shots, n_receivers, nt)} for the names in `components` (of COMPONENTS); misfit: a name
     in misfits.MISFITS (summed over components) or a callable synthetic dict -> (J, {name: dJ/d synthetic}); wrt: any
-    of WRT. memory_budget (bytes) / segment_length: plan_segments. Other arguments as forward_viscoacoustic's; the
+    of WRT. memory_budget (bytes) / segment_length: staggered.taped_gradient. Other arguments as forward_viscoacoustic's; the
     PML settings and the mechanisms (q_band, f_ref) are fixed (pin pml_velocity, pml_frequency, q_band and f_ref when
     the model changes between calls). A model with q = inf has gradient 0 in q there."""
     unknown = set(wrt) - set(WRT)
     if unknown:
         raise ValueError(f"wrt: {sorted(unknown)} not among {WRT}")
-    if not callable(misfit):
-        bad = set(components) - set(COMPONENTS)
-        if bad:
-            raise ValueError(f"components: {sorted(bad)} not among {COMPONENTS}")
-        for c in components:
-            if observed is None or c not in observed:
-                raise ValueError(f"observed: no {c!r} data; give observed[{c!r}] (n_shots, n_receivers, nt) for each of `components`")
     su = setup_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, q_band=q_band, f_ref=f_ref,
                              mechanisms=mechanisms, order=order, pml_width=pml_width, pml_reflection=pml_reflection,
                              pml_frequency=pml_frequency, pml_velocity=pml_velocity, free_surface=free_surface, device=device,
                              precision=precision, requires_grad=set(wrt))  # fmt: skip
-
-    def loss(synthetic):
-        syn = dict(zip(COMPONENTS, synthetic))
-        if callable(misfit):
-            J, adj = misfit(syn)
-        else:
-            J, adj = 0.0, {}
-            for c in components:
-                j, adj[c] = named_misfit(misfit, syn[c], np.asarray(observed[c], dtype=float), dt)
-                J += j
-        return J, tuple(None if adj.get(c) is None else np.asarray(adj[c], dtype=float) for c in COMPONENTS)
-
-    seg, peak = plan_segments(su.prop, su.nt, memory_budget, segment_length)
-    n_seg = math.ceil(su.nt / seg)
-    bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
-    synthetic, J = sweep.taped_sweep(su, seg, n_seg, loss, bar)
-    bar.close()
-    res = ViscoacousticGradient(loss=float(J), synthetic=dict(zip(COMPONENTS, synthetic)), segment_length=seg, n_segments=n_seg,
-                                peak_bytes_estimate=peak)  # fmt: skip
-    grads = {**dict(zip(MODELS, su.models)), "source_amplitudes": su.amplitudes}
-    for name in wrt:
-        setattr(res, name, np.array(grads[name].grad.numpy()))
-    return res
+    p = su.prop
+    state = (4 if p.dtype == wp.float32 else 8) * ((3 + p.mechanisms.count) * p.n_shots * math.prod(p.padded) +
+                                                   sum(math.prod(p.psi_shape(k)) for k in PSI))  # fmt: skip
+    return taped_gradient(su, state, misfit, components, observed, wrt, {**dict(zip(MODELS, su.models)), "source_amplitudes": su.amplitudes},
+                          ViscoacousticGradient, memory_budget, segment_length, progress)  # fmt: skip

@@ -24,10 +24,8 @@ import warp as wp
 
 from adseismic.kernels.numerics import check_order
 from adseismic.kernels.vti import DESCRIPTION, PSI, VTI, thomsen_check
-from adseismic.runs import progress_bar
-from adseismic.solve import common, loop, sweep
-from adseismic.solve.misfits import misfit as named_misfit
-from adseismic.solve.staggered import COMPONENTS, StaggeredSetup
+from adseismic.solve import common, loop
+from adseismic.solve.staggered import COMPONENTS, StaggeredSetup, taped_gradient
 
 MODELS = ("vp", "epsilon", "delta", "rho")
 WRT = (*MODELS, "source_amplitudes")
@@ -166,18 +164,6 @@ def forward_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locat
     return VTIResult(*(loop.traces(d, su.nt, False, kept) for d in data), dt=float(dt))
 
 
-def plan_segments(prop: VTI, nt: int, memory_budget: float | None = None, segment_length: int | None = None):
-    """(segment_length, estimated peak bytes) of the taped checkpointed sweep: a State (4 fields, 4 memory variables)
-    per checkpoint, and per taped level a State and its adjoint (sweep.choose_segment)."""
-    item = 4 if prop.dtype == wp.float32 else 8
-    state = item * (4 + len(PSI)) * prop.n_shots * math.prod(prop.padded)
-
-    def total(seg):
-        return (math.ceil(nt / seg) - 1) * state + (seg + 2) * 2 * state
-
-    return sweep.choose_segment(nt, 1, total, memory_budget, segment_length)
-
-
 def gradient_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,
                  misfit="l2", components=("pressure",), wrt=MODELS, order=4, pml_width=None, pml_reflection=None,
                  pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu", precision="float32",
@@ -196,35 +182,6 @@ def gradient_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_loca
     su = setup_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, order=order,
                    pml_width=pml_width, pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
                    free_surface=free_surface, device=device, precision=precision, requires_grad=set(wrt))  # fmt: skip
-    if callable(misfit):
-        loss_fn = misfit
-    else:
-        for c in components:
-            if c not in COMPONENTS:
-                raise ValueError(f"components: {c!r} is not one of {COMPONENTS}")
-            if observed is None or c not in observed or np.shape(observed[c]) != (su.prop.n_shots, su.receivers.shape[1], su.nt):
-                shape = (su.prop.n_shots, su.receivers.shape[1], su.nt)
-                raise ValueError(f"observed[{c!r}]: give an array (n_shots, n_receivers, nt) = {shape} for each of `components`")
-
-        def loss_fn(syn):
-            total, adj = 0.0, {}
-            for c in components:
-                j, adj[c] = named_misfit(misfit, syn[c], np.asarray(observed[c], dtype=float), dt)
-                total += j
-            return total, adj
-
-    def loss(synthetic):
-        J, adj = loss_fn(dict(zip(COMPONENTS, synthetic)))
-        return J, tuple(adj.get(c) for c in COMPONENTS)
-
-    seg, peak = plan_segments(su.prop, su.nt, memory_budget, segment_length)
-    n_seg = math.ceil(su.nt / seg)
-    bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
-    synthetic, J = sweep.taped_sweep(su, seg, n_seg, loss, bar)
-    bar.close()
-    res = VTIGradient(loss=float(J), synthetic=dict(zip(COMPONENTS, synthetic)), segment_length=seg, n_segments=n_seg,
-                      peak_bytes_estimate=peak)
-    arrays = dict(zip(MODELS, su.models), source_amplitudes=su.amplitudes)
-    for name in wrt:
-        setattr(res, name, np.array(arrays[name].grad.numpy()))
-    return res
+    state = (4 if su.prop.dtype == wp.float32 else 8) * (4 + len(PSI)) * su.prop.n_shots * math.prod(su.prop.padded)  # 4 fields, 4 psi
+    return taped_gradient(su, state, misfit, components, observed, wrt, dict(zip(MODELS, su.models), source_amplitudes=su.amplitudes),
+                          VTIGradient, memory_budget, segment_length, progress)  # fmt: skip
