@@ -61,27 +61,10 @@ PSI = {"vx_x": 1, "vz_z": 0, "p_x": 1, "p_z": 0}
 MATERIALS = ("bx", "bz", "mu", "g")  # buoyancy at vx and vz nodes, M_U, g_l = M_R y_l (L, Lz, Lx)
 
 
-@functools.lru_cache(maxsize=None)
-def build(order: int, dtype, free_surface: bool, mechanisms: int):
-    """Kernels for one (order, dtype, free_surface, number of mechanisms), compiled once per process."""
-    M = order // 2
-    C = STAGGERED_DERIVATIVE[order]
-    L = int(mechanisms)
-    K = SERIES_TERMS
-    fs = bool(free_surface)
-    W = 2 * HICKS_RADIUS
-    arr1, arr2, arr3, arr4 = wp.array(dtype=dtype), wp.array2d(dtype=dtype), wp.array3d(dtype=dtype), wp.array4d(dtype=dtype)
-    iarr1 = wp.array(dtype=wp.int32)
-    idx4 = wp.array4d(dtype=wp.vec2i)
-    ns = SimpleNamespace(HR=HICKS_RADIUS, W=W, fs=fs, dtype=dtype, arr3=arr3)
-
-    @wp.struct
-    class Axis:
-        store: wp.array(dtype=wp.int32)  # strip index per padded index, -1 outside the PML strips
-        a: wp.array(dtype=dtype)  # CPML a, b at integer positions
-        b: wp.array(dtype=dtype)
-        ah: wp.array(dtype=dtype)  # at half positions (index p stands for p + 1/2)
-        bh: wp.array(dtype=dtype)
+def _derivatives(ns):
+    """build's staggered first derivatives (times dx) of p at the velocity nodes and of vx, vz at the p nodes, reading
+    above a free surface the images (p odd, vz even)."""
+    dtype, arr3, fs, M, C = ns.dtype, ns.arr3, ns.fs, ns.M, ns.C
 
     @wp.func
     def p_at(p: arr3, s: int, z: int, x: int, top: int) -> dtype:
@@ -130,6 +113,89 @@ def build(order: int, dtype, free_surface: bool, mechanisms: int):
         for m in range(wp.static(M)):
             acc += dtype(wp.static(C[m])) * (vz_at(vz, s, z + m, x, top) - vz_at(vz, s, z - m - 1, x, top))
         return acc
+
+    return dp_dx, dp_dz, dvx_dx, dvz_dz
+
+
+def _points(ns):
+    """The sources' and receivers' kernels of build: the fixed operator's weights at the p, vx and vz nodes (make_point,
+    folded across a free surface), the explosive source's injection into p, and the recording of p, vx and vz."""
+    dtype, arr3, arr4, iarr1, idx4 = ns.dtype, ns.arr3, ns.arr4, ns.iarr1, ns.idx4
+    hicks = hicks_axis(dtype)
+    pt_p = make_point(ns, hicks, 0.0, 0.0, True)
+    pt_vx = make_point(ns, hicks, 0.0, 0.5, True)
+    pt_vz = make_point(ns, hicks, 0.5, 0.0, False)
+
+    @unique_kernel
+    def weights(loc: arr3, origin: wp.vec2i, inv_dx: dtype, top: int, idx: idx4, w: arr4):
+        # the operator of location r (metres (z, x)), computed once per run: node and weight of its point q for p, vx,
+        # vz (first index)
+        s, r, q = wp.tid()
+        i, wq = pt_p(loc, s, r, q, origin, inv_dx, top)
+        idx[0, s, r, q] = i
+        w[0, s, r, q] = wq
+        i, wq = pt_vx(loc, s, r, q, origin, inv_dx, top)
+        idx[1, s, r, q] = i
+        w[1, s, r, q] = wq
+        i, wq = pt_vz(loc, s, r, q, origin, inv_dx, top)
+        idx[2, s, r, q] = i
+        w[2, s, r, q] = wq
+
+    @unique_kernel
+    def inject(p: arr3, amp: arr3, idx: idx4, w: arr4, n: int, clock: iarr1, scale: dtype):
+        # p += (S(t_{n+1}) - S(t_n)) w / dx^2 (scale = 1 / dx^2) at the p operator's points; the sample is n + clock[0]
+        # (a device counter, for graph replays), here and in record
+        s, src, q = wp.tid()
+        t = n + clock[0]
+        wq = w[0, s, src, q]
+        if wq != dtype(0.0):
+            i = idx[0, s, src, q]
+            wp.atomic_add(p, s, i[0], i[1], scale * (amp[s, src, t + 1] - amp[s, src, t]) * wq)
+
+    @unique_kernel
+    def record(vx: arr3, vz: arr3, p: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4, n: int, clock: iarr1):
+        # sample n of each receiver's p, vx, vz through its operator
+        s, r, q = wp.tid()
+        t = n + clock[0]
+        wq = w[0, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[0, s, r, q]
+            wp.atomic_add(d_p, s, r, t, wq * p[s, i[0], i[1]])
+        wq = w[1, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[1, s, r, q]
+            wp.atomic_add(d_vx, s, r, t, wq * vx[s, i[0], i[1]])
+        wq = w[2, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[2, s, r, q]
+            wp.atomic_add(d_vz, s, r, t, wq * vz[s, i[0], i[1]])
+
+    return weights, inject, record
+
+
+@functools.lru_cache(maxsize=None)
+def build(order: int, dtype, free_surface: bool, mechanisms: int):
+    """Kernels for one (order, dtype, free_surface, number of mechanisms), compiled once per process."""
+    M = order // 2
+    C = STAGGERED_DERIVATIVE[order]
+    L = int(mechanisms)
+    K = SERIES_TERMS
+    fs = bool(free_surface)
+    W = 2 * HICKS_RADIUS
+    arr1, arr2, arr3, arr4 = wp.array(dtype=dtype), wp.array2d(dtype=dtype), wp.array3d(dtype=dtype), wp.array4d(dtype=dtype)
+    iarr1 = wp.array(dtype=wp.int32)
+    idx4 = wp.array4d(dtype=wp.vec2i)
+    ns = SimpleNamespace(HR=HICKS_RADIUS, W=W, fs=fs, dtype=dtype, arr3=arr3, arr4=arr4, iarr1=iarr1, idx4=idx4, M=M, C=C)
+
+    @wp.struct
+    class Axis:
+        store: wp.array(dtype=wp.int32)  # strip index per padded index, -1 outside the PML strips
+        a: wp.array(dtype=dtype)  # CPML a, b at integer positions
+        b: wp.array(dtype=dtype)
+        ah: wp.array(dtype=dtype)  # at half positions (index p stands for p + 1/2)
+        bh: wp.array(dtype=dtype)
+
+    dp_dx, dp_dz, dvx_dx, dvz_dz = _derivatives(ns)
 
     @wp.func
     def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr3, new: arr3, s: int, row: int, col: int) -> dtype:
@@ -219,54 +285,7 @@ def build(order: int, dtype, free_surface: bool, mechanisms: int):
         for l in range(wp.static(L)):
             g[l, z, x] = relaxed * weight(series, l, iq)
 
-    hicks = hicks_axis(dtype)
-    pt_p = make_point(ns, hicks, 0.0, 0.0, True)
-    pt_vx = make_point(ns, hicks, 0.0, 0.5, True)
-    pt_vz = make_point(ns, hicks, 0.5, 0.0, False)
-
-    @unique_kernel
-    def weights(loc: arr3, origin: wp.vec2i, inv_dx: dtype, top: int, idx: idx4, w: arr4):
-        # the operator of location r (metres (z, x)), computed once per run: node and weight of its point q for p, vx,
-        # vz (first index)
-        s, r, q = wp.tid()
-        i, wq = pt_p(loc, s, r, q, origin, inv_dx, top)
-        idx[0, s, r, q] = i
-        w[0, s, r, q] = wq
-        i, wq = pt_vx(loc, s, r, q, origin, inv_dx, top)
-        idx[1, s, r, q] = i
-        w[1, s, r, q] = wq
-        i, wq = pt_vz(loc, s, r, q, origin, inv_dx, top)
-        idx[2, s, r, q] = i
-        w[2, s, r, q] = wq
-
-    @unique_kernel
-    def inject(p: arr3, amp: arr3, idx: idx4, w: arr4, n: int, clock: iarr1, scale: dtype):
-        # p += (S(t_{n+1}) - S(t_n)) w / dx^2 (scale = 1 / dx^2) at the p operator's points; the sample is n + clock[0]
-        # (a device counter, for graph replays), here and in record
-        s, src, q = wp.tid()
-        t = n + clock[0]
-        wq = w[0, s, src, q]
-        if wq != dtype(0.0):
-            i = idx[0, s, src, q]
-            wp.atomic_add(p, s, i[0], i[1], scale * (amp[s, src, t + 1] - amp[s, src, t]) * wq)
-
-    @unique_kernel
-    def record(vx: arr3, vz: arr3, p: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4, n: int, clock: iarr1):
-        # sample n of each receiver's p, vx, vz through its operator
-        s, r, q = wp.tid()
-        t = n + clock[0]
-        wq = w[0, s, r, q]
-        if wq != dtype(0.0):
-            i = idx[0, s, r, q]
-            wp.atomic_add(d_p, s, r, t, wq * p[s, i[0], i[1]])
-        wq = w[1, s, r, q]
-        if wq != dtype(0.0):
-            i = idx[1, s, r, q]
-            wp.atomic_add(d_vx, s, r, t, wq * vx[s, i[0], i[1]])
-        wq = w[2, s, r, q]
-        if wq != dtype(0.0):
-            i = idx[2, s, r, q]
-            wp.atomic_add(d_vz, s, r, t, wq * vz[s, i[0], i[1]])
+    weights, inject, record = _points(ns)
 
     return Kernels(Axis=Axis, velocity=velocity, pressure=pressure, materials=materials, weights=weights, inject=inject,
                    record=record, pad_model=elastic_build(order, dtype, fs).pad_model, halo=M, operator_points=W * W)  # fmt: skip
