@@ -21,6 +21,8 @@ from adseismic.solve.receivers import Recording
 from adseismic.wavelets import make_wavelet, ricker
 from tests.test_fwi_physics import _smooth_field
 
+from .conftest import DEVICE
+
 # --------------------------------------------------------------------------- plane-wave reflection coefficient
 
 
@@ -77,7 +79,7 @@ def test_plane_wave_reflection_coefficient(v1, v2, rho1, rho2):
 # --------------------------------------------------------------------------- gradients
 
 SHAPE, DX, DT, NT = (24, 28), 10.0, 1.5e-3, 140
-KW = {"order": 4, "pml_width": 8, "pml_velocity": 3000.0, "pml_frequency": 18.0, "device": "cpu", "precision": "float64"}
+KW = {"order": 4, "pml_width": 8, "pml_velocity": 3000.0, "pml_frequency": 18.0, "device": DEVICE, "precision": "float64"}
 
 
 def _start():

@@ -4,15 +4,23 @@ mechanisms, (c) the lossless limit against acoustic_vd (the elastic solver with 
 where q = inf and in float32 (the dot-product, Taylor and checkpoint tests are the shared ones, tests/test_adjoint.py),
 and the input checks. All float64."""
 
+import functools
+
 import numpy as np
 import pytest
 from scipy.fft import irfft, next_fast_len, rfft, rfftfreq
 from scipy.special import hankel2
 
 from adseismic.kernels.viscoacoustic import fit_mechanisms
+from adseismic.solve import viscoacoustic
 from adseismic.solve.elastic import forward_elastic
-from adseismic.solve.viscoacoustic import COMPONENTS, forward_viscoacoustic, gradient_viscoacoustic
+from adseismic.solve.viscoacoustic import COMPONENTS
 from adseismic.wavelets import make_wavelet
+
+from .conftest import DEVICE
+
+forward_viscoacoustic = functools.partial(viscoacoustic.forward_viscoacoustic, device=DEVICE)
+gradient_viscoacoustic = functools.partial(viscoacoustic.gradient_viscoacoustic, device=DEVICE)
 
 BAND = (3.0, 25.0)  # Hz: a 10 Hz Ricker's band (-20 dB near 2.2 f_peak)
 F_PEAK = 10.0

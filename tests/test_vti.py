@@ -4,12 +4,18 @@ surface against the image solution, the refusals (epsilon < delta, dt from the h
 The gradients' dot-product, Taylor and checkpoint tests are the shared ones (tests/test_adjoint.py). Numbers:
 docs/vti.md."""
 
+import functools
+
 import numpy as np
 import pytest
 
+from adseismic.solve import vti
 from adseismic.solve.elastic import forward_elastic
-from adseismic.solve.vti import forward_vti
 from adseismic.wavelets import ricker
+
+from .conftest import DEVICE
+
+forward_vti = functools.partial(vti.forward_vti, device=DEVICE)
 
 # --------------------------------------------------------------------------- travel times against the group velocity
 
@@ -110,7 +116,7 @@ def test_isotropic_limit_is_acoustic_vd(order):
     vp, rho = _layered()
     amp, src, rec = _geometry()
     zero = np.zeros(SHAPE)
-    kw = {"order": order, "pml_width": 10, "precision": "float64"}
+    kw = {"order": order, "pml_width": 10, "precision": "float64", "device": DEVICE}
     a = forward_vti(vp, zero, zero, rho, DX, DT, amp, src, rec, **kw)
     b = forward_elastic(vp, zero, rho, DX, DT, amp, src, rec, source_type="explosive", **kw)
     for c in ("vx", "vz", "pressure"):

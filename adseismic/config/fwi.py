@@ -67,7 +67,7 @@ class InversionConfig:
     time_window: tuple | None = None
     parameters: tuple | None = None  # the inverted quantities (None: all of the parameterization's)
     parameterization: str = "vp-vs-rho"  # or lambda-mu-rho (physics elastic)
-    transform: str = "linear"  # or sigmoid: q = lo + (hi - lo) sigmoid(x) (inversion.model_space)
+    transform: str = "sigmoid"  # q = lo + (hi - lo) sigmoid(x), or linear (inversion.model_space)
 
 
 @dataclass
