@@ -31,6 +31,12 @@ def stated_seconds(path: Path) -> float:
 # slowness, measured by the calibration: a cold-cache compile and a small run of the acoustic kernels, the work that
 # dominates the demos.
 CALIBRATION_SECONDS = 4.7
+# The bounds: 0.5x to 1.5x the stated time x the slowness (the calibration tracks a 2-core VM's speed to about +-30%),
+# plus START_SECONDS above: a demo's fixed cost (a Python start, imports, cold-cache kernel builds, ~3-8 s) varies by
+# several seconds from run to run on a shared VM whatever its speed (vti_forward: 4.0-8.7 s scaled over one day;
+# example_2d: 15.5 s in one CI run against ~8 s x 1.27, the ratio's bound 15.3 s), which a ratio alone holds against
+# short demos only.
+START_SECONDS = 10.0
 CALIBRATION = """
 import time
 t0 = time.perf_counter()
@@ -71,8 +77,9 @@ def test_demo_runs_in_its_stated_time(name, tmp_path, machine_slowness):
     expected = stated * machine_slowness
     print(f"{name}: {seconds:.0f} s (stated ~{stated:.0f} s; this machine {machine_slowness:.2f}x the headers': ~{expected:.0f} s)")
     if os.cpu_count() == 2:
-        assert 0.5 * expected <= seconds <= 1.5 * expected, (f"{name}: {seconds:.0f} s against the stated ~{stated:.0f} s x this "
-                                                             f"machine's {machine_slowness:.2f} = {expected:.0f} s; update its header")
+        assert 0.5 * expected <= seconds <= 1.5 * expected + START_SECONDS, (
+            f"{name}: {seconds:.0f} s against the stated ~{stated:.0f} s x this machine's {machine_slowness:.2f} = {expected:.0f} s; "
+            f"update its header")
 
 
 def test_every_cpu_demo_states_its_time():
