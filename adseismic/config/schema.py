@@ -529,9 +529,8 @@ class Inversion(_Section):
     transform: Annotated[Literal["linear", "sigmoid"] | None, OneOf("linear", "sigmoid")] = F(
         "sigmoid", "how the optimiser's x gives each inverted cell: sigmoid (q = lo + (hi - lo) sigmoid(x) inside the "
                    "bounds, x free: Deepwave's FWI recipe; a cell near a bound, such as water near the lower velocity "
-                   "bound, moves little; on Marmousi-II it reaches 0.66 of the start's model error where linear stays "
-                   "at 0.95, docs/benchmarks.md) or linear (x = q / reference, the bounds a box L-BFGS-B projects "
-                   "onto); pixels only")
+                   "bound, moves little; docs/fwi_physics.md) or linear (x = q / reference, the bounds a box "
+                   "L-BFGS-B projects onto); pixels only")
     parameterization: Annotated[Literal[PARAMETERIZATIONS] | None, OneOf(*PARAMETERIZATIONS)] = F(
         "vp-vs-rho", "physics elastic: the quantities the optimiser moves, vp-vs-rho (m/s, m/s, kg/m^3) or "
                      "lambda-mu-rho (Lame moduli in Pa, kg/m^3); acoustic_vd: vp-vs-rho (vp and rho move, vs stays 0) "
