@@ -55,24 +55,43 @@ class Recorder:
 
 # ---- convergence -------------------------------------------------------------------------------
 
-def test_lbfgs_quadratic_converges_within_50_evaluations():
+def test_lbfgs_quadratic_converges_within_60_evaluations():
+    # measured: f < 1e-10 after 47 evaluations, max|g| < 1e-9 after 53 (scipy's L-BFGS-B, the bounded path: 42, 41)
     fun = Counting(quad)
-    r = minimize(fun, X0_QUAD, method="lbfgs", max_iterations=100, max_evaluations=50,
+    r = minimize(fun, X0_QUAD, method="lbfgs", max_iterations=100, max_evaluations=60,
                  rel_decrease=0, grad_tol=1e-9)
     assert r.f < 1e-10
-    assert r.evaluations <= 50 and fun.calls == r.evaluations
+    assert r.evaluations <= 60 and fun.calls == r.evaluations
     first = next(h for h in r.history if h["f"] < 1e-10)
-    assert first["evaluations"] <= 45                   # measured: 42 with scipy 1.17
+    assert first["evaluations"] <= 50
     assert r.stop_reason == "grad_tol"
     np.testing.assert_allclose(r.x, X_STAR, atol=1e-6)
 
 
-def test_lbfgs_matches_plain_scipy_bitwise():
-    r = minimize(rosen, X0_ROSEN, method="lbfgs", max_iterations=15, rel_decrease=0, grad_tol=0)
-    s = scipy.optimize.minimize(rosen, X0_ROSEN, jac=True, method="L-BFGS-B",
+def test_lbfgs_with_bounds_matches_plain_scipy_bitwise():
+    r = minimize(rosen, X0_ROSEN, method="lbfgs", bounds=(-5.0, 5.0), max_iterations=15, rel_decrease=0, grad_tol=0)
+    s = scipy.optimize.minimize(rosen, X0_ROSEN, jac=True, method="L-BFGS-B", bounds=[(-5.0, 5.0)] * 2,
                                 options={"maxiter": 15, "ftol": 0.0, "gtol": 0.0})
     assert r.iterations == s.nit == 15
     assert r.x.tobytes() == s.x.tobytes()
+
+
+ROSEN100 = np.full(100, -1.0) + np.random.default_rng(0).uniform(0.0, 0.1, 100)
+
+
+@pytest.mark.parametrize("fun, x0, tol", [(quad, X0_QUAD, 1e-10), (rosen, X0_ROSEN, 1e-10), (rosen, ROSEN100, 1e-10)],
+                         ids=["quadratic", "rosenbrock", "rosenbrock100"])
+def test_unbounded_lbfgs_needs_no_more_evaluations_than_scipy(fun, x0, tol):
+    # without bounds minimize runs its own L-BFGS (O(n m) an iteration; scipy's L-BFGS-B costs ~0.1 s an iteration on
+    # 70,000 unknowns): as few evaluations to reach tol as scipy's, within 15% (measured 47 / 42, 44 / 44, 601 / 602)
+    r = minimize(fun, x0, method="lbfgs", max_iterations=None, max_evaluations=1000, rel_decrease=0, grad_tol=0)
+    ours = next(h["evaluations"] for h in r.history if h["f"] < tol)
+    seen = []
+    scipy.optimize.minimize(lambda x: seen.append(fun(x)[0]) or fun(x), x0, jac=True, method="L-BFGS-B",
+                            options={"maxiter": 1000, "maxfun": 1000, "ftol": 0.0, "gtol": 0.0})
+    theirs = next(k + 1 for k, f in enumerate(seen) if f < tol)
+    assert ours <= 1.15 * theirs, (ours, theirs)
+    assert all(b["f"] <= a["f"] for a, b in zip(r.history, r.history[1:]))  # strong-Wolfe steps: monotone
 
 
 def test_lbfgs_rosenbrock():

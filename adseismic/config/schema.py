@@ -515,7 +515,7 @@ class Inversion(_Section):
                 "band; each band starts from the previous one's result", "Hz")
     misfit: Annotated[Literal[MISFIT_NAMES] | None, OneOf(*MISFIT_NAMES)] = F("l2", "the data misfit")
     optimizer: Annotated[Literal[OPTIMIZERS] | None, OneOf(*OPTIMIZERS)] = F(
-        "lbfgs", "lbfgs (scipy L-BFGS-B with the bounds), gd (steepest descent, strong-Wolfe line search), adam")
+        "lbfgs", "lbfgs (L-BFGS; with transform linear scipy's L-BFGS-B on the bounds), gd (steepest descent, strong-Wolfe line search), adam")
     iterations: Annotated[int | list[int] | None, _opt(_iterations)] = F(
         20, "iterations per band: one number, or a list with one per band", minimum=1)
     evaluations: Annotated[int | None, Int(1, "give at least 1 gradient evaluation per band")] = F(
@@ -674,6 +674,8 @@ class ImageSchema(ForwardSchema):
         None, "a model spec (synthetic study: data are simulated from it); exactly one of true_model and observed")
     observed: Observed | None = F(None, "observed data files (read as fwi reads them); exactly one of true_model "
                                         "and observed")
+    parallel: Parallel | None = F(None, "acoustic RTM: the shots over Dask workers or the devices of this process, "
+                                        "reduced in shot order; null: one process")
 
 
 # ------------------------------------------------------------------------------ locate sections

@@ -173,7 +173,7 @@ class _EvaluationTimes:
     """The time breakdown of each real (not replayed) evaluation of one band, logged to fwi.log:
 
         band B evaluation K: T s (simulation S s, misfit+weights M s, conditioning C s, journal J s,
-        history H s, other O s; non-kernel P%)
+        history H s, iteration I s, other O s; non-kernel P%)
 
     K is the 0-based journal index; T the wall time since the previous evaluation ended (the band's
     start for the first); simulation the time inside solve.acoustic.gradient less its misfit callback
@@ -181,17 +181,18 @@ class _EvaluationTimes:
     its host results need, no extra one is added); misfit+weights the rest of the objective before the
     conditioning (weighting, misfit and adjoint source on the host, sums); conditioning: the scale,
     mask, smoothing, preconditioner and regularisation; journal: its save; history: the history.h5
-    appends since the previous evaluation (replayed iterations included); other: the rest (optimiser,
-    log). Non-kernel = 1 - simulation / T. After the band, summary() logs the sums, the figures' time
+    appends since the previous evaluation (replayed iterations included); iteration: the accepted iterations'
+    own work since the previous evaluation, less their history appends (the model decoded, the gradient in cells
+    for the history and the figures, the log line); other: the rest (the optimiser, the log). Non-kernel = 1 - simulation / T. After the band, summary() logs the sums, the figures' time
     and the non-kernel fraction. perf_counter only: cheap."""
 
-    PARTS = ("simulation", "misfit+weights", "conditioning", "journal", "history", "other")
+    PARTS = ("simulation", "misfit+weights", "conditioning", "journal", "history", "iteration", "other")
 
     def __init__(self, band, history):
         self.band, self.history = band, history
         self.mark, self.history_mark = time.perf_counter(), history.seconds
         self.total = dict.fromkeys(self.PARTS, 0.0)
-        self.n, self.wall = 0, 0.0
+        self.n, self.wall, self.iteration = 0, 0.0, 0.0
         self.start()
 
     def start(self):
@@ -205,7 +206,9 @@ class _EvaluationTimes:
         hist, self.history_mark = self.history.seconds - self.history_mark, self.history.seconds
         sim = self.now["gradient"] - self.now["misfit"]
         parts = {"simulation": sim, "misfit+weights": seconds["objective"] - sim - self.now["conditioning"],
-                 "conditioning": self.now["conditioning"], "journal": seconds["journal"], "history": hist}  # fmt: skip
+                 "conditioning": self.now["conditioning"], "journal": seconds["journal"], "history": hist,
+                 "iteration": self.iteration}  # fmt: skip
+        self.iteration = 0.0
         parts["other"] = wall - sum(parts.values())
         for k, v in parts.items():
             self.total[k] += v
@@ -727,11 +730,13 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
                                    inv, region_mask, depth, scale, scale_path, timing, last, pool)  # fmt: skip
 
         def callback(iteration, xv, f, g, b=b, band=band):
+            t, appended = time.perf_counter(), history.seconds
             pt = space.point(xv)
             cells = _cells_of(space, xv, g, last)
             history.add(b, iteration, _history_models(space, pt), _history_gradients(space, cells, g), f)
             last["gradient"] = cells
             log.info("band %d (%s) iteration %d: misfit %.4g", b, format_band(*band), iteration, f)
+            timing.iteration += time.perf_counter() - t - (history.seconds - appended)
 
         res = minimize(objective, x, method=inv.optimizer, bounds=space.x_bounds(),
                        max_iterations=inv.iterations[b] if isinstance(inv.iterations, list) else inv.iterations, max_evaluations=inv.evaluations, rel_decrease=inv.rel_decrease, grad_tol=0.0,

@@ -517,7 +517,7 @@ def minimize(fun: Callable, x0, *, method: str = "lbfgs", bounds=None, max_itera
     ----------
     fun : ``fun(x) -> (f, g)``, x and g float64 arrays (n,), f a float; g = df/dx.
     x0 : (n,) start, units of x (clipped into ``bounds``).
-    method : ``"lbfgs"`` (scipy L-BFGS-B, ``jac=True``; ``options``: ``maxcor``, ``maxls``),
+    method : ``"lbfgs"`` (L-BFGS; with bounds scipy's L-BFGS-B, ``jac=True``; ``options``: ``maxcor``, ``maxls``),
         ``"gd"`` (projected steepest descent with a strong-Wolfe line search; ``options``: ``step``
         = first trial step, ``max_line_search`` = evaluations per line search (20)),
         ``"adam"`` (``options``: ``lr`` (1e-2), ``beta1`` (0.9), ``beta2`` (0.999), ``eps`` (1e-8)).
@@ -540,7 +540,9 @@ def minimize(fun: Callable, x0, *, method: str = "lbfgs", bounds=None, max_itera
 
     Method details
     --------------
-    * **lbfgs**: scipy's L-BFGS-B with ``maxiter``/``pgtol`` mapped from ``max_iterations``/
+    * **lbfgs** without bounds (every bound infinite, or bounds None): L-BFGS, the two-loop recursion and gd's
+      strong-Wolfe line search below (``options``: ``maxcor``, ``maxls``), O(n maxcor) work an iteration.
+    * **lbfgs** with bounds: scipy's L-BFGS-B with ``maxiter``/``pgtol`` mapped from ``max_iterations``/
       ``grad_tol`` and scipy's own ``ftol`` test switched off (``rel_decrease`` is applied in an
       ``intermediate_result`` callback that raises ``StopIteration``); ``max_evaluations`` is
       enforced exactly by the wrapped objective (scipy's ``maxfun`` is only checked between
@@ -596,6 +598,8 @@ def minimize(fun: Callable, x0, *, method: str = "lbfgs", bounds=None, max_itera
 def _iterate(method, run, ev, x, lo, hi, options):
     if method == "lbfgs":
         _check_options(options, ("maxcor", "maxls"), method)
+        if np.all(np.isinf(lo)) and np.all(np.isinf(hi)):
+            return _lbfgs_free(run, ev, options)
         return _lbfgs(run, ev, x, lo, hi, options)
     if method == "gd":
         _check_options(options, ("step", "max_line_search"), method)
@@ -645,6 +649,63 @@ def _lbfgs(run: _Run, ev: _Evaluator, x, lo, hi, options):
     if msg.startswith("ABNORMAL"):
         return "line_search_failed"
     return "scipy: " + msg
+
+
+def _two_loop(g, pairs):
+    """-H g for the L-BFGS inverse Hessian of the (s, y) pairs, oldest first (Nocedal & Wright alg. 7.4; H0 =
+    s.y / y.y of the newest pair)."""
+    q, alphas = g.copy(), []
+    for s, y, rho in reversed(pairs):
+        a = rho * float(s @ q)
+        q -= a * y
+        alphas.append(a)
+    if pairs:
+        s, y, rho = pairs[-1]
+        q *= 1.0 / (rho * float(y @ y))
+    for (s, y, rho), a in zip(pairs, reversed(alphas)):
+        q += (a - rho * float(y @ q)) * s
+    return -q
+
+
+def _lbfgs_free(run: _Run, ev: _Evaluator, options):
+    """L-BFGS without bounds (Nocedal & Wright alg. 7.5): the two-loop direction from the last ``maxcor`` (10)
+    pairs, gd's strong-Wolfe line search (first trial step 1, on the first iteration 1 / |g| as L-BFGS-B),
+    ``maxls`` (20) evaluations per line search; a pair with s.y <= 1e-10 y.y is skipped. O(n maxcor) NumPy work an
+    iteration, where scipy's L-BFGS-B spends ~0.1 s an iteration on n = 70,000 unknowns (docs/benchmarks.md)."""
+    m, max_ls = int(options.get("maxcor", 10)), int(options.get("maxls", 20))
+    pairs = []
+    while True:
+        x, f0, g = run.x, run.f, run.g
+        d = _two_loop(g, pairs)
+        dphi0 = float(g @ d)
+        if not dphi0 < 0:  # not a descent direction (round-off in the memory): restart from steepest descent
+            pairs, d = [], -g
+            dphi0 = float(g @ d)
+            if dphi0 == 0:
+                return "grad_tol"
+        n_eval = [0]
+
+        def phi(t):
+            if n_eval[0] >= max_ls:
+                raise _LineSearchFailed
+            n_eval[0] += 1
+            xt = x + t * d
+            ft, gt = ev(xt)
+            return xt, ft, gt, float(gt @ d)
+
+        try:
+            xt, ft, gt = _wolfe_search(phi, f0, dphi0, 1.0 if pairs else 1.0 / math.sqrt(-dphi0))
+        except _LineSearchFailed:
+            return "line_search_failed"
+        except _BudgetExhausted:
+            return "max_evaluations"
+        s, y = xt - x, gt - g
+        sy = float(s @ y)
+        if sy > 1e-10 * float(y @ y):
+            pairs = [*pairs[-(m - 1):], (s, y, 1.0 / sy)] if m > 1 else [(s, y, 1.0 / sy)]
+        reason = run.accept(xt, ft, gt)
+        if reason is not None:
+            return reason
 
 
 # ---- projected gradient descent with a strong-Wolfe line search ----------------------------------
