@@ -9,11 +9,18 @@ overhead of each pool on one device against it.
 
     python benchmarks/parallel_devices.py                       # every GPU of this host (32 shots, < 3 min on H100s)
     python benchmarks/parallel_devices.py --device cpu --cpus 2 --shots 4 --n 150 --nt 800   # CPU threads
+
+--fault adds issue 25's fault check on this host's devices: a Dask pool of max(2, devices) workers (two on one
+device where there is one), one warm evaluation, then one during which a worker holding a task is killed
+(SIGKILL); its shots run elsewhere and the gradient must equal the fault-free one to the device's summation-order
+noise (bit for bit on a CPU).
 """
 
 import argparse
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -42,6 +49,7 @@ def main():
     ap.add_argument("--precision", default="float32")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--no-dask", action="store_true", help="skip the Dask rows")
+    ap.add_argument("--fault", action="store_true", help="kill a Dask worker during an evaluation (needs dask)")
     args = ap.parse_args()
 
     init_warp()
@@ -107,6 +115,11 @@ def main():
     for nd in sorted({1, len(devices)}) if dask else ():
         pooled(f"Dask, {nd} worker(s)", distributed.ShotPool(ParallelConfig(devices=devices[:nd]), devices[0], S), nd)
 
+    if dask and args.fault:
+        with distributed.ShotPool(ParallelConfig(devices=devices, workers=max(2, len(devices))), devices[0], S) as pool:
+            pool.keep(batches)
+            fault(pool, lambda: pool.evaluate(v0, params), v0.shape)
+
     print("| path | devices | s an evaluation | efficiency T1 / (N TN) | gradient vs plain (rel. L2) |")
     print("|---|---|---|---|---|")
     for name, nd, tn, err in rows:
@@ -115,6 +128,37 @@ def main():
     print("overhead on one device against the plain path: "
           + ", ".join(f"{k} {v / t1 - 1:+.1%}" for k, v in one.items()) + f"; load average {os.getloadavg()[0]:.2f}")
 
+
+def fault(pool, evaluate, shape):
+    """Kill (SIGKILL) a worker holding a task of an evaluation; print how far the evaluation's misfit and gradient are
+    from a fault-free one's, against how far two fault-free ones are apart (the device's summation-order noise: GPU
+    gradients accumulate with atomics), and the times."""
+    t = time.perf_counter()
+    clean = distributed.reduce_in_order(evaluate(), shape)
+    t_clean = time.perf_counter() - t
+    again = distributed.reduce_in_order(evaluate(), shape)
+    pids = pool.client.run(os.getpid)  # {worker address: pid}
+    out = {}
+    t = time.perf_counter()
+    runner = threading.Thread(target=lambda: out.setdefault("rs", evaluate()))
+    runner.start()
+    victim = None
+    while victim is None and runner.is_alive():
+        victim = next((a for a, tasks in pool.client.processing().items() if tasks and a in pids), None)
+    if victim is None:
+        sys.exit("fault: the evaluation ended before a worker could be killed")
+    os.kill(pids[victim], signal.SIGKILL)
+    runner.join()
+    t_fault = time.perf_counter() - t
+    loss, grad, _ = distributed.reduce_in_order(out["rs"], shape)
+
+    def apart(a, b):
+        return f"misfit {abs(a[0] - b[0]) / abs(b[0]):.1e}, gradient {np.linalg.norm(a[1] - b[1]) / np.linalg.norm(b[1]):.1e}"
+
+    print(f"fault: worker {victim} (pid {pids[victim]}) of {len(pids)} on {sorted(set(pool.devices.values()))} killed during "
+          f"an evaluation; its batches ran in pids {sorted({r['pid'] for r in out['rs']})}. Relative to a fault-free "
+          f"evaluation: {apart((loss, grad), clean)} (bit for bit: {loss == clean[0] and np.array_equal(grad, clean[1])}); "
+          f"two fault-free ones: {apart(again, clean)}. Evaluation {t_fault:.2f} s against {t_clean:.2f} s without the fault")
 
 if __name__ == "__main__":
     main()

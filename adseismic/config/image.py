@@ -12,13 +12,14 @@ from adseismic.config import forward, schema
 from adseismic.config.common import ConfigError, _check_keys, _choice, _read_yaml
 from adseismic.config.forward import ForwardConfig, refuse_forward_only
 from adseismic.config.fwi import parse_fwi_config
+from adseismic.config.parallel import ParallelConfig
 from adseismic.config.schema import given, validate_section
 from adseismic.data.model import Model
 
 __all__ = ["IMAGE_METHODS", "ImageConfig", "ImagingConfig", "load_image_config", "parse_image_config"]
 
 IMAGE_METHODS = schema.IMAGE_METHODS
-IMAGE_SECTIONS = ("image", "true_model", "observed")
+IMAGE_SECTIONS = ("image", "true_model", "observed", "parallel")
 
 
 @dataclass
@@ -41,13 +42,15 @@ class ImagingConfig:
 @dataclass
 class ImageConfig:
     """An imaging run: ``forward.model`` is the migration model (smoothed by image.smoothing into the background);
-    the data come from ``true_model`` (simulated) or ``observed`` (files, as fwi reads them)."""
+    the data come from ``true_model`` (simulated) or ``observed`` (files, as fwi reads them); ``parallel``: acoustic
+    RTM's shots over workers (config.parallel), None: one process."""
 
     forward: ForwardConfig
     image: ImagingConfig = field(default_factory=ImagingConfig)
     physics: str = "acoustic"
     true_model: Model | None = None
     observed: dict | None = None
+    parallel: ParallelConfig | None = None
 
 
 def _parse_image(raw, physics: str) -> ImagingConfig:
@@ -85,6 +88,9 @@ def parse_image_config(raw: dict, base_dir: Path | str | None = None, path: Path
                           "the migration background's travel times do not depend on the density); use physics: acoustic "
                           "with model: the vp spec (or physics: elastic)")
     image = _parse_image(raw.get("image"), physics)
+    if raw.get("parallel") is not None and image.method == "lsrtm":
+        raise ConfigError("parallel: given with image.method lsrtm; LSRTM's Born simulations run in one process (only "
+                          "RTM is spread over workers yet): drop the parallel section, or use method: rtm")
     fwi = parse_fwi_config({k: v for k, v in raw.items() if k != "image"}, base_dir=base_dir, path=path)
     if getattr(fwi, "network", None) is not None:
         raise ConfigError("model.kind: nn is a parameterisation for fwi; an image needs the migration model itself: give "
@@ -99,7 +105,7 @@ def parse_image_config(raw: dict, base_dir: Path | str | None = None, path: Path
     if image.water_depth >= depth:
         raise ConfigError(f"image.water_depth: {image.water_depth:g} m is at or below the model's bottom ({depth:g} m); "
                           f"the whole image would be zero: give the water's depth, or 0")
-    return ImageConfig(fwi.forward, image, physics, fwi.true_model, fwi.observed)
+    return ImageConfig(fwi.forward, image, physics, fwi.true_model, fwi.observed, fwi.parallel)
 
 
 def load_image_config(path) -> ImageConfig:

@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +30,10 @@ from adseismic.imaging.born import BornOperator, ImageResult, lsrtm, rtm, rtm_fi
 from adseismic.inversion.conditioning import mask as depth_mask
 from adseismic.inversion.fwi import _simulator, read_observed
 from adseismic.scene import build_scene, check_memory, gradient_memory_bytes, plan_scene
+from adseismic.solve import distributed
 from adseismic.solve.acoustic import forward
+from adseismic.solve.common import dominant_frequency
+from adseismic.solve.pools import check_pool, open_pool
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +79,8 @@ def prepare_image(cfg) -> PreparedImage:
     for name, m in parts.items():
         smooth = _smooth(m, im.smoothing).values if im.smoothing > 0 else m.values
         background[name] = np.where(mask > 0, smooth, m.values)  # the water stays as it is
+    if cfg.parallel is not None:  # scheduler reachable, devices present, not more workers than shots
+        check_pool(cfg.parallel, plan.device, n_shots)
     observed = read_observed(cfg.observed, scene, fwd.geometry) if cfg.observed is not None else None
     if observed is not None and not np.any(observed):
         raise ValueError(f"observed: every sample of the observed data is zero ({observed.shape[0]} shots x "
@@ -136,6 +142,27 @@ def rtm_elastic(cfg, prep: PreparedImage, observed: dict) -> ImageResult:
     return ImageResult("rtm", image, raw, None, [float(np.linalg.norm(r))], r)
 
 
+def rtm_on_workers(cfg, prep: PreparedImage, observed: np.ndarray, progress: bool = False) -> ImageResult:
+    """Acoustic RTM with one shot per task over the workers of cfg.parallel (solve.pools): B^T r is minus the "l2"
+    gradient of the shots (solve.distributed.batch_gradient, fwi's task: 1/2 |F(v0) - d_obs|^2 dt) over dt, summed in
+    shot order, so the image is the one-process image to rounding. ImageResult.residual is None (the reflection data
+    stay on the workers); residual_norms [|r|] from the misfit."""
+    p, s, im = prep.plan, prep.scene, cfg.image
+    op = born_operator(prep)
+    kw = {k: v for k, v in op.options.items() if k != "device"}  # (each task runs on its worker's device)
+    kw["pml_frequency"] = dominant_frequency(np.asarray(s.source_amplitudes, float), p.dt)  # all shots', as one process
+    with open_pool(cfg.parallel, p.device, p.n_shots, progress) as pool:
+        pool.keep([{"amplitudes": s.source_amplitudes[k:k + 1], "sources": s.source_locations[k:k + 1],
+                    "receivers": s.receiver_locations[k:k + 1], "weights": np.ones_like(observed[k:k + 1]),
+                    "observed": observed[k:k + 1], "first": k} for k in range(p.n_shots)])  # fmt: skip
+        results = pool.evaluate(prep.background["vp"], {"dx": p.dx, "dt": p.dt, "misfit": "l2", "illumination": im.illumination,
+                                                        "kw": kw}, desc="rtm")  # fmt: skip
+    loss, grad, illum = distributed.reduce_in_order(results, prep.background["vp"].shape)
+    raw = -grad / p.dt
+    image = rtm_filter(raw, p.dx, mask=prep.mask, illumination=illum, epsilon=im.epsilon, laplacian=im.laplacian)
+    return ImageResult("rtm", image, raw, illum, [math.sqrt(2.0 * loss / p.dt)], None)
+
+
 def run_image(cfg, outdir, progress: bool = False, prepared: PreparedImage | None = None) -> ImageResult:
     """Image the reflectors of cfg (an ImageConfig, adseismic.config.image) into the folder outdir: image.h5 and the
     PNGs. Returns the ImageResult (arrays on the simulation grid, axis order (z, [y,] x))."""
@@ -157,6 +184,8 @@ def run_image(cfg, outdir, progress: bool = False, prepared: PreparedImage | Non
     options = {"mask": prep.mask, "illumination": im.illumination, "epsilon": im.epsilon}
     if cfg.physics == "elastic":
         res = rtm_elastic(cfg, prep, observed)
+    elif im.method == "rtm" and cfg.parallel is not None:
+        res = rtm_on_workers(cfg, prep, observed, progress)
     elif im.method == "rtm":
         res = rtm(op, observed, laplacian=im.laplacian, **options)
     else:

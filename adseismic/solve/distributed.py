@@ -155,10 +155,6 @@ def _remote_devices(client, par, sim_device) -> dict:
     return plan
 
 
-def _identity(x):
-    return x
-
-
 def _resident(data):
     """A batch's data, kept on the worker that ran this task (rebuilt from the scheduler's copy of the input if that
     worker is lost)."""
@@ -330,7 +326,9 @@ class ShotPool:
         self.evaluations += 1
         tag = f"{self.token}-{self.generation}-{self.evaluations}"
         params = dict(params, devices=self.devices, device=params.get("device", self.default_device))
-        model = self.client.submit(_identity, model, key=f"adseismic-model-{tag}")
+        # the model on every worker (broadcast): no task fetches it from a peer, so a worker lost mid-evaluation takes
+        # no input of the others with it (fetching from a dead peer waits out distributed.comm.timeouts.connect, 30 s)
+        [model] = self.client.scatter([model], broadcast=True, hash=False)
         futures = [self.client.submit(fn, model, d, params, key=f"adseismic-eval-{tag}-{k}") for k, d in enumerate(self.futures)]
         try:
             done = distributed.as_completed(futures, loop=self.client.loop)
