@@ -35,7 +35,8 @@ from scipy.fft import irfft, next_fast_len, rfft, rfftfreq
 from scipy.signal import fftconvolve
 from scipy.special import hankel2
 
-__all__ = ["acoustic_1d", "acoustic_2d", "acoustic_2d_time_domain", "acoustic_3d", "elastic_2d_force", "elastic_2d_force_spectrum", "lamb_2d"]
+__all__ = ["acoustic_1d", "acoustic_2d", "acoustic_2d_time_domain", "acoustic_3d", "elastic_2d_force", "elastic_2d_force_spectrum",
+           "elastic_3d_force", "lamb_2d"]
 
 
 def _prepare(source, dt, distance, velocity):
@@ -232,6 +233,49 @@ def elastic_2d_force(source, dt: float, offset, vp: float, vs: float, rho: float
         V[..., -1] = V[..., -1].real
     vz, vx = irfft(V, n)[..., :nt] * np.exp(eps * t[:nt])
     return (vz[0], vx[0]) if np.ndim(offset) == 1 else (vz, vx)
+
+
+def elastic_3d_force(source, dt: float, offset, vp: float, vs: float, rho: float, direction=(1.0, 0.0, 0.0),
+                     pad: float = 4.0) -> np.ndarray:
+    """Stokes' solution (Aki & Richards 2002, eq. 4.23): displacement (u_z, u_y, u_x) (m) of a homogeneous 3D whole
+    space for a point force F(t) = source(t) * direction (N; direction (f_z, f_y, f_x)) at the origin, at receiver
+    offsets ``offset`` (n, 3) metres (z, y, x) or one (3,), sampled at t_k = k dt. With r = |offset|, g = offset / r:
+
+        u_i = (3 g_i g_j - d_ij) / (4 pi rho r^3) int_{r/vp}^{r/vs} tau F_j(t - tau) dtau
+              + g_i g_j / (4 pi rho vp^2 r) F_j(t - r/vp) - (g_i g_j - d_ij) / (4 pi rho vs^2 r) F_j(t - r/vs),
+
+    evaluated in the frequency domain on a zero-padded FFT (length >= pad (nt + r/vs / dt): no wrap-around), the
+    near-field integral exactly: int_a^b tau e^{-i w tau} dtau = [e^{-i w tau} (1 + i w tau) / w^2]_a^b ((b^2 - a^2) / 2
+    at w = 0), the delays as band-limited phase shifts. vp, vs (m/s), rho (kg/m^3). Returns (3, nt) or (3, n, nt)."""
+    s = np.asarray(source, dtype=np.float64).ravel()
+    off = np.atleast_2d(np.asarray(offset, dtype=np.float64))
+    r = np.linalg.norm(off, axis=1)
+    if np.any(r <= 0) or off.shape[1] != 3:
+        raise ValueError(f"offset must be non-zero (n, 3) metres (z, y, x); got {np.asarray(offset).tolist()}")
+    if not (0 < vs < vp and rho > 0 and dt > 0):
+        raise ValueError(f"need 0 < vs < vp, rho > 0, dt > 0; got vp {vp}, vs {vs}, rho {rho}, dt {dt}")
+    nt = s.size
+    n = _fft_len(nt, r.max() / vs, dt, pad)
+    w = 2.0 * np.pi * rfftfreq(n, dt)
+    spec = rfft(s, n)
+    g = off / r[:, None]
+    f = np.asarray(direction, dtype=np.float64)
+    gf = g @ f  # g_j f_j
+    a, b = (r / vp)[:, None], (r / vs)[:, None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        prim = lambda t: np.exp(-1j * w * t) * (1.0 + 1j * w * t) / (w * w)  # noqa: E731
+        near = np.where(w > 0, prim(b) - prim(a), 0.5 * (b * b - a * a))
+    delay_p, delay_s = np.exp(-1j * w * a), np.exp(-1j * w * b)
+    out = np.zeros((3, len(r), nt))
+    for i in range(3):
+        near_c = (3.0 * g[:, i] * gf - f[i]) / (4.0 * np.pi * rho * r**3)
+        p_c = g[:, i] * gf / (4.0 * np.pi * rho * vp * vp * r)
+        s_c = (g[:, i] * gf - f[i]) / (4.0 * np.pi * rho * vs * vs * r)
+        U = spec[None, :] * (near_c[:, None] * near + p_c[:, None] * delay_p - s_c[:, None] * delay_s)
+        if n % 2 == 0:
+            U[:, -1] = U[:, -1].real
+        out[i] = irfft(U, n)[:, :nt]
+    return out[:, 0] if np.ndim(offset) == 1 else out
 
 
 def lamb_2d(source, dt: float, x, vp: float, vs: float, rho: float, depth: float = 0.0, pad: float = 2.0,

@@ -1,7 +1,8 @@
 """Adjoint tests of every physics, written once (as Devito runs one adjoint test over all its seismic examples).
 
 For each physics (CASES: acoustic 2D and 3D, elastic 2D with a point force, elastic 2D with a free surface and a
-moment-tensor source, vti 2D with a free surface, viscoacoustic 2D), in float64 on the test device:
+moment-tensor source, vti 2D with a free surface, viscoacoustic 2D, elastic 3D with a point force and with a free
+surface and a moment-tensor source), in float64 on the test device:
 
 - test_adjoint_dot_product: <J dm, dd> = <dm, J^T dd>, J the derivative of the receiver data along a perturbation
   (acoustic: the Born modelling for the velocity; data linear in the source wavelet and components: the forward
@@ -32,6 +33,7 @@ from scipy.ndimage import gaussian_filter
 
 import adseismic.solve.acoustic as A
 import adseismic.solve.elastic as E
+import adseismic.solve.elastic3d as E3
 import adseismic.solve.viscoacoustic as Q
 import adseismic.solve.vti as V
 from adseismic.solve.misfits import MISFITS
@@ -282,6 +284,68 @@ def taped_case(physics: str, free_surface: bool) -> Case:
                 host_misfit=lambda name, syn: named_misfit(name, syn["pressure"], obs, DT)[0])  # fmt: skip
 
 
+def elastic3d_case(free_surface: bool, source_type: str) -> Case:
+    """elastic3d (vp, vs, rho, source_amplitudes): a smooth 12^3 model with a 4-cell PML (order 4: 24^3 padded), one
+    force or moment-tensor source, four receivers recording vx, vy, vz and pressure, float64; observed data from a
+    model 3% off in vp, vs and rho. Its gradient is Warp's generated adjoints (taped_gradient), as vti's."""
+    rng = np.random.default_rng(0)
+    shape, nt = (12, 12, 12), 100
+    smooth = gaussian_filter(rng.random(shape), 2)
+    z = np.arange(shape[0])[:, None, None] * np.ones(shape)
+    base = {"vp": 2000.0 + 10.0 * z + 200.0 * smooth, "vs": 1000.0 + 5.0 * z + 100.0 * smooth, "rho": 1800.0 + 20.0 * z}
+    true = dict(base, vp=base["vp"] * 1.03, vs=base["vs"] * 0.97, rho=base["rho"] * 0.97)
+    params = dict(base, source_amplitudes=ricker(20.0, nt, DT)[None, None])
+    src = np.array([[[43.3 if not free_surface else 12.3, 51.7, 48.1]]])
+    rec = np.array([[[5.0 if free_surface else 80.0, 20.0 + 25.0 * k, 90.0 - 20.0 * k] for k in range(4)]])
+    comp = np.array([[[0.3, -0.5, 0.8] if source_type == "force" else [1.0, -0.5, 0.7, 0.4, -0.3, 0.2]]])
+    kw = dict(precision="float64", pml_velocity=2600.0, pml_frequency=20.0, pml_width=4, free_surface=free_surface, device=DEVICE,
+              source_type=source_type, source_components=comp)  # fmt: skip
+    scale = {"vx": 1.0, "vy": 1.0, "vz": 1.0, "pressure": 1.0 / (2000.0 * 2000.0)}  # pressure / (rho vp): velocity units
+
+    def args(changes):
+        a = dict(params, **changes)
+        return (*(a[m] for m in E3.MODELS), DX, DT, a["source_amplitudes"], src, rec)
+
+    def data(**changes):
+        r = E3.forward_elastic3d(*args(changes), **kw)
+        return {c: getattr(r, c) for c in E3.COMPONENTS}
+
+    obs = data(**true)
+
+    def gradient(misfit, wrt, segment_length=None, adjoint="hand", **changes):
+        return E3.gradient_elastic3d(*args(changes), obs, misfit=misfit, components=E3.COMPONENTS, wrt=wrt, segment_length=segment_length,
+                                     **kw)  # fmt: skip
+
+    def inner(a, b):
+        return float(sum(np.sum(a[c] * b[c] * scale[c] ** 2) for c in E3.COMPONENTS))
+
+    def l2(syn):
+        res = {c: syn[c] - obs[c] for c in E3.COMPONENTS}
+        return 0.5 * inner(res, res), {c: res[c] * scale[c] ** 2 for c in E3.COMPONENTS}
+
+    def tangent(kind, rng):
+        # as the 2D staggered cases' (taped_case): the source wavelet exactly (target 1e-10), the models against
+        # central differences along a smooth dm of 1e-4 relative size (the O(h^2) truncation: target 1e-6)
+        if kind == "source_amplitudes":
+            ds = rng.standard_normal(params[kind].shape)
+            return ds, data(source_amplitudes=ds), 1e-10
+        dm = gaussian_filter(rng.standard_normal(shape), 2)
+        dm *= 1e-4 * params[kind].mean() / np.abs(dm).max()
+        plus, minus = data(**{kind: params[kind] + dm}), data(**{kind: params[kind] - dm})
+        return dm, {c: (plus[c] - minus[c]) / 2.0 for c in E3.COMPONENTS}, 1e-6
+
+    def direction(kind, rng):
+        d = rng.standard_normal(params[kind].shape)
+        return d if kind == "source_amplitudes" else gaussian_filter(d, 2)
+
+    return Case(params=params, kinds=E3.WRT, dot_kinds=E3.WRT, nt=nt, gradient=gradient, l2=l2,
+                loss=lambda **changes: l2(data(**changes))[0],
+                random_data=lambda rng: {c: rng.standard_normal(obs[c].shape) / scale[c] for c in E3.COMPONENTS},
+                projection=lambda dd: lambda syn: (inner(syn, dd), {c: dd[c] * scale[c] ** 2 for c in E3.COMPONENTS}), inner=inner,
+                tangent=tangent, direction=direction, sizes={"vp": 50.0, "vs": 25.0, "rho": 50.0, "source_amplitudes": 0.05},
+                host_misfit=lambda name, syn: sum(named_misfit(name, syn[c], obs[c], DT)[0] for c in E3.COMPONENTS))  # fmt: skip
+
+
 CASES = {
     "acoustic-2d": functools.partial(acoustic_case, 2),
     "acoustic-3d": functools.partial(acoustic_case, 3),
@@ -289,6 +353,8 @@ CASES = {
     "elastic-2d-free-surface-moment": functools.partial(elastic_case, True, "moment"),
     "vti-2d-free-surface": functools.partial(taped_case, "vti", True),
     "viscoacoustic-2d": functools.partial(taped_case, "viscoacoustic", False),
+    "elastic3d-force": functools.partial(elastic3d_case, False, "force"),
+    "elastic3d-free-surface-moment": functools.partial(elastic3d_case, True, "moment"),
 }
 
 

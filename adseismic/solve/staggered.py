@@ -19,6 +19,7 @@ class StaggeredSetup:
     new_state, step(st, mat, sources, n, out, clock), record(st, data, receiver_op, k, clock)), receivers (S, n, 2)
     and receiver_op, and the physics' own verbs: model, sources_of, fields, key, loop_kernels, inputs."""
 
+    data_components = COMPONENTS  # the receivers' components in new_data's order (elastic3d: vx, vy, vz, pressure)
     period = 2  # a captured loop steps into a second state and back
     lookahead = 1  # a step reads source sample n + 1
 
@@ -35,7 +36,8 @@ class StaggeredSetup:
 
     def new_data(self, n, requires_grad=False):
         shape = (self.prop.n_shots, self.receivers.shape[1], n)
-        return tuple(wp.zeros(shape, dtype=self.prop.dtype, device=self.prop.device, requires_grad=requires_grad) for _ in COMPONENTS)
+        dtype, device = self.prop.dtype, self.prop.device
+        return tuple(wp.zeros(shape, dtype=dtype, device=device, requires_grad=requires_grad) for _ in self.data_components)
 
     def new_level(self):
         return self.prop.new_state(requires_grad=True)
@@ -60,17 +62,17 @@ def taped_gradient(su, state_bytes: int, misfit, components, observed, wrt, arra
     checkpoints plus one segment's levels, each with its adjoint on the tape); memory_budget (bytes; None: the
     minimum, ~sqrt(nt) steps a segment) or segment_length (steps) sets the segments; arrays: name -> the Setup's
     differentiated wp.array for each name in wrt; result: the physics' result class, filled with loss, synthetic (a
-    dict over COMPONENTS), the segments and a NumPy gradient per name in wrt."""
+    dict over su.data_components), the segments and a NumPy gradient per name in wrt."""
     if not callable(misfit):
         shape = (su.prop.n_shots, su.receivers.shape[1], su.nt)
         for c in components:
-            if c not in COMPONENTS:
-                raise ValueError(f"components: {c!r} is not one of {COMPONENTS}")
+            if c not in su.data_components:
+                raise ValueError(f"components: {c!r} is not one of {su.data_components}")
             if observed is None or c not in observed or np.shape(observed[c]) != shape:
                 raise ValueError(f"observed[{c!r}]: give an array (n_shots, n_receivers, nt) = {shape} for each of `components`")
 
     def loss(synthetic):
-        syn = dict(zip(COMPONENTS, synthetic))
+        syn = dict(zip(su.data_components, synthetic))
         if callable(misfit):
             J, adj = misfit(syn)
         else:
@@ -78,7 +80,7 @@ def taped_gradient(su, state_bytes: int, misfit, components, observed, wrt, arra
             for c in components:
                 j, adj[c] = named_misfit(misfit, syn[c], np.asarray(observed[c], dtype=float), su.prop.dt)
                 J += j
-        return J, tuple(None if adj.get(c) is None else np.asarray(adj[c], dtype=float) for c in COMPONENTS)
+        return J, tuple(None if adj.get(c) is None else np.asarray(adj[c], dtype=float) for c in su.data_components)
 
     def total(seg):
         return (math.ceil(su.nt / seg) - 1) * state_bytes + (seg + 2) * 2 * state_bytes
@@ -88,7 +90,8 @@ def taped_gradient(su, state_bytes: int, misfit, components, observed, wrt, arra
     bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
     synthetic, J = sweep.taped_sweep(su, seg, n_seg, loss, bar)
     bar.close()
-    res = result(loss=float(J), synthetic=dict(zip(COMPONENTS, synthetic)), segment_length=seg, n_segments=n_seg, peak_bytes_estimate=peak)
+    res = result(loss=float(J), synthetic=dict(zip(su.data_components, synthetic)), segment_length=seg, n_segments=n_seg,
+                 peak_bytes_estimate=peak)
     for name in wrt:
         setattr(res, name, np.array(arrays[name].grad.numpy()))
     return res

@@ -1,0 +1,524 @@
+"""Warp kernels for the 3D isotropic elastic wave equation, velocity-stress on the standard staggered grid (Virieux 1986;
+Graves 1996).
+
+Equations (axes (z, y, x), z down; b = 1/rho, lambda = rho (vp^2 - 2 vs^2), mu = rho vs^2; i, j in {x, y, z}):
+
+    dv_i/dt = b sum_j ds_ij/dx_j + b f_i(t) delta,
+    ds_ij/dt = lambda delta_ij div v + mu (dv_i/dx_j + dv_j/dx_i) - dM_ij/dt delta.
+
+Staggering, positions in cells from padded node (0, 0, 0) as (z, y, x); the array index (i, j, k) of
+
+    sxx, syy, szz, vp, vs, rho   (i, j, k)               vx   (i, j, k + 1/2)
+    sxy                          (i, j + 1/2, k + 1/2)   vy   (i, j + 1/2, k)
+    sxz                          (i + 1/2, j, k + 1/2)   vz   (i + 1/2, j, k)
+    syz                          (i + 1/2, j + 1/2, k)
+
+mu at a shear node is the harmonic mean of its four neighbours in the shear's plane (0 if any is 0), the buoyancy at
+a velocity node the arithmetic mean of 1/rho at its two neighbours (`materials`, differentiated by Warp: the chain
+rule to vp, vs, rho). Staggered derivatives of order 2/4/8 (numerics.STAGGERED_DERIVATIVE). Time (leapfrog) as
+kernels/elastic: level n holds v at t = (n - 1/2) dt and the stresses at t = n dt; a step is v^{n+1/2} = v^{n-1/2} +
+dt b (div s^n + f(t_n) delta), then s^{n+1} = s^n + dt C : grad v^{n+1/2} - (M(t_{n+1}) - M(t_n)) delta. Recorded
+sample n: v at t = (n - 1/2) dt, pressure -(sxx + syy + szz)/3 at t = n dt.
+
+Layout: fields (n_shots, Lz, Ly, Lx), models (Lz, Ly, Lx), every axis padded as [halo R][PML][grid][PML][halo R],
+R = order / 2 (no PML on top with a free surface), halo cells zero and never written. CPML (Komatitsch & Martin 2007,
+kappa = 1; kernels/elastic's cpml_axes): one memory variable per spatial derivative (18), stored per axis in strips
+along that axis as 4D arrays (3 n_shots, ...) whose first index is 3 s + c: PSI["v_a"] for the velocity update's
+derivative along axis a of the stress s_{c a} (c: vx, vy, vz = 0, 1, 2), PSI["s_a"] for the stress update's dv_c/da.
+
+Free surface (stress imaging, Levander 1988; Graves 1996), as kernels/elastic in 2D: the top row of normal-stress
+nodes (padded row `top`, physical z = 0) is the surface, szz = 0 there and sxx, syy follow from szz = 0
+(ds_xx/dt = (l2m - lam^2/l2m) dvx/dx + (lam - lam^2/l2m) dvy/dy); szz, sxz, syz above it are the odd images of those
+below. The velocities' z-derivatives whose full stencil would reach above the surface use the highest staggered
+order that fits (order 2 on the first row). Sources and receivers: the Kaiser-windowed sinc operator
+(kernels/common.hicks_axis) at each field's position, W^3 points, W = 2 HICKS_RADIUS, folded across a free surface
+as kernels/elastic's make_point (odd for szz, sxz, syz; a point on the surface row gets no szz weight); its weights
+are computed once per run (`weights`).
+
+Kernels, plain per-cell Warp kernels that Warp differentiates (Tape): `velocity`, `stress` (a half step each, in place
+or out of place: a cell reads only its own old value of a field it writes), `inject_force`, `inject_moment`, `record`,
+`weights`, `materials`, `pad_model`.
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, unique_kernel
+from adseismic.kernels.elastic.propagator import cpml_axes
+from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
+
+PSI = {"v_z": 0, "v_y": 1, "v_x": 2, "s_z": 0, "s_y": 1, "s_x": 2}  # name -> axis of its derivatives (and strips)
+MATERIALS = ("bx", "by", "bz", "l2m", "lam", "mxy", "mxz", "myz")  # buoyancies, lambda + 2 mu, lambda, shear moduli
+FIELDS = ("vx", "vy", "vz", "sxx", "syy", "szz", "sxy", "sxz", "syz")
+# the operators of weights: (z, y, x) offset of the field's index, odd image across a free surface; 3 serves sxx, syy
+POINTS = ((0.0, 0.0, 0.5, False), (0.0, 0.5, 0.0, False), (0.5, 0.0, 0.0, False), (0.0, 0.0, 0.0, False), (0.0, 0.0, 0.0, True),
+          (0.0, 0.5, 0.5, False), (0.5, 0.0, 0.5, True), (0.5, 0.5, 0.0, True))  # fmt: skip
+
+
+def make_derivative(ns, axis: int, half_in: bool, mr: int, image: bool):
+    """d/d(axis) times dx with mr staggered weights of a field on half (half_in) or integer nodes of that axis, at the
+    other kind of node; image: the odd image above row `top` (z only, with a free surface)."""
+    dtype, arr4, fs = ns.dtype, ns.arr4, ns.fs
+    c = STAGGERED_DERIVATIVE[2 * mr]
+    h = 1 if half_in else 0
+    ez, ey, ex = int(axis == 0), int(axis == 1), int(axis == 2)
+    odd = bool(image and fs and axis == 0)
+
+    @wp.func
+    def read(f: arr4, s: int, z: int, y: int, x: int, top: int) -> dtype:
+        if wp.static(odd):
+            if z < top:
+                return -f[s, 2 * top - wp.static(h) - z, y, x]
+        return f[s, z, y, x]
+
+    @wp.func
+    def d(f: arr4, s: int, z: int, y: int, x: int, top: int) -> dtype:
+        acc = dtype(0.0)
+        for m in range(wp.static(mr)):
+            lo = -m - wp.static(h)
+            hi = m + wp.static(1 - h)
+            up = read(f, s, z + hi * wp.static(ez), y + hi * wp.static(ey), x + hi * wp.static(ex), top)
+            down = read(f, s, z + lo * wp.static(ez), y + lo * wp.static(ey), x + lo * wp.static(ex), top)
+            acc += dtype(wp.static(c[m])) * (up - down)
+        return acc
+
+    return d
+
+
+def make_reduced_dz(ns, half_in: bool):
+    """d/dz times dx of a velocity on half (vz) or integer (vx, vy) z nodes, of the highest order whose stencil stays
+    below a free surface: order 2 q for the q-th row (q = z - top + 1 - half_in) while q < M, else full order."""
+    M, fs, dtype, arr4 = ns.M, ns.fs, ns.dtype, ns.arr4
+    h = 1 if half_in else 0
+    full = make_derivative(ns, 0, half_in, M, False)
+    d1, d2, d3 = (make_derivative(ns, 0, half_in, m, False) for m in (1, 2, 3))
+
+    @wp.func
+    def dz(f: arr4, s: int, z: int, y: int, x: int, top: int) -> dtype:
+        q = z - top + wp.static(1 - h)
+        if wp.static(fs and M >= 2):
+            if q == 1:
+                return d1(f, s, z, y, x, top)
+        if wp.static(fs and M >= 3):
+            if q == 2:
+                return d2(f, s, z, y, x, top)
+        if wp.static(fs and M >= 4):
+            if q == 3:
+                return d3(f, s, z, y, x, top)
+        return full(f, s, z, y, x, top)
+
+    return dz
+
+
+def make_cpml(ns, axis: int):
+    """d + psi, psi = b psi_old + a d written at strip cell j of the axis (j >= 0; d alone outside the strips);
+    c = 3 s + component, i: the profile index; (z, y, x): the cell, whose index along the axis j replaces."""
+    dtype, arr1, arr4 = ns.dtype, ns.arr1, ns.arr4
+
+    @wp.func
+    def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr4, new: arr4, c: int, z: int, y: int, x: int) -> dtype:
+        if j < 0:
+            return d
+        p = wp.vec3i(z, y, x)
+        p[wp.static(axis)] = j
+        psi = b[i] * old[c, p[0], p[1], p[2]] + a[i] * d
+        new[c, p[0], p[1], p[2]] = psi
+        return d + psi
+
+    return cpml
+
+
+def _velocity(ns):
+    """The velocity half step: v_new = v + dt b div s at every interior velocity node."""
+    M, dtype, arr3, arr4, Axis = ns.M, ns.dtype, ns.arr3, ns.arr4, ns.Axis
+    pz, py, px = ns.pz, ns.py, ns.px
+    dx_int, dx_half = make_derivative(ns, 2, False, M, False), make_derivative(ns, 2, True, M, False)
+    dy_int, dy_half = make_derivative(ns, 1, False, M, False), make_derivative(ns, 1, True, M, False)
+    dz_int, dz_half = make_derivative(ns, 0, False, M, True), make_derivative(ns, 0, True, M, True)  # szz; sxz, syz
+
+    @unique_kernel
+    def velocity(
+        vx: arr4, vy: arr4, vz: arr4, sxx: arr4, syy: arr4, szz: arr4, sxy: arr4, sxz: arr4, syz: arr4, bx: arr3, by: arr3,
+        bz: arr3, o_z: arr4, o_y: arr4, o_x: arr4, n_z: arr4, n_y: arr4, n_x: arr4, vx_new: arr4, vy_new: arr4, vz_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        t, zi, yi, xi = wp.tid()
+        z = zi + wp.static(M)
+        y = yi + wp.static(M)
+        x = xi + wp.static(M)
+        jz = az.store[z]
+        jy = ay.store[y]
+        jx = ax.store[x]
+        c = 3 * t
+        # vx at (z, y, x + 1/2): dsxx/dx + dsxy/dy + dsxz/dz
+        g = px(dx_int(sxx, t, z, y, x, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, c, z, y, x)
+        g += py(dy_half(sxy, t, z, y, x, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, c, z, y, x)
+        g += pz(dz_half(sxz, t, z, y, x, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, c, z, y, x)
+        vx_new[t, z, y, x] = vx[t, z, y, x] + dt * bx[z, y, x] * g
+        # vy at (z, y + 1/2, x): dsxy/dx + dsyy/dy + dsyz/dz
+        g = px(dx_half(sxy, t, z, y, x, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, c + 1, z, y, x)
+        g += py(dy_int(syy, t, z, y, x, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, c + 1, z, y, x)
+        g += pz(dz_half(syz, t, z, y, x, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, c + 1, z, y, x)
+        vy_new[t, z, y, x] = vy[t, z, y, x] + dt * by[z, y, x] * g
+        # vz at (z + 1/2, y, x): dsxz/dx + dsyz/dy + dszz/dz
+        g = px(dx_half(sxz, t, z, y, x, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, c + 2, z, y, x)
+        g += py(dy_half(syz, t, z, y, x, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, c + 2, z, y, x)
+        g += pz(dz_int(szz, t, z, y, x, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, c + 2, z, y, x)
+        vz_new[t, z, y, x] = vz[t, z, y, x] + dt * bz[z, y, x] * g
+
+    return velocity
+
+
+def _stress(ns):
+    """The stress half step from the new velocities; on a free surface's row szz = 0 and sxx, syy from szz = 0."""
+    M, fs, dtype, arr3, arr4, Axis = ns.M, ns.fs, ns.dtype, ns.arr3, ns.arr4, ns.Axis
+    pz, py, px = ns.pz, ns.py, ns.px
+    dx_int, dx_half = make_derivative(ns, 2, False, M, False), make_derivative(ns, 2, True, M, False)
+    dy_int, dy_half = make_derivative(ns, 1, False, M, False), make_derivative(ns, 1, True, M, False)
+    dz_int, dz_half = make_reduced_dz(ns, False), make_reduced_dz(ns, True)  # vx, vy; vz
+
+    @unique_kernel
+    def stress(
+        vx: arr4, vy: arr4, vz: arr4, sxx: arr4, syy: arr4, szz: arr4, sxy: arr4, sxz: arr4, syz: arr4, l2m: arr3, lam: arr3,
+        mxy: arr3, mxz: arr3, myz: arr3, o_z: arr4, o_y: arr4, o_x: arr4, n_z: arr4, n_y: arr4, n_x: arr4, sxx_new: arr4,
+        syy_new: arr4, szz_new: arr4, sxy_new: arr4, sxz_new: arr4, syz_new: arr4, az: Axis, ay: Axis, ax: Axis, dt: dtype,
+        inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        t, zi, yi, xi = wp.tid()
+        z = zi + wp.static(M)
+        y = yi + wp.static(M)
+        x = xi + wp.static(M)
+        jz = az.store[z]
+        jy = ay.store[y]
+        jx = ax.store[x]
+        c = 3 * t
+        # normal stresses at (z, y, x)
+        exx = px(dx_half(vx, t, z, y, x, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, c, z, y, x)
+        eyy = py(dy_half(vy, t, z, y, x, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, c + 1, z, y, x)
+        ezz = pz(dz_half(vz, t, z, y, x, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, c + 2, z, y, x)
+        # shear: sxy at (z, y + 1/2, x + 1/2), sxz at (z + 1/2, y, x + 1/2), syz at (z + 1/2, y + 1/2, x)
+        exy = py(dy_int(vx, t, z, y, x, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, c, z, y, x)
+        exy += px(dx_int(vy, t, z, y, x, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, c + 1, z, y, x)
+        exz = pz(dz_int(vx, t, z, y, x, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, c, z, y, x)
+        exz += px(dx_int(vz, t, z, y, x, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, c + 2, z, y, x)
+        eyz = pz(dz_int(vy, t, z, y, x, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, c + 1, z, y, x)
+        eyz += py(dy_int(vz, t, z, y, x, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, c + 2, z, y, x)
+        p = l2m[z, y, x]
+        q = lam[z, y, x]
+        surface = False
+        if wp.static(fs):
+            surface = z == top
+        if surface:
+            r = q * q / p
+            sxx_new[t, z, y, x] = sxx[t, z, y, x] + dt * ((p - r) * exx + (q - r) * eyy)
+            syy_new[t, z, y, x] = syy[t, z, y, x] + dt * ((q - r) * exx + (p - r) * eyy)
+            szz_new[t, z, y, x] = dtype(0.0)
+        else:
+            div = exx + eyy + ezz
+            sxx_new[t, z, y, x] = sxx[t, z, y, x] + dt * (q * div + (p - q) * exx)
+            syy_new[t, z, y, x] = syy[t, z, y, x] + dt * (q * div + (p - q) * eyy)
+            szz_new[t, z, y, x] = szz[t, z, y, x] + dt * (q * div + (p - q) * ezz)
+        sxy_new[t, z, y, x] = sxy[t, z, y, x] + dt * mxy[z, y, x] * exy
+        sxz_new[t, z, y, x] = sxz[t, z, y, x] + dt * mxz[z, y, x] * exz
+        syz_new[t, z, y, x] = syz[t, z, y, x] + dt * myz[z, y, x] * eyz
+
+    return stress
+
+
+def make_point(ns, hicks, oz: float, oy: float, ox: float, odd: bool):
+    """The q-th operator node (padded index, weight) of a field whose index (i, j, k) sits at (i + oz, j + oy, k + ox),
+    folded across a free surface as kernels/elastic's 2D make_point (odd: sign change, no weight on the surface row)."""
+    HR, W, fs, dtype, arr3 = ns.HR, ns.W, ns.fs, ns.dtype, ns.arr3
+    fold = 1 if oz > 0.0 else 0
+
+    @wp.func
+    def point(loc: arr3, s: int, n: int, q: int, origin: wp.vec3i, inv_dx: dtype, top: int):
+        zc = loc[s, n, 0] * inv_dx + dtype(origin[0]) - dtype(wp.static(oz))
+        yc = loc[s, n, 1] * inv_dx + dtype(origin[1]) - dtype(wp.static(oy))
+        xc = loc[s, n, 2] * inv_dx + dtype(origin[2]) - dtype(wp.static(ox))
+        iz = int(wp.floor(zc)) - wp.static(HR - 1) + q // wp.static(W * W)
+        iy = int(wp.floor(yc)) - wp.static(HR - 1) + (q // wp.static(W)) % wp.static(W)
+        ix = int(wp.floor(xc)) - wp.static(HR - 1) + q % wp.static(W)
+        w = hicks(dtype(iz) - zc, zc) * hicks(dtype(iy) - yc, yc) * hicks(dtype(ix) - xc, xc)
+        if wp.static(fs):
+            if wp.static(odd and fold == 0):
+                if iz == top:
+                    w = dtype(0.0)
+            if iz + wp.static(fold) <= top - wp.static(1 - fold):
+                iz = 2 * top - wp.static(fold) - iz
+                if wp.static(odd):
+                    w = -w
+        return wp.vec3i(iz, iy, ix), w
+
+    return point
+
+
+def _points(ns):
+    """The sources' and receivers' kernels: the fixed operators' weights (POINTS), the force and moment injections and
+    the recording of vx, vy, vz and pressure."""
+    dtype, arr3, arr4, iarr1, idx4 = ns.dtype, ns.arr3, ns.arr4, ns.iarr1, ns.idx4
+    hicks = hicks_axis(dtype)
+    pts = [make_point(ns, hicks, *p) for p in POINTS]
+    p0, p1, p2, p3, p4, p5, p6, p7 = pts
+
+    @wp.func
+    def put(idx: idx4, w: arr4, k: int, s: int, r: int, q: int, i: wp.vec3i, wq: dtype):
+        idx[k, s, r, q] = i
+        w[k, s, r, q] = wq
+
+    @unique_kernel
+    def weights(loc: arr3, origin: wp.vec3i, inv_dx: dtype, top: int, idx: idx4, w: arr4):
+        # node and weight of point q of location r (metres (z, y, x)) for each operator of POINTS (first index)
+        s, r, q = wp.tid()
+        i, wq = p0(loc, s, r, q, origin, inv_dx, top)
+        put(idx, w, 0, s, r, q, i, wq)
+        i, wq = p1(loc, s, r, q, origin, inv_dx, top)
+        put(idx, w, 1, s, r, q, i, wq)
+        i, wq = p2(loc, s, r, q, origin, inv_dx, top)
+        put(idx, w, 2, s, r, q, i, wq)
+        i, wq = p3(loc, s, r, q, origin, inv_dx, top)
+        put(idx, w, 3, s, r, q, i, wq)
+        i, wq = p4(loc, s, r, q, origin, inv_dx, top)
+        put(idx, w, 4, s, r, q, i, wq)
+        i, wq = p5(loc, s, r, q, origin, inv_dx, top)
+        put(idx, w, 5, s, r, q, i, wq)
+        i, wq = p6(loc, s, r, q, origin, inv_dx, top)
+        put(idx, w, 6, s, r, q, i, wq)
+        i, wq = p7(loc, s, r, q, origin, inv_dx, top)
+        put(idx, w, 7, s, r, q, i, wq)
+
+    @wp.func
+    def add(f: arr4, b: arr3, s: int, i: wp.vec3i, w: dtype, a: dtype):
+        # f += a b w at node i (b: the buoyancy at f's nodes); points of weight 0 skipped
+        if w != dtype(0.0):
+            wp.atomic_add(f, s, i[0], i[1], i[2], a * b[i[0], i[1], i[2]] * w)
+
+    @wp.func
+    def add_moment(f: arr4, s: int, i: wp.vec3i, w: dtype, a: dtype):
+        if w != dtype(0.0):
+            wp.atomic_add(f, s, i[0], i[1], i[2], a * w)
+
+    @unique_kernel
+    def inject_force(vx: arr4, vy: arr4, vz: arr4, bx: arr3, by: arr3, bz: arr3, amp: arr3, comp: arr3, idx: idx4, w: arr4, n: int,
+                     clock: iarr1, scale: dtype):  # fmt: skip
+        # v += dt b f(t_n) w / dx^3 (scale = dt / dx^3); comp (S, n_src, 3) = (fz, fy, fx); the sample is n + clock[0]
+        # (a device counter, for graph replays), here and in inject_moment and record
+        s, src, q = wp.tid()
+        a = scale * amp[s, src, n + clock[0]]
+        add(vx, bx, s, idx[0, s, src, q], w[0, s, src, q], a * comp[s, src, 2])
+        add(vy, by, s, idx[1, s, src, q], w[1, s, src, q], a * comp[s, src, 1])
+        add(vz, bz, s, idx[2, s, src, q], w[2, s, src, q], a * comp[s, src, 0])
+
+    @unique_kernel
+    def inject_moment(sxx: arr4, syy: arr4, szz: arr4, sxy: arr4, sxz: arr4, syz: arr4, amp: arr3, comp: arr3, idx: idx4, w: arr4,
+                      n: int, clock: iarr1, scale: dtype):  # fmt: skip
+        # s_ij -= (M(t_{n+1}) - M(t_n)) m_ij w / dx^3 (scale = 1 / dx^3); comp (S, n_src, 6) = (Mzz, Myy, Mxx, Myz, Mxz, Mxy)
+        s, src, q = wp.tid()
+        a = -scale * (amp[s, src, n + clock[0] + 1] - amp[s, src, n + clock[0]])
+        add_moment(sxx, s, idx[3, s, src, q], w[3, s, src, q], a * comp[s, src, 2])
+        add_moment(syy, s, idx[3, s, src, q], w[3, s, src, q], a * comp[s, src, 1])
+        add_moment(szz, s, idx[4, s, src, q], w[4, s, src, q], a * comp[s, src, 0])
+        add_moment(sxy, s, idx[5, s, src, q], w[5, s, src, q], a * comp[s, src, 5])
+        add_moment(sxz, s, idx[6, s, src, q], w[6, s, src, q], a * comp[s, src, 4])
+        add_moment(syz, s, idx[7, s, src, q], w[7, s, src, q], a * comp[s, src, 3])
+
+    @wp.func
+    def sample(f: arr4, s: int, i: wp.vec3i, w: dtype) -> dtype:
+        if w != dtype(0.0):
+            return w * f[s, i[0], i[1], i[2]]
+        return dtype(0.0)
+
+    @unique_kernel
+    def record(vx: arr4, vy: arr4, vz: arr4, sxx: arr4, syy: arr4, szz: arr4, d_vx: arr3, d_vy: arr3, d_vz: arr3, d_p: arr3, idx: idx4,
+               w: arr4, n: int, clock: iarr1):  # fmt: skip
+        # sample n of each receiver's vx, vy, vz and pressure -(sxx + syy + szz) / 3
+        s, r, q = wp.tid()
+        t = n + clock[0]
+        wp.atomic_add(d_vx, s, r, t, sample(vx, s, idx[0, s, r, q], w[0, s, r, q]))
+        wp.atomic_add(d_vy, s, r, t, sample(vy, s, idx[1, s, r, q], w[1, s, r, q]))
+        wp.atomic_add(d_vz, s, r, t, sample(vz, s, idx[2, s, r, q], w[2, s, r, q]))
+        i = idx[3, s, r, q]
+        normal = sample(sxx, s, i, w[3, s, r, q]) + sample(syy, s, i, w[3, s, r, q]) + sample(szz, s, idx[4, s, r, q], w[4, s, r, q])
+        wp.atomic_add(d_p, s, r, t, dtype(-1.0 / 3.0) * normal)
+
+    return dict(weights=weights, inject_force=inject_force, inject_moment=inject_moment, record=record)
+
+
+def _models(ns):
+    """MATERIALS from the padded vp, vs, rho (materials) and the padding of a physical model (pad_model)."""
+    M, dtype, arr3 = ns.M, ns.dtype, ns.arr3
+
+    @wp.func
+    def harmonic(m1: dtype, m2: dtype, m3: dtype, m4: dtype) -> dtype:
+        # the harmonic mean of four shear moduli, 0 if any is 0 (a fluid carries no shear)
+        h = dtype(0.0)
+        if m1 > dtype(0.0) and m2 > dtype(0.0) and m3 > dtype(0.0) and m4 > dtype(0.0):
+            h = dtype(4.0) / (dtype(1.0) / m1 + dtype(1.0) / m2 + dtype(1.0) / m3 + dtype(1.0) / m4)
+        return h
+
+    @wp.func
+    def shear(vs: arr3, rho: arr3, z: int, y: int, x: int) -> dtype:
+        return rho[z, y, x] * vs[z, y, x] * vs[z, y, x]
+
+    @unique_kernel
+    def materials(vp: arr3, vs: arr3, rho: arr3, bx: arr3, by: arr3, bz: arr3, l2m: arr3, lam: arr3, mxy: arr3, mxz: arr3, myz: arr3):
+        # MATERIALS at the interior nodes (module docstring)
+        zi, yi, xi = wp.tid()
+        z = zi + wp.static(M)
+        y = yi + wp.static(M)
+        x = xi + wp.static(M)
+        b = dtype(1.0) / rho[z, y, x]
+        bx[z, y, x] = dtype(0.5) * (b + dtype(1.0) / rho[z, y, x + 1])
+        by[z, y, x] = dtype(0.5) * (b + dtype(1.0) / rho[z, y + 1, x])
+        bz[z, y, x] = dtype(0.5) * (b + dtype(1.0) / rho[z + 1, y, x])
+        m0 = shear(vs, rho, z, y, x)
+        c = rho[z, y, x] * vp[z, y, x] * vp[z, y, x]
+        l2m[z, y, x] = c
+        lam[z, y, x] = c - dtype(2.0) * m0
+        mz, my, mx = shear(vs, rho, z + 1, y, x), shear(vs, rho, z, y + 1, x), shear(vs, rho, z, y, x + 1)
+        mxy[z, y, x] = harmonic(m0, my, mx, shear(vs, rho, z, y + 1, x + 1))
+        mxz[z, y, x] = harmonic(m0, mz, mx, shear(vs, rho, z + 1, y, x + 1))
+        myz[z, y, x] = harmonic(m0, mz, my, shear(vs, rho, z + 1, y + 1, x))
+
+    @unique_kernel
+    def pad_model(v: arr3, vpad: arr3, origin: wp.vec3i):
+        # padded model from the physical one, extended by edge replication into PML and halo
+        z, y, x = wp.tid()
+        vpad[z, y, x] = v[wp.clamp(z - origin[0], 0, v.shape[0] - 1), wp.clamp(y - origin[1], 0, v.shape[1] - 1),
+                          wp.clamp(x - origin[2], 0, v.shape[2] - 1)]  # fmt: skip
+
+    return dict(materials=materials, pad_model=pad_model)
+
+
+@functools.lru_cache(maxsize=None)
+def build(order: int, dtype, free_surface: bool):
+    """Kernels for one (order, dtype, free_surface), compiled once per process."""
+    M = order // 2
+
+    @wp.struct
+    class Axis:
+        store: wp.array(dtype=wp.int32)  # strip index per padded index, -1 outside the PML strips
+        a: wp.array(dtype=dtype)  # CPML a, b at integer positions
+        b: wp.array(dtype=dtype)
+        ah: wp.array(dtype=dtype)  # at half positions (index p stands for p + 1/2)
+        bh: wp.array(dtype=dtype)
+
+    ns = SimpleNamespace(M=M, HR=HICKS_RADIUS, W=2 * HICKS_RADIUS, fs=bool(free_surface), dtype=dtype, arr1=wp.array(dtype=dtype),
+                         arr2=wp.array2d(dtype=dtype), arr3=wp.array3d(dtype=dtype), arr4=wp.array4d(dtype=dtype),
+                         iarr1=wp.array(dtype=wp.int32), idx4=wp.array4d(dtype=wp.vec3i), Axis=Axis)  # fmt: skip
+    ns.pz, ns.py, ns.px = (make_cpml(ns, a) for a in range(3))
+    return Kernels(Axis=Axis, velocity=_velocity(ns), stress=_stress(ns), **_points(ns), **_models(ns), halo=M,
+                   operator_points=ns.W**3)  # fmt: skip
+
+
+class State:
+    """Fields at one time level n: vx, vy, vz (m/s) at t = (n - 1/2) dt, the stresses (Pa) at t = n dt (FIELDS, each
+    (n_shots, Lz, Ly, Lx)), and the CPML memory variables psi (dict, see PSI)."""
+
+    def __init__(self, fields, psi):
+        self.f, self.psi = dict(zip(FIELDS, fields)), psi
+
+    def __getattr__(self, name):
+        if name in FIELDS:
+            return self.__dict__["f"][name]
+        raise AttributeError(name)
+
+    def arrays(self):
+        return [*(self.f[k] for k in FIELDS), *(self.psi[k] for k in PSI)]
+
+
+class Elastic3D:
+    """Launch helper: padded grid, CPML coefficients and one time step of the 3D elastic scheme.
+
+    shape: physical grid (nz, ny, nx); dx (m), dt (s); pml_width cells on every absorbing face (all six, or five with
+    free_surface); vmax: CPML reference speed (m/s). Locations passed to `operator` are metres (z, y, x) from the
+    physical node 0."""
+
+    def __init__(self, shape, dx, dt, order, n_shots, pml_width, pml_reflection, pml_frequency, vmax, free_surface=False,
+                 dtype=wp.float32, device="cpu"):  # fmt: skip
+        self.ndim = 3
+        self.shape = tuple(int(n) for n in shape)
+        self.dx, self.dt, self.order, self.n_shots = float(dx), float(dt), int(order), int(n_shots)
+        self.dtype, self.device, self.free_surface = dtype, device, bool(free_surface)
+        self.k = build(self.order, dtype, self.free_surface)
+        R = self.k.halo
+        nb = int(pml_width)
+        lo = (0 if free_surface else nb, nb, nb)
+        self.padded = tuple(self.shape[a] + lo[a] + nb + 2 * R for a in range(3))
+        self.origin = wp.vec3i(R + lo[0], R + lo[1], R + lo[2])
+        self.top = R
+        self.axes, self.strip_width = cpml_axes(self.k.Axis, lo, nb, self.padded, R, dx, dt, vmax, pml_reflection, pml_frequency, dtype,
+                                                device)  # fmt: skip
+        self.interior = (self.n_shots, *(n - 2 * R for n in self.padded))
+        self.inv_dx = dtype(1.0 / dx)
+        self.dt_device = dtype(dt)
+        self.cuda = wp.get_device(device).is_cuda
+        self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
+
+    def psi_shape(self, name):
+        axis = PSI[name]
+        shape = [3 * self.n_shots, *self.padded]
+        shape[axis + 1] = self.strip_width[axis]
+        return tuple(shape)
+
+    def new_state(self, requires_grad=False) -> State:
+        def zeros(shape):
+            return wp.zeros(shape, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+
+        return State([zeros((self.n_shots, *self.padded)) for _ in FIELDS], {k: zeros(self.psi_shape(k)) for k in PSI})
+
+    def pad_model(self, m, requires_grad=False):
+        """Padded model (Lz, Ly, Lx) from a physical one (wp.array3d (nz, ny, nx)), extended by edge replication."""
+        out = wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+        wp.launch(self.k.pad_model, dim=self.padded, inputs=[m, out, self.origin], device=self.device)
+        return out
+
+    def materials(self, vp, vs, rho, requires_grad=False):
+        """MATERIALS (padded arrays, interior nodes set) from the padded vp, vs (m/s) and rho (kg/m^3)."""
+        out = [wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS]
+        wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, vs, rho, *out], device=self.device)
+        return tuple(out)
+
+    def operator(self, loc: wp.array):
+        """The fixed operators of locations loc (S, n, 3) metres (z, y, x): (idx (8, S, n, points) vec3i, weights (8, S,
+        n, points)) for the POINTS."""
+        shape = (len(POINTS), *loc.shape[:2], self.k.operator_points)
+        idx = wp.zeros(shape, dtype=wp.vec3i, device=self.device)
+        w = wp.zeros(shape, dtype=self.dtype, device=self.device)
+        wp.launch(self.k.weights, dim=shape[1:], inputs=[loc, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
+        return idx, w
+
+    def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
+        """Advance st (level n) to level n + 1 with source sample n (force) or samples n and n + 1 (moment), + clock[0].
+        mat: MATERIALS (materials); sources: (kind "force" or "moment", amplitudes (S, n_src, >= n + 2), components (S,
+        n_src, 3 | 6), their operator) or None. With out=None in place; else into out's arrays (st unchanged)."""
+        out = st if out is None else out
+        clock = self.clock if clock is None else clock
+        bx, by, bz, l2m, lam, mxy, mxz, myz = mat
+        common = [*self.axes, self.dt_device, self.inv_dx, self.top]
+        old, new = [st.psi[k] for k in ("v_z", "v_y", "v_x")], [out.psi[k] for k in ("v_z", "v_y", "v_x")]
+        wp.launch(self.k.velocity, dim=self.interior, device=self.device,
+                  inputs=[*(st.f[k] for k in FIELDS), bx, by, bz, *old, *new, out.vx, out.vy, out.vz, *common])  # fmt: skip
+        if sources is not None and sources[0] == "force":
+            _, amp, comp, (idx, w) = sources
+            wp.launch(self.k.inject_force, dim=idx.shape[1:], device=self.device,
+                      inputs=[out.vx, out.vy, out.vz, bx, by, bz, amp, comp, idx, w, n, clock,
+                              self.dtype(self.dt / self.dx**3)])  # fmt: skip
+        old, new = [st.psi[k] for k in ("s_z", "s_y", "s_x")], [out.psi[k] for k in ("s_z", "s_y", "s_x")]
+        wp.launch(self.k.stress, dim=self.interior, device=self.device,
+                  inputs=[out.vx, out.vy, out.vz, *(st.f[k] for k in FIELDS[3:]), l2m, lam, mxy, mxz, myz, *old, *new,
+                          *(out.f[k] for k in FIELDS[3:]), *common])  # fmt: skip
+        if sources is not None and sources[0] == "moment":
+            _, amp, comp, (idx, w) = sources
+            wp.launch(self.k.inject_moment, dim=idx.shape[1:], device=self.device,
+                      inputs=[*(out.f[k] for k in FIELDS[3:]), amp, comp, idx, w, n, clock, self.dtype(1.0 / self.dx**3)])  # fmt: skip
+        return out
+
+    def record(self, st: State, data, receiver_op, k: int, clock=None):
+        """Add sample k (+ clock[0]) of the receivers' vx, vy, vz, pressure into data (4 arrays (S, n_rec, >= k + 1))."""
+        idx, w = receiver_op
+        clock = self.clock if clock is None else clock
+        wp.launch(self.k.record, dim=idx.shape[1:], inputs=[st.vx, st.vy, st.vz, st.sxx, st.syy, st.szz, *data, idx, w, k, clock],
+                  device=self.device)  # fmt: skip
