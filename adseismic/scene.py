@@ -275,9 +275,16 @@ def wavelet_band(kind: str, params: dict):
     return spectral_fmax(w, dt0, -20.0), duration(w, dt0)
 
 
-def straight_ray_times(model: Model, sources: np.ndarray, receivers: np.ndarray, slowness=None) -> np.ndarray:
+RAY_SAMPLES = 512  # points along each straight ray of the planner's longest direct arrival (straight_ray_times)
+
+
+def straight_ray_times(model: Model, sources: np.ndarray, receivers: np.ndarray, slowness=None,
+                       max_samples: int | None = None) -> np.ndarray:
     """Travel times (s) along straight rays through the model's slowness, (n_sources, n_receivers); ``slowness``: another
-    integrand on the model's grid (e.g. 1 / (v Q), which gives the attenuation time t* in s)."""
+    integrand on the model's grid (e.g. 1 / (v Q), which gives the attenuation time t* in s). Each source's rays are
+    sampled every half cell, or at ``max_samples`` points where that is fewer (the planner's bound on the record length,
+    RAY_SAMPLES, needs no finer: on the Marmousi-II race's start model, 7.5 m cells, 8 km rays, 512 points change the
+    longest time by 2e-8 of it and take 0.36 s where half-cell sampling takes 1.28 s)."""
     slow = 1.0 / model.values if slowness is None else slowness
     h = min(model.spacing)
     org, spc = np.array(model.origin), np.array(model.spacing)
@@ -286,6 +293,7 @@ def straight_ray_times(model: Model, sources: np.ndarray, receivers: np.ndarray,
         seg = receivers - s
         length = np.linalg.norm(seg, axis=1)
         n = max(int(np.ceil(length.max() / (0.5 * h))), 1) + 1
+        n = n if max_samples is None else min(n, max_samples)
         frac = np.linspace(0.0, 1.0, n)
         pts = s[None, None, :] + frac[None, :, None] * seg[:, None, :]  # (n_rec, n, ndim)
         idx = ((pts - org) / spc).reshape(-1, model.ndim).T
@@ -385,13 +393,13 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
         rays = vti_ray_times(model, src, rec)
         t_direct = float(rays[0].max())
     elif fluid or visco:
-        t_direct = float(straight_ray_times(model.vp, src, rec).max())
+        t_direct = float(straight_ray_times(model.vp, src, rec, max_samples=RAY_SAMPLES).max())
     elif elastic:  # the slowest direct wave arrives last: S, or the Rayleigh wave along a free surface
         i = np.unravel_index(int(np.argmin(model.vs.values)), model.shape)
         slowdown = rayleigh_speed(model.vp.values[i], model.vs.values[i]) / model.vs.values[i] if sim.free_surface else 1.0
-        t_direct = float(straight_ray_times(model.vs, src, rec).max()) / slowdown
+        t_direct = float(straight_ray_times(model.vs, src, rec, max_samples=RAY_SAMPLES).max()) / slowdown
     else:
-        t_direct = float(straight_ray_times(model, src, rec).max())
+        t_direct = float(straight_ray_times(model, src, rec, max_samples=RAY_SAMPLES).max())
     if sim.duration is not None:
         t_record = float(sim.duration)
         why_nt = "pinned by the config"
