@@ -683,18 +683,8 @@ def _lbfgs_free(run: _Run, ev: _Evaluator, options):
             dphi0 = float(g @ d)
             if dphi0 == 0:
                 return "grad_tol"
-        n_eval = [0]
-
-        def phi(t):
-            if n_eval[0] >= max_ls:
-                raise _LineSearchFailed
-            n_eval[0] += 1
-            xt = x + t * d
-            ft, gt = ev(xt)
-            return xt, ft, gt, float(gt @ d)
-
         try:
-            xt, ft, gt = _wolfe_search(phi, f0, dphi0, 1.0 if pairs else 1.0 / math.sqrt(-dphi0))
+            xt, ft, gt = _wolfe_search(_line(ev, x, d, max_ls), f0, dphi0, 1.0 if pairs else 1.0 / math.sqrt(-dphi0))
         except _LineSearchFailed:
             return "line_search_failed"
         except _BudgetExhausted:
@@ -744,20 +734,8 @@ def _gd(run: _Run, ev: _Evaluator, options):
             return "grad_tol"  # the projected gradient vanishes
         u = d / scale
         dphi0 = float(g @ u)
-        n_eval = [0]
-
-        def phi(t):
-            if n_eval[0] >= max_ls:
-                raise _LineSearchFailed
-            n_eval[0] += 1
-            raw = x + t * u
-            xt = np.clip(raw, lo, hi)
-            ft, gt = ev(xt)
-            free = (raw > lo) & (raw < hi)
-            return xt, ft, gt, float(gt @ np.where(free, u, 0.0))
-
         try:
-            found = _wolfe_search(phi, f0, dphi0, step0)
+            found = _wolfe_search(_line(ev, x, u, max_ls, lo, hi), f0, dphi0, step0)
         except _LineSearchFailed:
             return "line_search_failed"
         except _BudgetExhausted:
@@ -770,6 +748,28 @@ def _gd(run: _Run, ev: _Evaluator, options):
 
 class _LineSearchFailed(Exception):
     pass
+
+
+def _line(ev, x, u, max_ls, lo=None, hi=None):
+    """phi(t) -> (x_t, f, g, phi'(t)) along x + t u for _wolfe_search, raising _LineSearchFailed after max_ls
+    evaluations; with bounds lo, hi the points are clipped into the box and phi' is taken along the clipped path
+    (clipped components do not move)."""
+    n_eval = [0]
+
+    def phi(t):
+        if n_eval[0] >= max_ls:
+            raise _LineSearchFailed
+        n_eval[0] += 1
+        raw = x + t * u
+        if lo is None:
+            ft, gt = ev(raw)
+            return raw, ft, gt, float(gt @ u)
+        xt = np.clip(raw, lo, hi)
+        ft, gt = ev(xt)
+        free = (raw > lo) & (raw < hi)
+        return xt, ft, gt, float(gt @ np.where(free, u, 0.0))
+
+    return phi
 
 
 def _wolfe_search(phi, f0, dphi0, t1):
