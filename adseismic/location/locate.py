@@ -51,6 +51,9 @@ from adseismic.solve.common import dominant_frequency
 log = logging.getLogger(__name__)
 METHODS = ("lbfgs", "gauss-newton", "gd", "adam")
 STFS = ("ricker", "free")
+# the Ricker fit's stop: an iteration that lowers J by less than this moves the event by ~0.1 sigma (J rises by
+# k^2 / 2 at k standard deviations from its minimum); the first-order methods' iterations past it only polish digits
+STOP_HALF_CHI2 = 0.005
 
 
 @dataclass
@@ -488,8 +491,11 @@ def _fit_ricker(prob: _Problem, start, *, obs, sigma, bounds, f0, frequency_rang
     if method == "gauss-newton":
         x, it, ev, reason, hist = _gauss_newton(prob, phys0 / scale, scale, lo, hi, obs, sigma, max_iterations, report=report)
     else:
+        # stop once an iteration lowers 1/2 chi^2 by less than STOP_HALF_CHI2 (a step of ~0.1 sigma), taken relative
+        # to its expected minimum, half the number of data samples (a misfit above it stops later, never earlier)
         res = minimize(counted, phys0 / scale, method=method, bounds=(lo, hi), max_iterations=max_iterations,
-                       max_evaluations=max_evaluations, rel_decrease=1e-12, grad_tol=1e-9, journal_path=journal_path,
+                       max_evaluations=max_evaluations, rel_decrease=STOP_HALF_CHI2 / (0.5 * obs.size), grad_tol=1e-9,
+                       journal_path=journal_path,
                        callback=report, options=options)  # fmt: skip
         x, it, ev, reason, hist = res.x, res.iterations, res.evaluations, res.stop_reason, res.history
     p = x * scale
