@@ -14,8 +14,9 @@ the planner chooses (each value can be pinned in the config's `simulation` secti
   energy back to a receiver within the record), cut to the model, plus the PML;
 and resamples the model onto that grid.
 
-With ``physics: elastic`` (config.model an ElasticModel, 2D) dx and dt come from :func:`plan_elastic_grid`: dx from
-the slowest wave (S, or with a free surface the Rayleigh wave) and dt from the staggered scheme's CFL limit at vp_max;
+With ``physics: elastic`` (config.model an ElasticModel, 2D or 3D) dx and dt come from :func:`plan_elastic_grid`: dx from
+the slowest wave (S, or with a free surface the Rayleigh wave) and dt from the staggered scheme's CFL limit at vp_max
+(of the model's dimension; a 3D model runs adseismic.solve.elastic3d);
 the record length from the S-wave straight-ray times (Rayleigh with a free surface). ``physics: acoustic_vd`` (an
 ElasticModel with vs None: a fluid) runs on the same solver: dx from vp_min, dt from the staggered CFL at vp_max, the
 record from P-wave times; its plan also reports what dropping the density would cost (:func:`density_reflection_check`).
@@ -41,6 +42,7 @@ from adseismic.data.model import Model
 from adseismic.data.models import ElasticModel, ViscoacousticModel, VTIModel
 from adseismic.kernels.acoustic import DESCRIPTION as ACOUSTIC
 from adseismic.kernels.elastic import DESCRIPTION as ELASTIC
+from adseismic.kernels.elastic3d import DESCRIPTION as ELASTIC3D
 from adseismic.kernels.viscoacoustic import DESCRIPTION as VISCOACOUSTIC
 from adseismic.kernels.vti import DESCRIPTION as VTI
 from adseismic.kernels.numerics import (
@@ -60,6 +62,8 @@ from adseismic.wavelets import duration, make_wavelet, spectral_fmax
 EST_RATE = {"cpu": 5.0e7, "cuda": 3.0e10}
 ELASTIC_STEP_COST = 4.0  # an elastic cell update (5 fields, staggered) costs ~3-4 acoustic ones (2-core CPU, float32:
 # configs/elastic_forward.yaml 7.2e6 padded cell updates/s beside configs/example_2d.yaml's 2.3e7/s, docs/elastic.md)
+ELASTIC3D_STEP_COST = 12.0  # a 3D elastic cell update (9 fields, 3D stencils) costs ~3 2D elastic ones (2-core CPU,
+# float32, order 4, warm: 4.9e6 padded cell updates/s on 56^3 cells beside 1.5e7/s for 2D elastic on 400^2)
 ELASTIC_CPU_STEP_SECONDS = 2e-3  # and a CPU time step of it ~2 ms more (its ~15 launches; 84 x 84 cells: 2.6 ms a step)
 SAFETY_STEPS = tuple(np.linspace(1.0, 0.1, 37))  # fractions of cfl_safety searched for the cheapest (dx, dt)
 
@@ -96,7 +100,7 @@ class Plan:
     def describe(self) -> str:
         grid = " x ".join(str(n) for n in self.shape)
         axes = "z, y, x" if self.ndim == 3 else "z, x"
-        what = {"elastic": " (2D velocity-stress, staggered grid; dx for the wave that needs the finest grid, dt from vp_max)",
+        what = {"elastic": f" ({self.ndim}D velocity-stress, staggered grid; dx for the wave that needs the finest grid, dt from vp_max)",
                 "acoustic_vd": " (2D variable-density acoustic on the elastic solver with vs = 0: velocity-stress, "
                                "staggered grid; dx from vp_min, dt from vp_max)",
                 "vti": " (2D pseudo-acoustic VTI: velocity-stress, staggered grid; dx from the slowest qP speed, dt from the "
@@ -191,9 +195,13 @@ def forward_memory_bytes(padded: int, n_shots: int, n_receivers: int, nt: int, i
     """Estimated peak bytes of a forward run of every shot at once: acoustic, per shot u_prev, u and the CPML strips
     (~3 padded grids), one padded model, and the receiver data on the device and on the host; elastic, per shot two
     states of 5 fields and their CPML memory (bounded by 16 padded grids), 6 padded material grids, three
-    components' data."""
+    components' data; elastic3d (3D elastic), per shot two states of 9 fields and their CPML memory (bounded by 54
+    padded grids), 11 padded material grids, four components' data."""
     if physics == "elastic":
         return int(itemsize * (16 * padded * n_shots + 6 * padded) + 6 * itemsize * n_shots * n_receivers * nt)
+    if physics == "elastic3d":  # an upper bound: two states of 9 fields, their CPML memory (6 strips of 3 components
+        # each) counted as whole padded grids, 3 + 8 padded material grids, four components' data on device and host
+        return int(itemsize * (54 * padded * n_shots + 11 * padded) + 8 * itemsize * n_shots * n_receivers * nt)
     return int(itemsize * (3 * padded * n_shots + padded) + 2 * itemsize * n_shots * n_receivers * nt)
 
 
@@ -450,7 +458,7 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
         vs_box = 0.0 if vti or visco else model.materials()["vs"][tuple(slice(a, b) for a, b in zip(i0, i1))]
         vs_min = float(np.min(vs_box)) if vs_range is None else float(vs_range[0])
         grid = plan_elastic_grid((vmin, vmax), vs_min, f_max, order, float(sim.accuracy), float(sim.cfl_safety),
-                                 bool(sim.free_surface), dx=sim.dx, dt=sim.dt)
+                                 bool(sim.free_surface), dx=sim.dx, dt=sim.dt, ndim=ndim)
         dx, dt, why_dx, why_dt = grid.dx, grid.dt, grid.reasons["dx"], grid.reasons["dt"]
         if fluid and pins["dx"] is None:
             why_dx += f"; acoustic_vd: the slowest wave is P at vp_min {vmin:.0f} m/s (vs = 0: no S wave)"
@@ -471,7 +479,8 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     else:
         dx, dt, why_dx, why_dt = _choose_dx_dt(order, ndim, vmin, vmax, f_max, float(sim.accuracy), float(sim.cfl_safety), pins, cells, t_record)
     try:
-        check_courant(VTI if vti else VISCOACOUSTIC if visco else ELASTIC if elastic else ACOUSTIC, order, ndim, vmax, dx, dt)
+        check_courant(VTI if vti else VISCOACOUSTIC if visco else (ELASTIC3D if ndim == 3 else ELASTIC) if elastic else ACOUSTIC,
+                      order, ndim, vmax, dx, dt)
     except ValueError as e:
         raise ValueError(f"simulation.{e}") from None
     n_cells, n_steps = cells(dx), t_record / dt + 1  # floats: inf for absurd grids, where ints would overflow later
@@ -501,9 +510,11 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     itemsize = 4 if sim.precision == "float32" else 8
     # vti: the elastic estimates, an upper bound (4 fields and 4 memory variables where the elastic step has 5 and 8;
     # docs/vti.md: its CPU step takes 0.5-0.9 of acoustic_vd's)
-    memory = forward_memory_bytes(padded, len(src), len(rec), nt, itemsize, "elastic" if staggered else "acoustic")
+    elastic3d = elastic and ndim == 3
+    memory = forward_memory_bytes(padded, len(src), len(rec), nt, itemsize,
+                                  "elastic3d" if elastic3d else "elastic" if staggered else "acoustic")
     device_kind = "cuda" if str(sim.device).startswith("cuda") else "cpu"
-    seconds = padded * nt / EST_RATE[device_kind] * (ELASTIC_STEP_COST if staggered else 1.0)
+    seconds = padded * nt / EST_RATE[device_kind] * (ELASTIC3D_STEP_COST if elastic3d else ELASTIC_STEP_COST if staggered else 1.0)
     if staggered and device_kind == "cpu":
         seconds += nt * ELASTIC_CPU_STEP_SECONDS
     if seconds * len(src) > LONG_RUN_SECONDS:
@@ -547,12 +558,14 @@ def build_scene(config, plan: Plan | None = None, model: Model | None = None) ->
         from adseismic.solve.receivers import DasOperator, Recording
 
         das = config.geometry.das  # a config built in Python may leave out what parse_config fills in: its defaults
-        default = ("vx", "vz", "pressure") if getattr(model, "vs", None) is not None else ("pressure",)
+        solid = ("vx", "vy", "vz", "pressure") if model.ndim == 3 else ("vx", "vz", "pressure")
+        default = solid if getattr(model, "vs", None) is not None else ("pressure",)
         components = tuple(config.geometry.components) or (() if das else default)
         recording = Recording(components, das and DasOperator(das.gauge_length, das.direction))
         rec = recording.locations(rec)
         source = config.source
-        kind, comp = ("moment", np.array([1.0, 1.0, 0.0])) if source is None else (source.solver_type, np.asarray(source.components, float))
+        explosive = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0] if model.ndim == 3 else [1.0, 1.0, 0.0])
+        kind, comp = ("moment", explosive) if source is None else (source.solver_type, np.asarray(source.components, float))
         elastic = {"source_type": kind, "recording": recording,
                    "source_components": np.broadcast_to(comp, (n_shots, 1, comp.size)).copy()}
     return Scene(
@@ -568,9 +581,10 @@ def build_scene(config, plan: Plan | None = None, model: Model | None = None) ->
 
 def run_forward(scene: Scene, snapshot_every: int = 0, progress: bool = False):
     """Run the planned forward simulation for every shot of the scene at once: a ForwardResult (acoustic) or, for an
-    ElasticModel, adseismic.solve.elastic's ElasticResult, for a VTIModel adseismic.solve.vti's VTIResult, for a
-    ViscoacousticModel adseismic.solve.viscoacoustic's ViscoacousticResult (with the plan's q_band, f_ref, mechanisms)
-    (VTI and visco-acoustic: the explosive source's moment M0 x the wavelet), at scene.receiver_locations (no snapshots)."""
+    ElasticModel, adseismic.solve.elastic's ElasticResult (3D: adseismic.solve.elastic3d's Elastic3DResult), for a
+    VTIModel adseismic.solve.vti's VTIResult, for a ViscoacousticModel adseismic.solve.viscoacoustic's ViscoacousticResult
+    (with the plan's q_band, f_ref, mechanisms) (VTI and visco-acoustic: the explosive source's moment M0 x the wavelet),
+    at scene.receiver_locations (no snapshots)."""
     p = scene.plan
     if isinstance(scene.model, ViscoacousticModel):
         from adseismic.solve.viscoacoustic import forward_viscoacoustic
@@ -593,9 +607,10 @@ def run_forward(scene: Scene, snapshot_every: int = 0, progress: bool = False):
         )  # fmt: skip
     if isinstance(scene.model, ElasticModel):
         from adseismic.solve.elastic import forward_elastic
+        from adseismic.solve.elastic3d import forward_elastic3d
 
         m = scene.model.materials()
-        return forward_elastic(
+        return (forward_elastic3d if scene.model.ndim == 3 else forward_elastic)(
             m["vp"], m["vs"], m["rho"], p.dx, p.dt, scene.source_amplitudes, scene.source_locations,
             scene.receiver_locations, source_type=scene.source_type, source_components=scene.source_components,
             order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, free_surface=p.free_surface,
@@ -616,7 +631,7 @@ RAYLEIGH_PPW = 20.0  # points per Rayleigh wavelength at f_max with a free surfa
 
 @dataclass
 class ElasticGridPlan:
-    """dx (m) and dt (s) for the 2D elastic scheme, with the wave that set them and the reasons."""
+    """dx (m) and dt (s) for the 2D or 3D elastic scheme, with the wave that set them and the reasons."""
 
     dx: float
     dt: float
@@ -629,8 +644,9 @@ class ElasticGridPlan:
 
 def plan_elastic_grid(vp_range, vs_min: float, f_max: float, order: int = 4, accuracy: float = 0.01,
                       cfl_safety: float = 0.9, free_surface: bool = False, dx: float | None = None,
-                      dt: float | None = None) -> ElasticGridPlan:  # fmt: skip
-    """Coarsest dx and its dt for the staggered elastic scheme (kernels/elastic/).
+                      dt: float | None = None, ndim: int = 2) -> ElasticGridPlan:  # fmt: skip
+    """Coarsest dx and its dt for the staggered elastic scheme in ``ndim`` (2 or 3) dimensions (kernels/elastic/,
+    kernels/elastic3d/: the CFL limit and the worst-direction dispersion of that dimension).
 
     vp_range (vp_min, vp_max) m/s; vs_min m/s (0 for a fluid somewhere: the slowest wave is then vp_min);
     f_max Hz. The slowest wave is S (or P in a fluid), or with a free surface the Rayleigh wave, which
@@ -642,7 +658,7 @@ def plan_elastic_grid(vp_range, vs_min: float, f_max: float, order: int = 4, acc
     """
     pin_dx, pin_dt = dx, dt
     vp_min, vp_max = (float(v) for v in vp_range)
-    limit = staggered_cfl_limit(order, 2)
+    limit = staggered_cfl_limit(order, ndim)
     c_max = cfl_safety * limit
     if vs_min > 0:
         slow, name = float(vs_min), "S"
@@ -650,7 +666,7 @@ def plan_elastic_grid(vp_range, vs_min: float, f_max: float, order: int = 4, acc
         slow, name = vp_min, "P (fluid)"
     need = []
     for v, label in ((slow, name), (vp_max, "P")):
-        ppw = _staggered_ppw(order, c_max * v / vp_max, accuracy)
+        ppw = _staggered_ppw(order, c_max * v / vp_max, accuracy, ndim)
         need.append((v / (f_max * ppw), f"{ppw:.1f} points per {label} wavelength ({v:.0f} m/s) for a {100 * accuracy:g}% group-velocity error"))
     if free_surface and vs_min > 0:
         c_r = rayleigh_speed(vp_min, vs_min)
@@ -660,9 +676,9 @@ def plan_elastic_grid(vp_range, vs_min: float, f_max: float, order: int = 4, acc
     dx = _nice_floor(dx)
 
     def error(dx, dt):
-        return max(staggered_dispersion_error(order, 2, v / (f_max * dx), v * dt / dx)["group"][0] for v in (slow, vp_max))
+        return max(staggered_dispersion_error(order, ndim, v / (f_max * dx), v * dt / dx)["group"][0] for v in (slow, vp_max))
 
-    why_dt = f"{cfl_safety:g} x the staggered CFL limit {limit:.4f} (order {order}) for vp_max {vp_max:.0f} m/s"
+    why_dt = f"{cfl_safety:g} x the staggered CFL limit {limit:.4f} (order {order}, {ndim}D) for vp_max {vp_max:.0f} m/s"
     if pin_dx is not None or pin_dt is not None:
         if pin_dx is not None:
             dx, why = float(pin_dx), "pinned by the config"
@@ -680,14 +696,14 @@ def plan_elastic_grid(vp_range, vs_min: float, f_max: float, order: int = 4, acc
                            reasons={"dx": why, "dt": why_dt})  # fmt: skip
 
 
-def _staggered_ppw(order: int, courant: float, target: float) -> float:
-    """Fewest points per wavelength with a staggered group-velocity error <= target (bisection)."""
+def _staggered_ppw(order: int, courant: float, target: float, ndim: int = 2) -> float:
+    """Fewest points per wavelength with a staggered group-velocity error <= target in ndim dimensions (bisection)."""
     lo, hi = 2.0, 400.0
-    if staggered_dispersion_error(order, 2, hi, courant)["group"][0] > target:
+    if staggered_dispersion_error(order, ndim, hi, courant)["group"][0] > target:
         raise ValueError(f"a group-velocity error of {target:g} is unreachable at order {order} with Courant number {courant:.3f}")
     for _ in range(60):
         mid = math.sqrt(lo * hi)
-        if staggered_dispersion_error(order, 2, mid, courant)["group"][0] <= target:
+        if staggered_dispersion_error(order, ndim, mid, courant)["group"][0] <= target:
             hi = mid
         else:
             lo = mid

@@ -83,9 +83,10 @@ def test_demo_configs_fit_the_json_schema_and_plan(name, capsys):
 def test_the_schema_names_are_the_solvers_and_the_loaders():
     from adseismic.config import schema
     from adseismic.data import models
-    from adseismic.solve import elastic
+    from adseismic.solve import elastic, elastic3d
 
-    assert schema.PHYSICS == models.PHYSICS and schema.COMPONENTS == elastic.COMPONENTS
+    assert schema.PHYSICS == models.PHYSICS and schema.COMPONENTS == elastic3d.COMPONENTS  # 2D's and vy
+    assert set(schema.COMPONENTS) - set(elastic.COMPONENTS) == {"vy"}
     assert set(schema.SOURCE_TYPES) == set(elastic.SOURCE_TYPES)
 
 

@@ -234,10 +234,11 @@ def _register_forward(p: argparse.ArgumentParser) -> None:
 
 def _elastic_traces(scene, result, store, n_receivers: int) -> dict:
     """{name: (data (n_shots, n_receivers, nt) as ``store``, units, sample times)} of what the elastic receivers record
-    (scene.recording: components and DAS strain rate) from forward_elastic's result (store.write_forward's components)."""
+    (scene.recording: components and DAS strain rate) from forward_elastic's (or forward_elastic3d's, with vy) result
+    (store.write_forward's components)."""
     from adseismic.solve.receivers import SAMPLE_TIMES, UNITS
 
-    recorded = {c: getattr(result, c) for c in ("vx", "vz", "pressure")}
+    recorded = {c: getattr(result, c) for c in ("vx", "vy", "vz", "pressure") if hasattr(result, c)}
     data = scene.recording.data(recorded, n_receivers)
     return {name: (a.astype(store), UNITS[name], f"t = {SAMPLE_TIMES[name]}") for name, a in data.items()}
 

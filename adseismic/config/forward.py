@@ -2,10 +2,10 @@
 planner consumes.
 
 A config file has the top-level sections ``model``, ``geometry``, ``wavelet`` (required),
-``physics``, ``source``, ``simulation`` and ``output`` (optional). ``physics: elastic`` (2D) makes ``model`` a
+``physics``, ``source``, ``simulation`` and ``output`` (optional). ``physics: elastic`` (2D or 3D) makes ``model`` a
 ``{vp, vs, rho}`` section (:func:`adseismic.data.models.load_physics_model`), lets ``source`` choose a force,
-moment-tensor or explosive mechanism and ``geometry.receivers`` record ``components`` (vx, vz, pressure) and DAS
-strain rate (``das``); those keys are refused with acoustic physics. Every value is checked before any work is done; a
+moment-tensor or explosive mechanism and ``geometry.receivers`` record ``components`` (vx, vz, pressure; vy in 3D) and
+DAS strain rate (``das``, 2D only); those keys are refused with acoustic physics. Every value is checked before any work is done; a
 problem raises :class:`ConfigError` whose message starts with the dotted key path (for example
 ``simulation.order: 3 is not one of 2, 4, 8; ...``), says what was found and how to fix it.
 Unknown keys are errors, since a typo would otherwise silently fall back to a default. Keys, types, units,
@@ -80,7 +80,8 @@ class GeometryConfig:
 class SourceConfig:
     """The source mechanism of physics elastic, the same at every shot: ``type`` force, moment or explosive, and
     ``components`` in the solver's convention (adseismic.solve.elastic): force (f_z, f_x) in N/m, moment and explosive
-    (m_xx, m_zz, m_xz) in N m/m; the source at time t is components x the wavelet s(t)."""
+    (m_xx, m_zz, m_xz) in N m/m; in 3D (adseismic.solve.elastic3d) force (f_z, f_y, f_x) in N, moment and explosive
+    (m_zz, m_yy, m_xx, m_yz, m_xz, m_xy) in N m; the source at time t is components x the wavelet s(t)."""
 
     type: str = "explosive"
     components: tuple = (1.0, 1.0, 0.0)
@@ -322,6 +323,12 @@ def _parse_recording(raw: dict, receivers: np.ndarray, model, physics: str, key:
     if physics == "acoustic":
         return (), None
     v = given(validate_section(schema.Receivers, raw, key))
+    if model.ndim == 3 and "das" in v:
+        raise ConfigError(f"{key}.das: {_short(raw['das'])} with a 3D model; DAS strain rate is recorded in 2D only (not "
+                          f"built in 3D yet): drop das and record components (vx, vy, vz, pressure), or use a 2D model")
+    if model.ndim == 2 and "vy" in v.get("components", ()):
+        raise ConfigError(f"{key}.components: {list(v['components'])} names vy with a 2D model (z, x), which has no y "
+                          f"velocity; drop vy (2D records vx, vz, pressure), or use a 3D model [nz, ny, nx]")
     das = None
     if "das" in v:
         das = DasConfig(v["das"].gauge_length, _direction(v["das"].direction, f"{key}.das.direction"))
@@ -329,7 +336,8 @@ def _parse_recording(raw: dict, receivers: np.ndarray, model, physics: str, key:
         for sign, end in ((-1, "start"), (1, "end")):
             _check_inside(receivers + sign * half, f"{key}.das (the gauges' {end}s, +-gauge_length/2 along the fibre)",
                           model)
-    default = schema.COMPONENTS if physics == "elastic" else ("pressure",)  # acoustic_vd: a hydrophone by default
+    default = (tuple(c for c in schema.COMPONENTS if model.ndim == 3 or c != "vy") if physics == "elastic" else
+               ("pressure",))  # acoustic_vd: a hydrophone by default
     components = tuple(v["components"]) if "components" in v else (() if das else default)
     if len(set(components)) != len(components):
         raise ConfigError(f"{key}.components: {list(components)} names a component twice; list each once")
@@ -354,12 +362,16 @@ def _direction(value, key: str) -> tuple:
     return (float(d[0]), float(d[1]))
 
 
-SOURCE_SIZES = {"force": 2, "moment": 3}  # components per mechanism (adseismic.solve.elastic.SOURCE_TYPES)
+# components per mechanism and model dimension (adseismic.solve.elastic.SOURCE_TYPES, solve.elastic3d.SOURCE_TYPES)
+SOURCE_SIZES = {2: {"force": 2, "moment": 3}, 3: {"force": 3, "moment": 6}}
+SOURCE_WHAT = {2: {"force": "[f_z, f_x] in N/m", "moment": "[m_xx, m_zz, m_xz] in N m/m"},
+               3: {"force": "[f_z, f_y, f_x] in N", "moment": "[m_zz, m_yy, m_xx, m_yz, m_xz, m_xy] in N m"}}
 
 
-def _parse_source(raw, physics: str, key="source") -> SourceConfig | None:
-    """The source section (schema.ElasticSource): physics elastic, or acoustic_vd with type explosive only (the
-    pressure source of a fluid); None for acoustic physics."""
+def _parse_source(raw, physics: str, key="source", ndim: int = 2) -> SourceConfig | None:
+    """The source section (schema.ElasticSource) for a ``ndim``-D model: physics elastic, or acoustic_vd with type
+    explosive only (the pressure source of a fluid); None for acoustic physics. 3D: force (f_z, f_y, f_x) N, moment
+    (m_zz, m_yy, m_xx, m_yz, m_xz, m_xy) N m, explosive M0 N m as the moment (M0, M0, M0, 0, 0, 0)."""
     if physics == "acoustic":
         if raw is not None:
             raise ConfigError(f"{key}: {_short(raw)} needs physics: elastic; the acoustic solver injects the wavelet as "
@@ -375,11 +387,11 @@ def _parse_source(raw, physics: str, key="source") -> SourceConfig | None:
                           f"moment-tensor sources")
     if kind == "explosive":
         m0 = 1.0 if comp is None else _number(comp, f"{key}.components", "N m/m (the explosive moment M0)")
-        return SourceConfig(kind, (m0, m0, 0.0))
-    n = SOURCE_SIZES[kind]
-    what = "[f_z, f_x] in N/m" if kind == "force" else "[m_xx, m_zz, m_xz] in N m/m"
+        return SourceConfig(kind, (m0, m0, 0.0) if ndim == 2 else (m0, m0, m0, 0.0, 0.0, 0.0))
+    n, what = SOURCE_SIZES[ndim][kind], SOURCE_WHAT[ndim][kind]
     if not isinstance(comp, list) or len(comp) != n:
-        raise ConfigError(f"{key}.components: {_short(comp)} is not {what}; a {kind} source needs its {n} components")
+        raise ConfigError(f"{key}.components: {_short(comp)} is not {what}; a {kind} source in a {ndim}D model needs its "
+                          f"{n} components")
     values = tuple(_number(x, f"{key}.components[{i}]", what) for i, x in enumerate(comp))
     if not any(values):
         raise ConfigError(f"{key}.components: {list(values)} are all 0: the source radiates nothing; give {what}")
@@ -407,6 +419,14 @@ def _parse_physics(raw) -> str:
 # the physics only adseismic forward runs, by name: fwi, locate and image run the acoustic and elastic solvers, which
 # would drop the anisotropy or the attenuation; nor do the parallel workers run them yet
 FORWARD_ONLY = {"vti": "VTI", "viscoacoustic": "visco-acoustic (constant Q)"}
+
+
+def refuse_elastic3d(model) -> None:
+    """ConfigError for a 3D elastic model in adseismic fwi, image or locate: 3D elastic is forward modelling only."""
+    if isinstance(model, ElasticModel) and model.ndim == 3:
+        raise ConfigError(f"model.vp: a 3D model (shape {list(model.shape)}) with physics elastic; 3D elastic is forward "
+                          f"modelling only (adseismic forward), not available for adseismic fwi, image or locate yet: give "
+                          f"a 2D model [nz, nx], or use physics: acoustic in 3D")
 
 
 def refuse_forward_only(physics: str, workflow: str, fix: str) -> None:
@@ -447,8 +467,8 @@ def parse_config(raw: dict, base_dir: Path | str | None = None, path: Path | Non
                           f"snapshots; set it to 0 (or leave it out) with physics "
                           f"{physics}")
     wavelet = _parse_wavelet(raw["wavelet"], base_dir)
-    source = _parse_source(raw.get("source"), physics)
     model = _load_model(raw["model"], base_dir, physics)
+    source = _parse_source(raw.get("source"), physics, ndim=model.ndim)
     geometry = _parse_geometry(raw["geometry"], model, physics)
     return ForwardConfig(model, geometry, wavelet, simulation, output, path, raw, physics, source)
 
@@ -462,6 +482,9 @@ def load_config(path) -> ForwardConfig:
     if config.physics in FORWARD_ONLY and raw.get("parallel") is not None:  # the workers run the acoustic and elastic solvers
         raise ConfigError(f"parallel: given with physics {config.physics}; the shots of a {FORWARD_ONLY[config.physics]} run "
                           f"are not spread over workers yet: drop the parallel section (one process simulates every shot at once)")
+    if isinstance(config.model, ElasticModel) and config.ndim == 3 and raw.get("parallel") is not None:  # workers run 2D
+        raise ConfigError("parallel: given with a 3D elastic model; the shots of a 3D elastic run are not spread over "
+                          "workers yet: drop the parallel section (one process simulates every shot at once)")
     config.parallel = parse_parallel(raw.get("parallel"), config.n_shots)
     return config
 

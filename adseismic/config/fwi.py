@@ -15,7 +15,7 @@ import numpy as np
 
 from adseismic.config import schema
 from adseismic.config.common import ConfigError, _check_keys, _choice, _mapping, _positive, _read_yaml, _short
-from adseismic.config.forward import AXES, ForwardConfig, parse_config, refuse_forward_only
+from adseismic.config.forward import AXES, ForwardConfig, parse_config, refuse_elastic3d, refuse_forward_only
 from adseismic.config.parallel import ParallelConfig, parse_parallel
 from adseismic.config.schema import given, validate_section
 from adseismic.data.models import ElasticModel, Model, ModelError, load_physics_model
@@ -210,6 +210,7 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
                             "elastic")
     network, raw_forward = _parse_network(raw)
     forward = parse_config(raw_forward, base_dir, path, extra_sections=FWI_SECTIONS)
+    refuse_elastic3d(forward.model)
     forward.raw = raw
     inversion = _parse_inversion(raw.get("inversion"))
     _check_inversion_physics(inversion, forward.physics, network, raw)

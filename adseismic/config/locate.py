@@ -15,7 +15,8 @@ import numpy as np
 
 from adseismic.config import schema
 from adseismic.config.common import ConfigError, _check_keys, _mapping, _number, _read_yaml, _short
-from adseismic.config.forward import AXES, SimulationConfig, _check_inside, _load_model, _parse_physics, _parse_simulation, _point, refuse_forward_only
+from adseismic.config.forward import (AXES, SimulationConfig, _check_inside, _load_model, _parse_physics, _parse_simulation, _point,
+                                      refuse_elastic3d, refuse_forward_only)
 from adseismic.config.schema import given, validate_section
 from adseismic.data.models import Model
 
@@ -128,7 +129,7 @@ def _check_mechanism(src: dict, physics: str) -> None:
     if src["type"] != "moment":
         raise ConfigError(f"source.type: {src['type']!r} with physics elastic; the elastic locator fits a moment tensor: give "
                           f"source.type: moment (or leave it out)")
-    src["constraint"] = src["constraint"] or "none"  # a 3D model was refused by load_physics_model (elastic is 2D)
+    src["constraint"] = src["constraint"] or "none"  # a 3D elastic model is refused (forward.refuse_elastic3d)
 
 
 def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Path | None = None) -> LocateConfig:
@@ -155,6 +156,7 @@ def parse_locate_config(raw: dict, base_dir: Path | str | None = None, path: Pat
                           "travel times, which density does not change); use physics: acoustic with model: the vp spec, "
                           "or physics: elastic for a moment-tensor source")
     model = _load_model(raw["model"], base_dir, physics)
+    refuse_elastic3d(model)
 
     t = given(validate_section(schema.Traces, raw["traces"], "traces"))  # keys and types
     if "paths" not in t:

@@ -301,7 +301,7 @@ class Spread(_Section):
     lines: list[Line] | None = F(None, "several lines")
 
 
-COMPONENTS = ("vx", "vz", "pressure")  # elastic receiver components (adseismic.solve.elastic.COMPONENTS)
+COMPONENTS = ("vx", "vy", "vz", "pressure")  # elastic receiver components (solve.elastic's and, vy, solve.elastic3d's)
 
 
 class Das(_Section):
@@ -320,7 +320,8 @@ class Receivers(Spread):
     records."""
 
     components: list[Literal[COMPONENTS]] | None = F(
-        None, "physics elastic: any of vx, vz (m/s), pressure (Pa); null: all three, or none when das is given")
+        None, "physics elastic: any of vx, vz (m/s), pressure (Pa), and vy (m/s) in 3D; null: all of them, or none when "
+              "das is given (2D only)")
     das: Das | None = F(None, "physics elastic: record DAS strain rate (1/s) along a fibre at the points")
 
 
@@ -339,8 +340,9 @@ class ElasticSource(_Section):
 
     type: Annotated[Literal[SOURCE_TYPES] | None, OneOf(*SOURCE_TYPES)] = F(
         "explosive", "force (a line force), moment (a moment tensor) or explosive (isotropic moment tensor)")
-    components: Any = F(None, "force: [f_z, f_x] in N/m; moment: [m_xx, m_zz, m_xz] in N m/m; explosive: the "
-                              "moment M0 in N m/m (default 1)")
+    components: Any = F(None, "force: [f_z, f_x] in N/m (3D: [f_z, f_y, f_x] in N); moment: [m_xx, m_zz, m_xz] in N m/m "
+                              "(3D: [m_zz, m_yy, m_xx, m_yz, m_xz, m_xy] in N m); explosive: the moment M0 in N m/m "
+                              "(3D: N m) (default 1)")
 
 
 class Wavelet(_Section):

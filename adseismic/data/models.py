@@ -391,7 +391,8 @@ class _OnVpGrid:
 @dataclass(frozen=True, eq=False)
 class ElasticModel(_OnVpGrid):
     """An isotropic elastic model: ``vp``, ``vs`` (m/s) and ``rho`` (kg/m^3), three :class:`Model` objects on one grid
-    (shape (nz, nx), spacing and origin in m, axis order (z, x)); 0 < vs <= vp / sqrt(2) (Lame lambda >= 0).
+    (shape (nz, [ny,] nx), spacing and origin in m, axis order (z, [y,] x); 3D with vs only); 0 < vs <= vp / sqrt(2)
+    (Lame lambda >= 0).
     ``vs`` None: a fluid everywhere (vs = 0), the variable-density acoustic model of ``physics: acoustic_vd``, which
     the elastic solver runs (``physics`` says which; :meth:`materials` gives the solver's three arrays).
 
@@ -422,7 +423,7 @@ class ElasticModel(_OnVpGrid):
         return "acoustic_vd" if self.vs is None else "elastic"
 
     def materials(self) -> dict:
-        """{vp, vs, rho}: float64 arrays (nz, nx) in m/s, m/s, kg/m^3 as the elastic solver takes them (vs zeros for
+        """{vp, vs, rho}: float64 arrays (nz, [ny,] nx) in m/s, m/s, kg/m^3 as the elastic solver takes them (vs zeros for
         acoustic_vd)."""
         vs = np.zeros(self.shape) if self.vs is None else self.vs.values
         return {"vp": np.asarray(self.vp.values, float), "vs": np.asarray(vs, float), "rho": np.asarray(self.rho.values, float)}
@@ -485,7 +486,8 @@ def load_physics_model(spec, physics: str = "acoustic", base_dir: pathlib.Path |
     :class:`ElasticModel` from ``{vp, vs, rho}``: vp a model spec (m/s); vs a model spec (m/s) or ``{vp_ratio: R}``
     (vs = vp / R, R >= sqrt(2)); rho a model spec (kg/m^3: the key velocity / velocities / background holds the
     densities) or ``{gardner: true}`` (rho = 310 vp^0.25); acoustic_vd, an ElasticModel with vs None (a fluid) from
-    ``{vp, rho}``. Generator specs of vs and rho may leave out shape, spacing and origin (vp's are used). 2D only.
+    ``{vp, rho}``. Generator specs of vs and rho may leave out shape, spacing and origin (vp's are used). elastic: 2D
+    or 3D ([nz, ny, nx], adseismic.solve.elastic3d); acoustic_vd: 2D only.
     Raises ModelError naming ``model.<part>.<key>``, the value and the fix."""
     if physics not in PHYSICS:
         raise ModelError(f"physics: {_short(physics)} is not one of {', '.join(PHYSICS)}; pick one of them")
@@ -520,10 +522,10 @@ def load_physics_model(spec, physics: str = "acoustic", base_dir: pathlib.Path |
     if missing:
         raise ModelError(f"model.{missing[0]}: missing; a physics {physics} model needs {what}")
     vp = _load_part(spec["vp"], "vp", base_dir, None)
-    if vp.ndim != 2:
-        raise ModelError(f"model.vp: a 3D model (shape {list(vp.shape)}) with physics {physics}; the elastic solver "
-                         f"(which runs {physics}) is 2D (3D is not built yet): give a 2D model [nz, nx], or use physics: "
-                         f"acoustic in 3D")
+    if vp.ndim != 2 and physics == "acoustic_vd":
+        raise ModelError(f"model.vp: a 3D model (shape {list(vp.shape)}) with physics {physics}; the variable-density "
+                         f"acoustic solver is 2D (3D is not built yet): give a 2D model [nz, nx], or use physics: "
+                         f"acoustic or elastic in 3D")
     rho = _load_density(spec["rho"], base_dir, vp)
     if physics == "acoustic_vd":
         return ElasticModel(vp, None, rho)

@@ -23,8 +23,8 @@ import numpy as np
 
 __all__ = ["SAMPLE_TIMES", "UNITS", "DasOperator", "Recording"]
 
-UNITS = {"vx": "m/s", "vz": "m/s", "pressure": "Pa", "das": "1/s"}  # each recorded quantity's unit
-SAMPLE_TIMES = {"vx": "(n - 1/2) dt", "vz": "(n - 1/2) dt", "pressure": "n dt", "das": "(n - 1/2) dt"}
+UNITS = {"vx": "m/s", "vy": "m/s", "vz": "m/s", "pressure": "Pa", "das": "1/s"}  # each recorded quantity's unit (vy: 3D)
+SAMPLE_TIMES = {"vx": "(n - 1/2) dt", "vy": "(n - 1/2) dt", "vz": "(n - 1/2) dt", "pressure": "n dt", "das": "(n - 1/2) dt"}
 
 
 @dataclass(frozen=True)
@@ -65,8 +65,8 @@ class DasOperator:
 
 @dataclass(frozen=True)
 class Recording:
-    """What an elastic receiver spread records at its n points: ``components`` (any of vx, vz, pressure) at the points
-    and, with ``das``, the strain rate of a gauge centred on each point. The solver records vx, vz and pressure at
+    """What an elastic receiver spread records at its n points: ``components`` (any of vx, vz, pressure; vy in 3D) at
+    the points and, with ``das`` (2D only), the strain rate of a gauge centred on each point. The solver records vx, vz and pressure at
     :meth:`locations`; :meth:`data` turns those into the named traces and :meth:`adjoint` is its exact transpose."""
 
     components: tuple
