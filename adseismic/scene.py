@@ -310,6 +310,61 @@ def straight_ray_times(model: Model, sources: np.ndarray, receivers: np.ndarray,
     return out
 
 
+def _longest_direct_arrival(model, src, rec, free_surface: bool):
+    """(time in s, the wave's name for the plan, the VTI ray times or None) of the slowest direct wave over every
+    source-receiver pair: qP (group velocity) for VTI, P for a fluid or visco-acoustic model, S (Rayleigh along a
+    free surface) for an elastic one, else the acoustic wave; straight rays (RAY_SAMPLES points)."""
+    if isinstance(model, VTIModel):
+        rays = vti_ray_times(model, src, rec)
+        return float(rays[0].max()), "qP-wave (group velocity) ", rays
+    if isinstance(model, ViscoacousticModel) or (isinstance(model, ElasticModel) and model.vs is None):
+        return float(straight_ray_times(model.vp, src, rec, max_samples=RAY_SAMPLES).max()), "P-wave ", None
+    if isinstance(model, ElasticModel):  # the slowest direct wave arrives last: S, or the Rayleigh wave along a free surface
+        i = np.unravel_index(int(np.argmin(model.vs.values)), model.shape)
+        slowdown = rayleigh_speed(model.vp.values[i], model.vs.values[i]) / model.vs.values[i] if free_surface else 1.0
+        t = float(straight_ray_times(model.vs, src, rec, max_samples=RAY_SAMPLES).max()) / slowdown
+        return t, "Rayleigh-wave " if free_surface else "S-wave ", None
+    return float(straight_ray_times(model, src, rec, max_samples=RAY_SAMPLES).max()), "", None
+
+
+def _staggered_reasons(grid, model, vmin, vmax, box, attenuation, dx_planned: bool) -> tuple[str, str]:
+    """The plan's reasons for dx and dt of a staggered physics (plan_elastic_grid's), with what sets them in
+    acoustic_vd (P at vp_min), vti (qP, the horizontal speed) and viscoacoustic (the phase velocity at the Q band's
+    low end, the unrelaxed speed); box: vp over the planned domain (m/s); dx_planned: dx not pinned."""
+    why_dx, why_dt = grid.reasons["dx"], grid.reasons["dt"]
+    if isinstance(model, ElasticModel) and model.vs is None and dx_planned:
+        why_dx += f"; acoustic_vd: the slowest wave is P at vp_min {vmin:.0f} m/s (vs = 0: no S wave)"
+    if isinstance(model, VTIModel):
+        if dx_planned:
+            why_dx += (f"; vti: the slowest wave is qP at {vmin:.0f} m/s (vp_min {float(box.min()):.0f} m/s, vertical; "
+                       f"lower where delta < 0)")
+        why_dt = why_dt.replace(f"for vp_max {vmax:.0f} m/s", f"for the horizontal speed max vp sqrt(1 + 2 epsilon) = "
+                                                               f"{vmax:.0f} m/s")
+    if attenuation is not None:
+        a = attenuation
+        if dx_planned:
+            why_dx += (f"; viscoacoustic: the slowest wave is P at {vmin:.0f} m/s, the phase velocity at the Q band's low "
+                       f"end {a.q_band[0]:.3g} Hz (vp_min {float(box.min()):.0f} m/s at f_ref {a.f_ref:.3g} Hz)")
+        why_dt = why_dt.replace(f"for vp_max {vmax:.0f} m/s", f"for the unrelaxed (w -> infinity) speed {vmax:.0f} m/s "
+                                f"({100 * (vmax / float(box.max()) - 1):.1f}% above vp_max {float(box.max()):.0f} m/s at f_ref, "
+                                f"Q down to {a.q_min:.3g})")
+    return why_dx, why_dt
+
+
+def _forward_cost(kind: str, padded: int, nt: int, n_shots: int, n_receivers: int, sim) -> tuple[float, float]:
+    """(peak bytes of a forward run of every shot, estimated seconds a shot) of a scheme kind ("acoustic", "elastic"
+    (every 2D staggered physics; vti: an upper bound, 4 fields and 4 memory variables where the elastic step has 5
+    and 8, docs/vti.md) or "elastic3d") on padded cells x nt steps, in sim's precision and on its device."""
+    itemsize = 4 if sim.precision == "float32" else 8
+    memory = forward_memory_bytes(padded, n_shots, n_receivers, nt, itemsize, kind)
+    device_kind = "cuda" if str(sim.device).startswith("cuda") else "cpu"
+    step_cost = {"acoustic": 1.0, "elastic": ELASTIC_STEP_COST, "elastic3d": ELASTIC3D_STEP_COST}[kind]
+    seconds = padded * nt / EST_RATE[device_kind] * step_cost
+    if kind != "acoustic" and device_kind == "cpu":
+        seconds += nt * ELASTIC_CPU_STEP_SECONDS
+    return memory, seconds
+
+
 def _group_error(order, ndim, vmin, vmax, f_max, dx, dt) -> float:
     """Worst group-velocity error at f_max over the slowest and the fastest wave."""
     return max(dispersion_error(order, ndim, v / (f_max * dx), v * dt / dx)["group"][0] for v in (vmin, vmax))
@@ -397,17 +452,7 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     fluid = elastic and model.vs is None  # acoustic_vd: P waves only
     vti = isinstance(model, VTIModel)  # the pseudo-acoustic VTI solver: qP waves, staggered like the elastic one
     visco = isinstance(model, ViscoacousticModel)  # the visco-acoustic solver: P waves, staggered like the elastic one
-    if vti:
-        rays = vti_ray_times(model, src, rec)
-        t_direct = float(rays[0].max())
-    elif fluid or visco:
-        t_direct = float(straight_ray_times(model.vp, src, rec, max_samples=RAY_SAMPLES).max())
-    elif elastic:  # the slowest direct wave arrives last: S, or the Rayleigh wave along a free surface
-        i = np.unravel_index(int(np.argmin(model.vs.values)), model.shape)
-        slowdown = rayleigh_speed(model.vp.values[i], model.vs.values[i]) / model.vs.values[i] if sim.free_surface else 1.0
-        t_direct = float(straight_ray_times(model.vs, src, rec, max_samples=RAY_SAMPLES).max()) / slowdown
-    else:
-        t_direct = float(straight_ray_times(model, src, rec, max_samples=RAY_SAMPLES).max())
+    t_direct, wave, rays = _longest_direct_arrival(model, src, rec, bool(sim.free_surface))
     if sim.duration is not None:
         t_record = float(sim.duration)
         why_nt = "pinned by the config"
@@ -415,7 +460,6 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
             warnings.append(f"record length {t_record:g} s is shorter than the longest direct arrival ({t_direct:.3g} s)")
     else:
         t_record = t_direct + w_len
-        wave = "qP-wave (group velocity) " if vti else "P-wave " if fluid or visco else ("Rayleigh-wave " if sim.free_surface else "S-wave ") if elastic else ""
         why_nt = f"longest straight-ray {wave}source-receiver time {t_direct:.3g} s + wavelet duration {w_len:.3g} s"
 
     pts = np.vstack([src, rec])
@@ -459,23 +503,8 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
         vs_min = float(np.min(vs_box)) if vs_range is None else float(vs_range[0])
         grid = plan_elastic_grid((vmin, vmax), vs_min, f_max, order, float(sim.accuracy), float(sim.cfl_safety),
                                  bool(sim.free_surface), dx=sim.dx, dt=sim.dt, ndim=ndim)
-        dx, dt, why_dx, why_dt = grid.dx, grid.dt, grid.reasons["dx"], grid.reasons["dt"]
-        if fluid and pins["dx"] is None:
-            why_dx += f"; acoustic_vd: the slowest wave is P at vp_min {vmin:.0f} m/s (vs = 0: no S wave)"
-        if vti:
-            if pins["dx"] is None:
-                why_dx += (f"; vti: the slowest wave is qP at {vmin:.0f} m/s (vp_min {float(box.min()):.0f} m/s, vertical; "
-                           f"lower where delta < 0)")
-            why_dt = why_dt.replace(f"for vp_max {vmax:.0f} m/s", f"for the horizontal speed max vp sqrt(1 + 2 epsilon) = "
-                                                                   f"{vmax:.0f} m/s")
-        if visco:
-            a = attenuation
-            if pins["dx"] is None:
-                why_dx += (f"; viscoacoustic: the slowest wave is P at {vmin:.0f} m/s, the phase velocity at the Q band's low "
-                           f"end {a.q_band[0]:.3g} Hz (vp_min {float(box.min()):.0f} m/s at f_ref {a.f_ref:.3g} Hz)")
-            why_dt = why_dt.replace(f"for vp_max {vmax:.0f} m/s", f"for the unrelaxed (w -> infinity) speed {vmax:.0f} m/s "
-                                    f"({100 * (vmax / float(box.max()) - 1):.1f}% above vp_max {float(box.max()):.0f} m/s at f_ref, "
-                                    f"Q down to {a.q_min:.3g})")
+        dx, dt = grid.dx, grid.dt
+        why_dx, why_dt = _staggered_reasons(grid, model, vmin, vmax, box, attenuation if visco else None, pins["dx"] is None)
     else:
         dx, dt, why_dx, why_dt = _choose_dx_dt(order, ndim, vmin, vmax, f_max, float(sim.accuracy), float(sim.cfl_safety), pins, cells, t_record)
     try:
@@ -507,16 +536,8 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     nt = int(math.ceil(t_record / dt)) + 1
     refl = DEFAULT_PML_REFLECTION[order] if sim.pml_reflection is None else float(sim.pml_reflection)
     padded = math.prod(int(n) + 2 * pml + order for n in shape)  # Python ints: no int64 overflow for absurd grids
-    itemsize = 4 if sim.precision == "float32" else 8
-    # vti: the elastic estimates, an upper bound (4 fields and 4 memory variables where the elastic step has 5 and 8;
-    # docs/vti.md: its CPU step takes 0.5-0.9 of acoustic_vd's)
-    elastic3d = elastic and ndim == 3
-    memory = forward_memory_bytes(padded, len(src), len(rec), nt, itemsize,
-                                  "elastic3d" if elastic3d else "elastic" if staggered else "acoustic")
-    device_kind = "cuda" if str(sim.device).startswith("cuda") else "cpu"
-    seconds = padded * nt / EST_RATE[device_kind] * (ELASTIC3D_STEP_COST if elastic3d else ELASTIC_STEP_COST if staggered else 1.0)
-    if staggered and device_kind == "cpu":
-        seconds += nt * ELASTIC_CPU_STEP_SECONDS
+    kind = "elastic3d" if elastic and ndim == 3 else "elastic" if staggered else "acoustic"
+    memory, seconds = _forward_cost(kind, padded, nt, len(src), len(rec), sim)
     if seconds * len(src) > LONG_RUN_SECONDS:
         warnings.append(f"long run: an estimated {seconds * len(src) / 3600:.3g} h on {sim.device} for {len(src)} shot(s) "
                         f"({padded:,} padded cells x {nt:,} steps each); check the velocities, the wavelet's frequency and "

@@ -692,7 +692,7 @@ def _lbfgs_free(run: _Run, ev: _Evaluator, options):
         s, y = xt - x, gt - g
         sy = float(s @ y)
         if sy > 1e-10 * float(y @ y):
-            pairs = [*pairs[-(m - 1):], (s, y, 1.0 / sy)] if m > 1 else [(s, y, 1.0 / sy)]
+            pairs = [*pairs, (s, y, 1.0 / sy)][-m:]
         reason = run.accept(xt, ft, gt)
         if reason is not None:
             return reason
