@@ -18,8 +18,9 @@ With ``physics: elastic`` (config.model an ElasticModel, 2D or 3D) dx and dt com
 the slowest wave (S, or with a free surface the Rayleigh wave) and dt from the staggered scheme's CFL limit at vp_max
 (of the model's dimension; a 3D model runs adseismic.solve.elastic3d);
 the record length from the S-wave straight-ray times (Rayleigh with a free surface). ``physics: acoustic_vd`` (an
-ElasticModel with vs None: a fluid) runs on the same solver: dx from vp_min, dt from the staggered CFL at vp_max, the
-record from P-wave times; its plan also reports what dropping the density would cost (:func:`density_reflection_check`).
+ElasticModel with vs None: a fluid, 2D or 3D) runs adseismic.solve.acoustic_vd on the same staggered scheme: dx from
+vp_min, dt from the staggered CFL at vp_max, the record from P-wave times; its plan also reports what dropping the
+density would cost (:func:`density_reflection_check`).
 ``physics: vti`` (a VTIModel, the pseudo-acoustic VTI solver of docs/vti.md) plans on the same staggered scheme: dx from
 the slowest qP speed (vp_min, vertical, lower where delta < 0), dt from the CFL limit at the fastest, the horizontal
 vp sqrt(1 + 2 epsilon); the record from the qP group velocities along straight rays, and the plan reports the
@@ -64,6 +65,9 @@ ELASTIC_STEP_COST = 4.0  # an elastic cell update (5 fields, staggered) costs ~3
 # configs/elastic_forward.yaml 7.2e6 padded cell updates/s beside configs/example_2d.yaml's 2.3e7/s, docs/elastic.md)
 ELASTIC3D_STEP_COST = 12.0  # a 3D elastic cell update (9 fields, 3D stencils) costs ~3 2D elastic ones (2-core CPU,
 # float32, order 4, warm: 4.9e6 padded cell updates/s on 56^3 cells beside 1.5e7/s for 2D elastic on 400^2)
+ACOUSTIC_VD_STEP_COST = {2: 3.0, 3: 6.5}  # an acoustic_vd cell update (3 / 4 fields, kernels/acoustic_vd) in acoustic
+# ones at EST_RATE (2-core CPU, float32, order 4, warm: 1.6-1.8e7 padded cell updates/s in 2D on 100^2..400^2,
+# 7.6e6/s in 3D on 60^3; docs/acoustic_vd.md, benchmarks/acoustic_vd_cost.py)
 ELASTIC_CPU_STEP_SECONDS = 2e-3  # and a CPU time step of it ~2 ms more (its ~15 launches; 84 x 84 cells: 2.6 ms a step)
 SAFETY_STEPS = tuple(np.linspace(1.0, 0.1, 37))  # fractions of cfl_safety searched for the cheapest (dx, dt)
 
@@ -101,8 +105,8 @@ class Plan:
         grid = " x ".join(str(n) for n in self.shape)
         axes = "z, y, x" if self.ndim == 3 else "z, x"
         what = {"elastic": f" ({self.ndim}D velocity-stress, staggered grid; dx for the wave that needs the finest grid, dt from vp_max)",
-                "acoustic_vd": " (2D variable-density acoustic on the elastic solver with vs = 0: velocity-stress, "
-                               "staggered grid; dx from vp_min, dt from vp_max)",
+                "acoustic_vd": f" ({self.ndim}D variable-density acoustic: pressure-velocity, staggered grid; dx from vp_min, dt "
+                               "from vp_max)",
                 "vti": " (2D pseudo-acoustic VTI: velocity-stress, staggered grid; dx from the slowest qP speed, dt from the "
                        "horizontal vp sqrt(1 + 2 epsilon))",
                 "viscoacoustic": " (2D visco-acoustic, constant Q: velocity-pressure with memory variables, staggered grid; "
@@ -196,12 +200,17 @@ def forward_memory_bytes(padded: int, n_shots: int, n_receivers: int, nt: int, i
     (~3 padded grids), one padded model, and the receiver data on the device and on the host; elastic, per shot two
     states of 5 fields and their CPML memory (bounded by 16 padded grids), 6 padded material grids, three
     components' data; elastic3d (3D elastic), per shot two states of 9 fields and their CPML memory (bounded by 54
-    padded grids), 11 padded material grids, four components' data."""
+    padded grids), 11 padded material grids, four components' data; acoustic_vd (2D or 3D), per shot two states of
+    ndim + 1 fields and their CPML memory (bounded by 2 (2 ndim + 1) + 1 padded grids), ndim + 3 padded model and
+    material grids, ndim + 1 components' data (ndim: 3 when physics is "acoustic_vd3")."""
     if physics == "elastic":
         return int(itemsize * (16 * padded * n_shots + 6 * padded) + 6 * itemsize * n_shots * n_receivers * nt)
     if physics == "elastic3d":  # an upper bound: two states of 9 fields, their CPML memory (6 strips of 3 components
         # each) counted as whole padded grids, 3 + 8 padded material grids, four components' data on device and host
         return int(itemsize * (54 * padded * n_shots + 11 * padded) + 8 * itemsize * n_shots * n_receivers * nt)
+    if physics.startswith("acoustic_vd"):
+        nd = 3 if physics.endswith("3") else 2
+        return int(itemsize * ((4 * nd + 3) * padded * n_shots + (nd + 3) * padded) + 2 * (nd + 1) * itemsize * n_shots * n_receivers * nt)
     return int(itemsize * (3 * padded * n_shots + padded) + 2 * itemsize * n_shots * n_receivers * nt)
 
 
@@ -353,14 +362,16 @@ def _staggered_reasons(grid, model, vmin, vmax, box, attenuation, dx_planned: bo
 
 def _forward_cost(kind: str, padded: int, nt: int, n_shots: int, n_receivers: int, sim) -> tuple[float, float]:
     """(peak bytes of a forward run of every shot, estimated seconds a shot) of a scheme kind ("acoustic", "elastic"
-    (every 2D staggered physics; vti: an upper bound, 4 fields and 4 memory variables where the elastic step has 5
-    and 8, docs/vti.md) or "elastic3d") on padded cells x nt steps, in sim's precision and on its device."""
+    (every other 2D staggered physics; vti: an upper bound, 4 fields and 4 memory variables where the elastic step has 5
+    and 8, docs/vti.md), "elastic3d", "acoustic_vd" or "acoustic_vd3" (its 3D kernels)) on padded cells x nt steps, in
+    sim's precision and on its device."""
     itemsize = 4 if sim.precision == "float32" else 8
     memory = forward_memory_bytes(padded, n_shots, n_receivers, nt, itemsize, kind)
     device_kind = "cuda" if str(sim.device).startswith("cuda") else "cpu"
-    step_cost = {"acoustic": 1.0, "elastic": ELASTIC_STEP_COST, "elastic3d": ELASTIC3D_STEP_COST}[kind]
+    step_cost = {"acoustic": 1.0, "elastic": ELASTIC_STEP_COST, "elastic3d": ELASTIC3D_STEP_COST,
+                 "acoustic_vd": ACOUSTIC_VD_STEP_COST[2], "acoustic_vd3": ACOUSTIC_VD_STEP_COST[3]}[kind]
     seconds = padded * nt / EST_RATE[device_kind] * step_cost
-    if kind != "acoustic" and device_kind == "cpu":
+    if kind in ("elastic", "elastic3d") and device_kind == "cpu":
         seconds += nt * ELASTIC_CPU_STEP_SECONDS
     return memory, seconds
 
@@ -537,6 +548,8 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     refl = DEFAULT_PML_REFLECTION[order] if sim.pml_reflection is None else float(sim.pml_reflection)
     padded = math.prod(int(n) + 2 * pml + order for n in shape)  # Python ints: no int64 overflow for absurd grids
     kind = "elastic3d" if elastic and ndim == 3 else "elastic" if staggered else "acoustic"
+    if fluid:  # acoustic_vd's own kernels
+        kind = "acoustic_vd3" if ndim == 3 else "acoustic_vd"
     memory, seconds = _forward_cost(kind, padded, nt, len(src), len(rec), sim)
     if seconds * len(src) > LONG_RUN_SECONDS:
         warnings.append(f"long run: an estimated {seconds * len(src) / 3600:.3g} h on {sim.device} for {len(src)} shot(s) "
@@ -602,7 +615,8 @@ def build_scene(config, plan: Plan | None = None, model: Model | None = None) ->
 
 def run_forward(scene: Scene, snapshot_every: int = 0, progress: bool = False):
     """Run the planned forward simulation for every shot of the scene at once: a ForwardResult (acoustic) or, for an
-    ElasticModel, adseismic.solve.elastic's ElasticResult (3D: adseismic.solve.elastic3d's Elastic3DResult), for a
+    ElasticModel, adseismic.solve.elastic's ElasticResult (3D: adseismic.solve.elastic3d's Elastic3DResult; vs None, i.e.
+    acoustic_vd: adseismic.solve.acoustic_vd's AcousticVDResult, the explosive source's moment M0 x the wavelet), for a
     VTIModel adseismic.solve.vti's VTIResult, for a ViscoacousticModel adseismic.solve.viscoacoustic's ViscoacousticResult
     (with the plan's q_band, f_ref, mechanisms) (VTI and visco-acoustic: the explosive source's moment M0 x the wavelet),
     at scene.receiver_locations (no snapshots)."""
@@ -625,6 +639,15 @@ def run_forward(scene: Scene, snapshot_every: int = 0, progress: bool = False):
             m["vp"], m["epsilon"], m["delta"], m["rho"], p.dx, p.dt, scene.source_amplitudes * scene.source_components[:, :, :1],
             scene.source_locations, scene.receiver_locations, order=p.order, pml_width=p.pml_width,
             pml_reflection=p.pml_reflection, free_surface=p.free_surface, device=p.device, precision=p.precision, progress=progress,
+        )  # fmt: skip
+    if isinstance(scene.model, ElasticModel) and scene.model.vs is None:  # acoustic_vd: its own kernels, 2D or 3D
+        from adseismic.solve.acoustic_vd import forward_acoustic_vd
+
+        m = scene.model.materials()
+        return forward_acoustic_vd(
+            m["vp"], m["rho"], p.dx, p.dt, scene.source_amplitudes * scene.source_components[:, :, :1], scene.source_locations,
+            scene.receiver_locations, order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection,
+            free_surface=p.free_surface, device=p.device, precision=p.precision, progress=progress,
         )  # fmt: skip
     if isinstance(scene.model, ElasticModel):
         from adseismic.solve.elastic import forward_elastic

@@ -220,6 +220,17 @@ def adjoint_launch(kernel, dim, inputs, adjoints: dict, device):
     wp.launch(kernel, dim=dim, inputs=inputs, adj_inputs=adj, adjoint=True, device=device, record_tape=False)
 
 
+def host_operator(kernel, loc: wp.array, args: list, shape: tuple, idx_type, dtype, device):
+    """(idx, w): a fixed point operator's nodes (idx_type) and weights (dtype), each `shape`, from kernel(loc, *args,
+    idx, w) launched over shape[1:] on the CPU, then copied to `device`. A 3D operator's weights kernel unrolls
+    2 HICKS_RADIUS windowed-sinc nodes per axis for each of its point kinds: a GPU compile of it (NVRTC, then ptxas)
+    took more than 150 s on an H100 where the CPU's LLVM takes seconds, and it runs once per run."""
+    idx = wp.zeros(shape, dtype=idx_type, device="cpu")
+    w = wp.zeros(shape, dtype=dtype, device="cpu")
+    wp.launch(kernel, dim=shape[1:], inputs=[wp.clone(loc, device="cpu", requires_grad=False), *args, idx, w], device="cpu")
+    return wp.clone(idx, device=device), wp.clone(w, device=device)
+
+
 def block_rows(n: int, i: int, parts: int):
     """Rows [r0, r1) of block i of n rows split into `parts` blocks."""
     return n * i // parts, n * (i + 1) // parts

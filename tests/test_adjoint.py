@@ -1,8 +1,8 @@
 """Adjoint tests of every physics, written once (as Devito runs one adjoint test over all its seismic examples).
 
 For each physics (CASES: acoustic 2D and 3D, elastic 2D with a point force, elastic 2D with a free surface and a
-moment-tensor source, vti 2D with a free surface, viscoacoustic 2D, elastic 3D with a point force and with a free
-surface and a moment-tensor source), in float64 on the test device:
+moment-tensor source, vti 2D with a free surface, viscoacoustic 2D, acoustic_vd 2D with a free surface and 3D,
+elastic 3D with a point force and with a free surface and a moment-tensor source), in float64 on the test device:
 
 - test_adjoint_dot_product: <J dm, dd> = <dm, J^T dd>, J the derivative of the receiver data along a perturbation
   (acoustic: the Born modelling for the velocity; data linear in the source wavelet and components: the forward
@@ -32,6 +32,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 import adseismic.solve.acoustic as A
+import adseismic.solve.acoustic_vd as AVD
 import adseismic.solve.elastic as E
 import adseismic.solve.elastic3d as E3
 import adseismic.solve.viscoacoustic as Q
@@ -217,14 +218,15 @@ def elastic_case(free_surface: bool, source_type: str) -> Case:
 # --- staggered physics on Warp's taped adjoints: vti, viscoacoustic ----------------------------------------------
 
 
-def taped_case(physics: str, free_surface: bool) -> Case:
-    """vti (vp, epsilon, delta, rho) or viscoacoustic (vp, q, rho): a smooth 24 x 30 model, one source, six pressure
-    receivers, float64; observed data from a model 3% off in vp and rho (and 30% in q). Their gradients are Warp's
-    generated adjoints, so adjoint="warp" is the one gradient there is (the checkpoint test still compares segments)."""
+def taped_case(physics: str, free_surface: bool, ndim: int = 2) -> Case:
+    """vti (vp, epsilon, delta, rho), viscoacoustic (vp, q, rho) or acoustic_vd (vp, rho): a smooth 24 x 30 model (3D,
+    acoustic_vd: 12^3 with a 4-cell PML), one source, six (3D: four) pressure receivers, float64; observed data from a
+    model 3% off in vp and rho (and 30% in q). Their gradients are Warp's generated adjoints, so adjoint="warp" is the
+    one gradient there is (the checkpoint test still compares segments)."""
     rng = np.random.default_rng(0)
-    shape, nt = (24, 30), 200
+    shape, nt = ((24, 30), 200) if ndim == 2 else ((12, 12, 12), 100)
     smooth = gaussian_filter(rng.random(shape), 2)
-    z = np.arange(shape[0])[:, None] * np.ones(shape)
+    z = np.arange(shape[0]).reshape(-1, *(1,) * (ndim - 1)) * np.ones(shape)
     base = {"vp": 2000.0 + 10.0 * z + 200.0 * smooth, "rho": 1500.0 + 20.0 * z}
     if physics == "vti":
         models, extra = V.MODELS, {}
@@ -232,17 +234,27 @@ def taped_case(physics: str, free_surface: bool) -> Case:
         true = dict(base, vp=base["vp"] * 1.03, rho=base["rho"] * 0.97)
         sizes = {"vp": 50.0, "epsilon": 0.02, "delta": 0.02, "rho": 50.0}  # epsilon - delta >= 0.1 stays >= 0 (stability)
         forward, gradient_fn = V.forward_vti, V.gradient_vti
+    elif physics == "acoustic_vd":
+        models, extra = AVD.MODELS, {}
+        true = dict(base, vp=base["vp"] * 1.03, rho=base["rho"] * 0.97)
+        sizes = {"vp": 50.0, "rho": 50.0}
+        forward, gradient_fn = AVD.forward_acoustic_vd, AVD.gradient_acoustic_vd
     else:
         models, extra = Q.MODELS, {"q_band": (3.0, 25.0), "f_ref": 10.0}
         base.update(q=40.0 - 20.0 * smooth)
         true = dict(base, vp=base["vp"] * 1.03, rho=base["rho"] * 0.97, q=base["q"] * 1.3)
         sizes = {"vp": 50.0, "q": 5.0, "rho": 50.0}
         forward, gradient_fn = Q.forward_viscoacoustic, Q.gradient_viscoacoustic
-    params = dict(base, source_amplitudes=ricker(15.0, nt, DT)[None, None])
-    src = np.array([[[75.3, 141.7]]])
-    rec = np.array([[[5.0 if free_surface else 30.0, x] for x in np.linspace(20.0, 270.0, 6)]])
-    kw = dict(precision="float64", pml_velocity=3000.0, pml_frequency=15.0, pml_width=6, free_surface=free_surface, device=DEVICE,
-              **extra)  # fmt: skip
+    f0 = 15.0 if ndim == 2 else 20.0
+    params = dict(base, source_amplitudes=ricker(f0, nt, DT)[None, None])
+    if ndim == 2:
+        src = np.array([[[75.3, 141.7]]])
+        rec = np.array([[[5.0 if free_surface else 30.0, x] for x in np.linspace(20.0, 270.0, 6)]])
+    else:
+        src = np.array([[[43.3 if not free_surface else 12.3, 51.7, 48.1]]])
+        rec = np.array([[[5.0 if free_surface else 80.0, 20.0 + 25.0 * k, 90.0 - 20.0 * k] for k in range(4)]])
+    kw = dict(precision="float64", pml_velocity=3000.0, pml_frequency=f0, pml_width=6 if ndim == 2 else 4, free_surface=free_surface,
+              device=DEVICE, **extra)  # fmt: skip
 
     def args(changes):
         a = dict(params, **changes)
@@ -353,6 +365,8 @@ CASES = {
     "elastic-2d-free-surface-moment": functools.partial(elastic_case, True, "moment"),
     "vti-2d-free-surface": functools.partial(taped_case, "vti", True),
     "viscoacoustic-2d": functools.partial(taped_case, "viscoacoustic", False),
+    "acoustic_vd-2d-free-surface": functools.partial(taped_case, "acoustic_vd", True),
+    "acoustic_vd-3d": functools.partial(taped_case, "acoustic_vd", False, 3),
     "elastic3d-force": functools.partial(elastic3d_case, False, "force"),
     "elastic3d-free-surface-moment": functools.partial(elastic3d_case, True, "moment"),
 }

@@ -317,8 +317,6 @@ CATALOGUE = [
       "model.rho.velocity: -2000", "kg/m^3"),
     C("elastic density in g/cm^3", {"c.yaml": elastic(rho="{kind: constant, velocity: 2.2}")}, FWD, 2,
       "model.rho: densities down to 2.2 kg/m^3", "multiply by 1000"),
-    C("acoustic_vd 3D model", {"c.yaml": AVD.replace("shape: [21, 31]", "shape: [11, 11, 11]")},
-      FWD, 2, "model.vp: a 3D model", "physics acoustic_vd", "2D", "physics: acoustic or elastic in 3D"),
     C("elastic physics with one velocity model", {"c.yaml": "physics: elastic\n" + FORWARD}, FWD, 2,
       "model: ", "physics elastic needs three", "vp_ratio", "set physics: acoustic"),
     C("elastic model keys with acoustic physics", {"c.yaml": elastic().replace("physics: elastic\n", "")}, FWD, 2,
@@ -368,7 +366,7 @@ CATALOGUE = [
       "inversion.preconditioning: pseudo_hessian is acoustic only", "use none or depth"),
     C("fwi elastic observed files", {"c.yaml": elastic() + "observed: {kind: hdf5, path: obs.h5}\ninversion: {iterations: 1}\n"}, FWI, 2,
       "observed: given with physics elastic", "use true_model"),
-    # --- physics acoustic_vd (issue 26): the elastic solver with vs = 0
+    # --- physics acoustic_vd (issue 26): its own solver (solve/acoustic_vd.py), 2D and 3D
     C("acoustic_vd with vs", {"c.yaml": elastic().replace("physics: elastic", "physics: acoustic_vd")}, FWD, 2,
       "model.vs: {'vp_ratio': 1.8} given with physics acoustic_vd", "drop vs", "physics: elastic"),
     C("acoustic_vd one velocity model", {"c.yaml": "physics: acoustic_vd\n" + FORWARD}, FWD, 2,

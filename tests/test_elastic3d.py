@@ -1,4 +1,4 @@
-"""3D isotropic elastic physics (kernels/elastic3d, adseismic/solve/elastic3d.py), float64 on the CPU: a point force
+"""3D isotropic elastic physics (kernels/elastic3d, adseismic/solve/elastic3d.py), float64 on the test device: a point force
 against Stokes' solution (Aki & Richards eq. 4.23) and the measured convergence order, an explosive source against
 the analytic P potential and its isotropy, the free surface (the Miller-Pursey on-axis P amplitude, the x/y symmetry
 of its update), the input refusals. Numbers: docs/elastic3d.md. Gradients: the shared tests in test_adjoint.py
@@ -14,6 +14,8 @@ from adseismic.analytic import elastic_3d_force
 from adseismic.kernels.elastic3d import DESCRIPTION
 from adseismic.solve.elastic3d import forward_elastic3d
 from adseismic.wavelets import ricker
+
+from .conftest import DEVICE
 
 VP, VS, RHO = 2000.0, 1000.0, 2000.0
 F0 = 8.0  # Hz: the S wavelength at the peak frequency is 125 m
@@ -36,7 +38,7 @@ def two_receivers(dx: float, source_type: str, distance: float = 150.0, order: i
     offsets = np.array([[distance, 0.0, 0.0], [0.0, 0.0, distance]])
     amp = ricker(F0, nt, dt)[None, None]
     r = forward_elastic3d(*homogeneous(shape), dx, dt, amp, src, (src[0, 0] + offsets)[None], source_type=source_type, order=order,
-                          pml_width=10, precision="float64")  # fmt: skip
+                          pml_width=10, precision="float64", device=DEVICE)  # fmt: skip
     return r, offsets, amp[0, 0], dt
 
 
@@ -106,7 +108,8 @@ def test_free_surface_on_axis_p_and_symmetry():
     src = np.array([[[0.0, c, c]]])
     rec = np.array([[[D, c, c], [0.0, c, c + 60.0], [0.0, c + 60.0, c]]])
     amp = ricker(F0, nt, dt)[None, None]
-    r = forward_elastic3d(*homogeneous(shape), dx, dt, amp, src, rec, order=8, pml_width=10, free_surface=True, precision="float64")
+    r = forward_elastic3d(*homogeneous(shape), dx, dt, amp, src, rec, order=8, pml_width=10, free_surface=True, precision="float64",
+                          device=DEVICE)
     u = elastic_3d_force(amp[0, 0], dt, (D, 0.0, 0.0), VP, VS, RHO, (1.0, 0.0, 0.0))[0]
     ratio = np.abs(r.vz[0, 0]).max() / (np.abs(np.diff(u)).max() / dt)
     assert abs(ratio - 2.0) <= 0.06, ratio
@@ -124,7 +127,7 @@ def test_explosive_source_is_isotropic(order):
     src = np.array([[[100.0, 100.0, 100.0]]])
     rec = src + np.array([[[60.0, 0.0, 0.0], [0.0, 60.0, 0.0], [0.0, 0.0, 60.0]]])
     r = forward_elastic3d(*homogeneous(shape), dx, dt, ricker(15.0, nt, dt)[None, None], src, rec, source_type="explosive",
-                          order=order, pml_width=6, precision="float64")  # fmt: skip
+                          order=order, pml_width=6, precision="float64", device=DEVICE)  # fmt: skip
     peak = np.abs(r.pressure).max()
     assert peak > 0 and np.abs(r.pressure[0] - r.pressure[0, :1]).max() <= 1e-12 * peak
     radial = np.stack([r.vz[0, 0], r.vy[0, 1], r.vx[0, 2]])

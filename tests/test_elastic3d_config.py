@@ -1,7 +1,7 @@
 """physics: elastic with a 3D model from YAML (issue 26 item 4): the config (3-component force, 6-component moment
 tensor, explosive source; vx, vy, vz, pressure receivers), the planner's 3D CFL limit, dispersion and memory bound,
 `adseismic forward` against forward_elastic3d called directly, and the refusals (wrong source sizes, DAS in 3D, vy in
-2D, 3D acoustic_vd / vti / viscoacoustic, 3D elastic in fwi, image and locate)."""
+2D, 3D vti / viscoacoustic, 3D elastic in fwi, image and locate)."""
 import logging
 import math
 
@@ -177,7 +177,6 @@ REFUSALS = [  # name, config text, command, fragments of the message
      ["geometry.receivers.das: {'gauge_length': 10.0} with a 3D model", "2D only", "drop das"]),
     ("vy in 2D", TWO_D.replace("count: 5}", "count: 5}\n    components: [vx, vy]"), FWD,
      ["geometry.receivers.components: ['vx', 'vy'] names vy with a 2D model", "drop vy"]),
-    ("3D acoustic_vd", VD3, FWD, ["model.vp: a 3D model (shape [16, 14, 18]) with physics acoustic_vd", "2D"]),
     ("3D vti", VD3.replace("physics: acoustic_vd", "physics: vti").replace("  rho:", "  epsilon: 0.1\n  delta: 0.05\n  rho:"), FWD,
      ["model.vp: a 3D model (shape [16, 14, 18]) with physics vti", "give a 2D model"]),
     ("3D viscoacoustic", VD3.replace("physics: acoustic_vd", "physics: viscoacoustic").replace("  rho:", "  q: 30.0\n  rho:"), FWD,

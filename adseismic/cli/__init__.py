@@ -6,6 +6,7 @@
     adseismic locate CONFIG -o OUTDIR          locate an event from its traces (adseismic.location.run)
     adseismic image CONFIG -o OUTDIR           RTM or least-squares RTM image (adseismic.imaging.run)
     adseismic bench [--device cpu cuda:0] -o DIR   speed/memory on the standard scenes (adseismic.bench)
+    adseismic bench --physics -o DIR           the physics family (issue 26) beside Deepwave
 
 forward, fwi, locate and image share -o/--output/--outdir, --dry-run (what ``plan`` runs), --force and -q.
 Exit codes: 0 success; 2 invalid input (config, model, refused plan, output directory: the message says
@@ -238,7 +239,7 @@ def _elastic_traces(scene, result, store, n_receivers: int) -> dict:
     (store.write_forward's components)."""
     from adseismic.solve.receivers import SAMPLE_TIMES, UNITS
 
-    recorded = {c: getattr(result, c) for c in ("vx", "vy", "vz", "pressure") if hasattr(result, c)}
+    recorded = {c: getattr(result, c) for c in ("vx", "vy", "vz", "pressure") if getattr(result, c, None) is not None}
     data = scene.recording.data(recorded, n_receivers)
     return {name: (a.astype(store), UNITS[name], f"t = {SAMPLE_TIMES[name]}") for name, a in data.items()}
 

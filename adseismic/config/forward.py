@@ -422,8 +422,9 @@ FORWARD_ONLY = {"vti": "VTI", "viscoacoustic": "visco-acoustic (constant Q)"}
 
 
 def refuse_elastic3d(model) -> None:
-    """ConfigError for a 3D elastic model in adseismic fwi, image or locate: 3D elastic is forward modelling only."""
-    if isinstance(model, ElasticModel) and model.ndim == 3:
+    """ConfigError for a 3D elastic model in adseismic fwi, image or locate: 3D elastic is forward modelling only. (A 3D
+    acoustic_vd model, vs None, passes: fwi inverts it; image and locate refuse acoustic_vd in any dimension.)"""
+    if isinstance(model, ElasticModel) and model.ndim == 3 and model.vs is not None:
         raise ConfigError(f"model.vp: a 3D model (shape {list(model.shape)}) with physics elastic; 3D elastic is forward "
                           f"modelling only (adseismic forward), not available for adseismic fwi, image or locate yet: give "
                           f"a 2D model [nz, nx], or use physics: acoustic in 3D")

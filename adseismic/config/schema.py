@@ -422,7 +422,7 @@ class ForwardSchema(_Section):
 
     physics: Annotated[Literal[PHYSICS] | None, OneOf(*PHYSICS)] = F(
         "acoustic", "acoustic (model: a velocity model), elastic (2D; model: {vp, vs, rho}), acoustic_vd (2D "
-                    "acoustic with variable density, on the elastic solver with vs = 0; model: {vp, rho}), vti (2D "
+                    "or 3D acoustic with variable density; model: {vp, rho}), vti (2D "
                     "pseudo-acoustic VTI, forward only; model: {vp, epsilon, delta, rho}) or viscoacoustic (2D "
                     "constant-Q attenuation, forward only; model: {vp, q, rho})")
     model: ModelSpec | ElasticModelSpec | AcousticVDModelSpec | VTIModelSpec | ViscoacousticModelSpec = F(

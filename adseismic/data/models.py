@@ -487,7 +487,7 @@ def load_physics_model(spec, physics: str = "acoustic", base_dir: pathlib.Path |
     (vs = vp / R, R >= sqrt(2)); rho a model spec (kg/m^3: the key velocity / velocities / background holds the
     densities) or ``{gardner: true}`` (rho = 310 vp^0.25); acoustic_vd, an ElasticModel with vs None (a fluid) from
     ``{vp, rho}``. Generator specs of vs and rho may leave out shape, spacing and origin (vp's are used). elastic: 2D
-    or 3D ([nz, ny, nx], adseismic.solve.elastic3d); acoustic_vd: 2D only.
+    or 3D ([nz, ny, nx], adseismic.solve.elastic3d); acoustic_vd: 2D or 3D (adseismic.solve.acoustic_vd).
     Raises ModelError naming ``model.<part>.<key>``, the value and the fix."""
     if physics not in PHYSICS:
         raise ModelError(f"physics: {_short(physics)} is not one of {', '.join(PHYSICS)}; pick one of them")
@@ -522,10 +522,6 @@ def load_physics_model(spec, physics: str = "acoustic", base_dir: pathlib.Path |
     if missing:
         raise ModelError(f"model.{missing[0]}: missing; a physics {physics} model needs {what}")
     vp = _load_part(spec["vp"], "vp", base_dir, None)
-    if vp.ndim != 2 and physics == "acoustic_vd":
-        raise ModelError(f"model.vp: a 3D model (shape {list(vp.shape)}) with physics {physics}; the variable-density "
-                         f"acoustic solver is 2D (3D is not built yet): give a 2D model [nz, nx], or use physics: "
-                         f"acoustic or elastic in 3D")
     rho = _load_density(spec["rho"], base_dir, vp)
     if physics == "acoustic_vd":
         return ElasticModel(vp, None, rho)

@@ -46,6 +46,7 @@ from adseismic.solve.acoustic import forward, gradient
 from adseismic.solve.batch import shot_slices
 from adseismic.solve.distributed import reduce_in_order
 from adseismic.solve.pools import check_pool, open_pool
+from adseismic.solve.acoustic_vd import forward_acoustic_vd, gradient_acoustic_vd
 from adseismic.solve.elastic import forward_elastic, gradient_elastic
 from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.solve.receivers import UNITS as RECORDED_UNITS
@@ -564,7 +565,8 @@ class Simulator:
     solver records at recording.locations (the receiver locations passed in) and maps them to the channels with the
     exact adjoint for the misfit's residuals. kw: the solver's keyword arguments (order, PML, free surface, device,
     precision, memory budget). Elastic: source_type and source_components (n_shots, n_src, 2|3) as solve.elastic takes
-    them; n_receivers: the receiver points."""
+    them; n_receivers: the receiver points. physics "acoustic_vd" runs solve.acoustic_vd (the explosive moment M0 =
+    source_components[..., 0] x the wavelet), the channels and recording as elastic's."""
 
     def __init__(self, physics: str, kw: dict, recording=None, n_receivers=0, source_type="force", source_components=None):
         self.physics, self.kw, self.recording, self.n = physics, dict(kw), recording, n_receivers
@@ -580,9 +582,17 @@ class Simulator:
         if self.physics == "acoustic":
             kw = {k: v for k, v in self.kw.items() if k != "memory_budget"}
             return {"data": forward(physical["vp"], dx, dt, amp, src, rec, progress=progress, **kw).receiver_amplitudes}
-        kw = {k: v for k, v in self._elastic_kw(sl).items() if k != "memory_budget"}
-        r = forward_elastic(physical["vp"], physical["vs"], physical["rho"], dx, dt, amp, src, rec, progress=progress, **kw)
+        if self.physics == "acoustic_vd":
+            kw = {k: v for k, v in self.kw.items() if k != "memory_budget"}
+            r = forward_acoustic_vd(physical["vp"], physical["rho"], dx, dt, self._moment(amp, sl), src, rec, progress=progress, **kw)
+        else:
+            kw = {k: v for k, v in self._elastic_kw(sl).items() if k != "memory_budget"}
+            r = forward_elastic(physical["vp"], physical["vs"], physical["rho"], dx, dt, amp, src, rec, progress=progress, **kw)
         return self.recording.data({c: np.asarray(getattr(r, c), float) for c in ("vx", "vz", "pressure")}, self.n)
+
+    def _moment(self, amp, sl):
+        """acoustic_vd's source S(t): the explosive moment M0 (source_components[..., 0]) x the wavelet amp."""
+        return amp * self.source_components[sl][:, :, :1]
 
     def gradient(self, physical, dx, dt, amp, src, rec, misfit, wrt, sl=slice(None), illumination=False):
         """(loss, {name in wrt: dJ/dname (nz, [ny,] nx)}, {channel: synthetic}, illumination or None); misfit: a
@@ -600,10 +610,16 @@ class Simulator:
             j, adj = misfit(self.recording.data({c: np.asarray(syn[c], float) for c in ("vx", "vz", "pressure")}, self.n))
             return j, self.recording.adjoint(adj, self.n)
 
-        r = gradient_elastic(physical["vp"], physical["vs"], physical["rho"], dx, dt, amp, src, rec, misfit=recorded_misfit,
-                             wrt=tuple(wrt), **self._elastic_kw(sl))  # fmt: skip
+        if self.physics == "acoustic_vd":  # vs stays 0 (never inverted): its gradient 0
+            r = gradient_acoustic_vd(physical["vp"], physical["rho"], dx, dt, self._moment(amp, sl), src, rec, misfit=recorded_misfit,
+                                     wrt=tuple(k for k in wrt if k != "vs"), **self.kw)  # fmt: skip
+        else:
+            r = gradient_elastic(physical["vp"], physical["vs"], physical["rho"], dx, dt, amp, src, rec, misfit=recorded_misfit,
+                                 wrt=tuple(wrt), **self._elastic_kw(sl))  # fmt: skip
         syn = self.recording.data({c: np.asarray(r.synthetic[c], float) for c in ("vx", "vz", "pressure")}, self.n)
-        return r.loss, {k: np.asarray(getattr(r, k), float) for k in wrt}, syn, None
+        grads = {k: np.zeros(np.shape(physical["vp"])) if k == "vs" and self.physics == "acoustic_vd" else np.asarray(getattr(r, k), float)
+                 for k in wrt}  # fmt: skip
+        return r.loss, grads, syn, None
 
 
 def _one(misfit, d):
@@ -771,7 +787,7 @@ def _simulator(cfg, prep: Prepared, inv, bounds) -> Simulator:
     if _physics(cfg) == "acoustic":
         return Simulator("acoustic", kw)
     sc = prep.scene
-    return Simulator("elastic", kw, sc.recording, len(cfg.forward.geometry.receivers), sc.source_type, sc.source_components)
+    return Simulator(_physics(cfg), kw, sc.recording, len(cfg.forward.geometry.receivers), sc.source_type, sc.source_components)
 
 
 def _cells_of(space: ModelSpace, xv, g, last) -> dict:

@@ -225,11 +225,17 @@ def batch_gradient(model, data, params) -> dict:
 
 def batch_forward(model, data, params) -> dict:
     """The forward run of one shot batch (a task of either pool): {first, result (scene.run_forward's: a
-    ForwardResult, or an ElasticResult for physics elastic)}. model: {vp[, vs, rho]} (m/s, kg/m^3); data: {amplitudes,
+    ForwardResult, an ElasticResult for physics elastic, an AcousticVDResult for acoustic_vd)}. model: {vp[, vs], [rho]}
+    (m/s, kg/m^3; acoustic_vd: no vs); data: {amplitudes,
     sources, receivers, [source_components], first}; params: {dx, dt, kw (the solver's keywords), snapshot_every,
     source_type, device, [devices]}."""
     kw = dict(params["kw"], device=_device_of(params), progress=False)
-    if "vs" in model:
+    if "rho" in model and "vs" not in model:  # acoustic_vd: the explosive source's moment M0 x the wavelet
+        from adseismic.solve.acoustic_vd import forward_acoustic_vd
+
+        amp = data["amplitudes"] * data["source_components"][:, :, :1]
+        r = forward_acoustic_vd(model["vp"], model["rho"], params["dx"], params["dt"], amp, data["sources"], data["receivers"], **kw)
+    elif "vs" in model:
         from adseismic.solve.elastic import forward_elastic
 
         r = forward_elastic(model["vp"], model["vs"], model["rho"], params["dx"], params["dt"], data["amplitudes"], data["sources"],

@@ -38,7 +38,7 @@ def open_pool(par, sim_device: str, n_shots: int, progress: bool = False):
 
 def forward_on_workers(scene, par, snapshot_every: int = 0, progress: bool = False):
     """scene.run_forward(scene, snapshot_every) with the shots partitioned over the workers of the parallel section
-    `par` and gathered in shot order: the same ForwardResult (acoustic) or ElasticResult (an ElasticModel), bit for
+    `par` and gathered in shot order: the same ForwardResult (acoustic), ElasticResult or AcousticVDResult, bit for
     bit (the shots are independent; the CPML frequency is the one of all shots' wavelets, as in one process). Batches
     of consecutive shots: one shot first on each worker (a DevicePool runs its devices' first batches one after the
     other while it builds the kernels), then the other shots in one batch per worker."""
@@ -47,6 +47,8 @@ def forward_on_workers(scene, par, snapshot_every: int = 0, progress: bool = Fal
 
     p, n, m = scene.plan, len(scene.source_amplitudes), scene.model
     model = m.materials() if isinstance(m, ElasticModel) else {"vp": m.values}
+    if isinstance(m, ElasticModel) and m.vs is None:  # acoustic_vd: its own solver, {vp, rho}
+        model = {"vp": model["vp"], "rho": model["rho"]}
     kw = {"order": p.order, "pml_width": p.pml_width, "pml_reflection": p.pml_reflection, "free_surface": p.free_surface,
           "precision": p.precision, "pml_frequency": dominant_frequency(np.asarray(scene.source_amplitudes, float), p.dt)}
     params = {"dx": p.dx, "dt": p.dt, "kw": kw, "snapshot_every": snapshot_every, "source_type": scene.source_type}

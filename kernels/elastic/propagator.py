@@ -68,7 +68,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, hicks_axis, unique_kernel, vector_access
+from adseismic.kernels.common import (HICKS_RADIUS, Kernels, adjoint_launch, aligned, as_vectors, hicks_axis, host_operator, unique_kernel,
+                                      vector_access)
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 
 
@@ -1740,7 +1741,7 @@ def _sources(ns):
         add_moment(szz, s, idx[3, s, src, q], wts[3, s, src, q], a, comp[s, src, 1])
         add_moment(sxz, s, idx[4, s, src, q], wts[4, s, src, q], a, comp[s, src, 2])
 
-    @unique_kernel
+    @unique_kernel(enable_backward=False)  # computed once per run, never differentiated (locations are fixed)
     def weights(loc: arr3, origin: wp.vec2i, inv_dx: dtype, top: int, idx: wp.array4d(dtype=wp.vec2i), w: arr4):
         # fixed operators, computed once per run: node and weight of point q of location r for vx, vz, sxx, szz, sxz
         # (first index)
@@ -2192,10 +2193,7 @@ class Elastic:
         """The fixed operator of points at locations (S, n, 2) m (receivers; sources whose locations are not differentiated):
         node indices and weights (5, S, n, points) at the vx, vz, sxx, szz and sxz nodes."""
         shape = (5, self.n_shots, locations.shape[1], self.k.operator_points)
-        idx = wp.zeros(shape, dtype=wp.vec2i, device=self.device)
-        w = wp.zeros(shape, dtype=self.dtype, device=self.device)
-        wp.launch(self.k.weights, dim=shape[1:], inputs=[locations, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
-        return idx, w
+        return host_operator(self.k.weights, locations, [self.origin, self.inv_dx, self.top], shape, wp.vec2i, self.dtype, self.device)
 
     def record(self, st: State, data, op, n: int, clock=None):
         """data = (vx, vz, pressure) arrays (S, n_rec, nt): add sample n (+ clock[0]) through the receiver

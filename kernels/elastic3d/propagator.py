@@ -45,7 +45,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, unique_kernel
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, host_operator, unique_kernel
 from adseismic.kernels.elastic.propagator import cpml_axes
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 
@@ -57,20 +57,21 @@ POINTS = ((0.0, 0.0, 0.5, False), (0.0, 0.5, 0.0, False), (0.5, 0.0, 0.0, False)
           (0.0, 0.5, 0.5, False), (0.5, 0.0, 0.5, True), (0.5, 0.5, 0.0, True))  # fmt: skip
 
 
-def make_derivative(ns, axis: int, half_in: bool, mr: int, image: bool):
+def make_derivative(ns, axis: int, half_in: bool, mr: int, image: bool, even: bool = False):
     """d/d(axis) times dx with mr staggered weights of a field on half (half_in) or integer nodes of that axis, at the
-    other kind of node; image: the odd image above row `top` (z only, with a free surface)."""
+    other kind of node; image: the odd (even: the even) image above row `top` (z only, with a free surface)."""
     dtype, arr4, fs = ns.dtype, ns.arr4, ns.fs
     c = STAGGERED_DERIVATIVE[2 * mr]
     h = 1 if half_in else 0
     ez, ey, ex = int(axis == 0), int(axis == 1), int(axis == 2)
-    odd = bool(image and fs and axis == 0)
+    mirrored = bool(image and fs and axis == 0)
+    sign = 1.0 if even else -1.0
 
     @wp.func
     def read(f: arr4, s: int, z: int, y: int, x: int, top: int) -> dtype:
-        if wp.static(odd):
+        if wp.static(mirrored):
             if z < top:
-                return -f[s, 2 * top - wp.static(h) - z, y, x]
+                return dtype(wp.static(sign)) * f[s, 2 * top - wp.static(h) - z, y, x]
         return f[s, z, y, x]
 
     @wp.func
@@ -268,7 +269,7 @@ def _points(ns):
         idx[k, s, r, q] = i
         w[k, s, r, q] = wq
 
-    @unique_kernel
+    @unique_kernel(enable_backward=False)  # computed once per run, never differentiated (locations are fixed)
     def weights(loc: arr3, origin: wp.vec3i, inv_dx: dtype, top: int, idx: idx4, w: arr4):
         # node and weight of point q of location r (metres (z, y, x)) for each operator of POINTS (first index)
         s, r, q = wp.tid()
@@ -485,10 +486,7 @@ class Elastic3D:
         """The fixed operators of locations loc (S, n, 3) metres (z, y, x): (idx (8, S, n, points) vec3i, weights (8, S,
         n, points)) for the POINTS."""
         shape = (len(POINTS), *loc.shape[:2], self.k.operator_points)
-        idx = wp.zeros(shape, dtype=wp.vec3i, device=self.device)
-        w = wp.zeros(shape, dtype=self.dtype, device=self.device)
-        wp.launch(self.k.weights, dim=shape[1:], inputs=[loc, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
-        return idx, w
+        return host_operator(self.k.weights, loc, [self.origin, self.inv_dx, self.top], shape, wp.vec3i, self.dtype, self.device)
 
     def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
         """Advance st (level n) to level n + 1 with source sample n (force) or samples n and n + 1 (moment), + clock[0].

@@ -49,7 +49,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, unique_kernel
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, host_operator, unique_kernel
 from adseismic.kernels.elastic.propagator import build as elastic_build
 from adseismic.kernels.elastic.propagator import cpml_axes, make_point
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
@@ -117,6 +117,40 @@ def _derivatives(ns):
     return dp_dx, dp_dz, dvx_dx, dvz_dz
 
 
+def _velocity(ns):
+    """The 2D CPML memory update (cpml: d + psi written at a strip cell) and the lossless velocity half step v_new = v -
+    dt b grad p (velocity), shared with kernels/acoustic_vd."""
+    M, dtype, arr1, arr2, arr3, Axis = ns.M, ns.dtype, ns.arr1, ns.arr2, ns.arr3, ns.Axis
+    dp_dx, dp_dz = _derivatives(ns)[:2]
+
+    @wp.func
+    def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr3, new: arr3, s: int, row: int, col: int) -> dtype:
+        # d + psi, psi = b psi_old + a d stored at strip cell (row, col) (profile index i); d outside the strips (j < 0)
+        if j < 0:
+            return d
+        psi = b[i] * old[s, row, col] + a[i] * d
+        new[s, row, col] = psi
+        return d + psi
+
+    @unique_kernel
+    def velocity(
+        vx: arr3, vz: arr3, p: arr3, bx: arr2, bz: arr2, o_vx_x: arr3, o_vz_z: arr3, n_vx_x: arr3, n_vz_z: arr3,
+        vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        # v_new = v - dt b grad p at every interior velocity node
+        s, zi, xi = wp.tid()
+        z = zi + wp.static(M)
+        x = xi + wp.static(M)
+        jz = az.store[z]
+        jx = ax.store[x]
+        gx = cpml(dp_dx(p, s, z, x) * inv_dx, jx, x, ax.ah, ax.bh, o_vx_x, n_vx_x, s, z, jx)
+        gz = cpml(dp_dz(p, s, z, x, top) * inv_dx, jz, z, az.ah, az.bh, o_vz_z, n_vz_z, s, jz, x)
+        vx_new[s, z, x] = vx[s, z, x] - dt * bx[z, x] * gx
+        vz_new[s, z, x] = vz[s, z, x] - dt * bz[z, x] * gz
+
+    return cpml, velocity
+
+
 def _points(ns):
     """The sources' and receivers' kernels of build: the fixed operator's weights at the p, vx and vz nodes (make_point,
     folded across a free surface), the explosive source's injection into p, and the recording of p, vx and vz."""
@@ -126,7 +160,7 @@ def _points(ns):
     pt_vx = make_point(ns, hicks, 0.0, 0.5, True)
     pt_vz = make_point(ns, hicks, 0.5, 0.0, False)
 
-    @unique_kernel
+    @unique_kernel(enable_backward=False)  # computed once per run, never differentiated (locations are fixed)
     def weights(loc: arr3, origin: wp.vec2i, inv_dx: dtype, top: int, idx: idx4, w: arr4):
         # the operator of location r (metres (z, x)), computed once per run: node and weight of its point q for p, vx,
         # vz (first index)
@@ -195,32 +229,9 @@ def build(order: int, dtype, free_surface: bool, mechanisms: int):
         ah: wp.array(dtype=dtype)  # at half positions (index p stands for p + 1/2)
         bh: wp.array(dtype=dtype)
 
-    dp_dx, dp_dz, dvx_dx, dvz_dz = _derivatives(ns)
-
-    @wp.func
-    def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr3, new: arr3, s: int, row: int, col: int) -> dtype:
-        # d + psi, psi = b psi_old + a d stored at strip cell (row, col) (profile index i); d outside the strips (j < 0)
-        if j < 0:
-            return d
-        psi = b[i] * old[s, row, col] + a[i] * d
-        new[s, row, col] = psi
-        return d + psi
-
-    @unique_kernel
-    def velocity(
-        vx: arr3, vz: arr3, p: arr3, bx: arr2, bz: arr2, o_vx_x: arr3, o_vz_z: arr3, n_vx_x: arr3, n_vz_z: arr3,
-        vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
-    ):  # fmt: skip
-        # v_new = v - dt b grad p at every interior velocity node
-        s, zi, xi = wp.tid()
-        z = zi + wp.static(M)
-        x = xi + wp.static(M)
-        jz = az.store[z]
-        jx = ax.store[x]
-        gx = cpml(dp_dx(p, s, z, x) * inv_dx, jx, x, ax.ah, ax.bh, o_vx_x, n_vx_x, s, z, jx)
-        gz = cpml(dp_dz(p, s, z, x, top) * inv_dx, jz, z, az.ah, az.bh, o_vz_z, n_vz_z, s, jz, x)
-        vx_new[s, z, x] = vx[s, z, x] - dt * bx[z, x] * gx
-        vz_new[s, z, x] = vz[s, z, x] - dt * bz[z, x] * gz
+    ns.Axis, ns.arr1, ns.arr2 = Axis, arr1, arr2
+    dvx_dx, dvz_dz = _derivatives(ns)[2:]
+    cpml, velocity = _velocity(ns)
 
     @unique_kernel
     def pressure(
@@ -370,10 +381,7 @@ class Viscoacoustic:
         """The fixed operator of locations loc (S, n, 2) metres (z, x): (idx (3, S, n, points) vec2i, weights (3, S, n,
         points)) for p, vx, vz."""
         shape = (3, *loc.shape[:2], self.k.operator_points)
-        idx = wp.zeros(shape, dtype=wp.vec2i, device=self.device)
-        w = wp.zeros(shape, dtype=self.dtype, device=self.device)
-        wp.launch(self.k.weights, dim=shape[1:], inputs=[loc, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
-        return idx, w
+        return host_operator(self.k.weights, loc, [self.origin, self.inv_dx, self.top], shape, wp.vec2i, self.dtype, self.device)
 
     def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
         """Advance st (level n) to level n + 1 with the explosive sources' samples n and n + 1 (+ clock[0]); sources:

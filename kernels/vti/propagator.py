@@ -43,7 +43,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, unique_kernel
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, host_operator, unique_kernel
 from adseismic.kernels.elastic.propagator import cpml_axes, make_dx, make_dz, make_point
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 
@@ -159,7 +159,7 @@ def build(order: int, dtype, free_surface: bool):
     point_vz = make_point(ns, hicks, 0.5, 0.0, False)
     point_stress = make_point(ns, hicks, 0.0, 0.0, True)
 
-    @unique_kernel
+    @unique_kernel(enable_backward=False)  # computed once per run, never differentiated (locations are fixed)
     def weights(loc: arr3, origin: wp.vec2i, inv_dx: dtype, top: int, idx: idx4, w: arr4):
         # the fixed operator of locations loc (S, n, 2) m: node and weight of point q for vx, vz and the stresses
         s, r, q = wp.tid()
@@ -277,10 +277,7 @@ class VTI:
         """The fixed operator of points at locations (S, n, 2) m: node indices and weights (3, S, n, points) at the vx,
         vz and stress nodes (OPERATOR)."""
         shape = (len(OPERATOR), self.n_shots, locations.shape[1], self.k.operator_points)
-        idx = wp.zeros(shape, dtype=wp.vec2i, device=self.device)
-        w = wp.zeros(shape, dtype=self.dtype, device=self.device)
-        wp.launch(self.k.weights, dim=shape[1:], inputs=[locations, self.origin, self.inv_dx, self.top, idx, w], device=self.device)
-        return idx, w
+        return host_operator(self.k.weights, locations, [self.origin, self.inv_dx, self.top], shape, wp.vec2i, self.dtype, self.device)
 
     def record(self, st: State, data, op, n: int, clock=None):
         """data = (vx, vz, pressure) arrays (S, n_rec, levels): add sample n (+ clock[0]) through the receivers'

@@ -1,0 +1,340 @@
+"""Warp kernels for the variable-density acoustic wave equation in 2D and 3D: pressure-velocity on the standard
+staggered grid (Virieux 1986), the lossless case of kernels/viscoacoustic (whose 2D derivatives, velocity half step,
+CPML update and source/receiver kernels it imports) and, in 3D, on kernels/elastic3d's stencils and operators.
+
+Equations (axes (z, x) or (z, y, x), z down; b = 1/rho, K = rho vp^2):
+
+    dv/dt = -b grad p,      dp/dt = -K div v + dS/dt delta(x - x_s),
+
+S(t) the explosive source's isotropic moment (N m per metre of line in 2D, N m in 3D: the convention of
+kernels/viscoacoustic and kernels/elastic3d, so p in Pa is theirs for the same S).
+
+Staggering, positions in cells from padded node 0; the array index (i, [j,] k) of
+
+    p, vp, rho, K   (i, [j,] k)      vx (.., k + 1/2)      vy (i, j + 1/2, k)      vz (i + 1/2, ..)
+
+the buoyancy at a velocity node the arithmetic mean of 1/rho at its two neighbours. Staggered derivatives of order
+2/4/8 (numerics.STAGGERED_DERIVATIVE). Time (leapfrog): level n holds v at t = (n - 1/2) dt and p at t = n dt; a step
+is v^{n+1/2} = v^{n-1/2} - dt b grad p^n, then p^{n+1} = p^n - dt K div v^{n+1/2} + (S(t_{n+1}) - S(t_n)) w / dx^ndim.
+A recorded sample n of a velocity is v at t = (n - 1/2) dt, of p at t = n dt.
+
+Layout: fields (n_shots, Lz, [Ly,] Lx), models (Lz, [Ly,] Lx), every axis padded as [halo R][PML][grid][PML][halo R],
+R = order / 2 (no PML on top with a free surface), halo cells zero and never written. CPML (Komatitsch & Martin
+2007, kappa = 1; elastic.propagator.cpml_axes): one memory variable per spatial derivative (PSI[ndim]: "v<a>_<a>"
+for dp/da at the velocity v_a's nodes, "p_<a>" for dv_a/da at the p nodes), stored in strips along its axis.
+
+Free surface (pressure release), as kernels/viscoacoustic: p = 0 on the top row of p nodes (padded row `top`,
+physical z = 0); above it p is the odd and vz the even image of the field below, so every stencil keeps its full
+order. Sources and receivers: the Kaiser-windowed sinc operator (kernels/common.hicks_axis) at each field's staggered
+position, folded across a free surface (odd for p, vx, vy; even for vz); weights computed once per run (`weights`).
+
+Kernels, plain per-cell Warp kernels that Warp differentiates (Tape): `velocity`, `pressure` (a half step each, in
+place or out of place), `inject`, `record`, `weights`, `materials` (vp, rho -> MATERIALS), `pad_model`.
+"""
+
+import functools
+from types import SimpleNamespace
+
+import warp as wp
+
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, host_operator, unique_kernel
+from adseismic.kernels.elastic.propagator import build as elastic_build
+from adseismic.kernels.elastic.propagator import cpml_axes
+from adseismic.kernels.elastic3d.propagator import build as elastic3d_build
+from adseismic.kernels.elastic3d.propagator import make_cpml, make_derivative, make_point
+from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
+from adseismic.kernels.viscoacoustic.propagator import _derivatives, _points, _velocity
+
+# per ndim: the velocities, the CPML memory variables (name -> axis of its derivative and strips) of the velocity and
+# the pressure half steps, the materials (buoyancy at each velocity's nodes, K = rho vp^2 at the p nodes)
+VELOCITIES = {2: ("vx", "vz"), 3: ("vx", "vy", "vz")}
+PSI = {2: {"vx_x": 1, "vz_z": 0, "p_x": 1, "p_z": 0}, 3: {"vx_x": 2, "vy_y": 1, "vz_z": 0, "p_x": 2, "p_y": 1, "p_z": 0}}
+MATERIALS = {2: ("bx", "bz", "k"), 3: ("bx", "by", "bz", "k")}
+
+
+def _kernels_2d(ns):
+    """The 2D velocity (kernels/viscoacoustic's), pressure, materials and point kernels."""
+    M, fs, dtype, arr2, arr3, Axis = ns.M, ns.fs, ns.dtype, ns.arr2, ns.arr3, ns.Axis
+    cpml, velocity = _velocity(ns)
+    dvx_dx, dvz_dz = _derivatives(ns)[2:]
+
+    @unique_kernel
+    def pressure(vx: arr3, vz: arr3, p: arr3, k: arr2, o_p_x: arr3, o_p_z: arr3, n_p_x: arr3, n_p_z: arr3, p_new: arr3, az: Axis,
+                 ax: Axis, dt: dtype, inv_dx: dtype, top: int):  # fmt: skip
+        # p_new = p - dt K div v; 0 on a free surface's row
+        s, zi, xi = wp.tid()
+        z = zi + wp.static(M)
+        x = xi + wp.static(M)
+        jz = az.store[z]
+        jx = ax.store[x]
+        d = cpml(dvx_dx(vx, s, z, x) * inv_dx, jx, x, ax.a, ax.b, o_p_x, n_p_x, s, z, jx)
+        d = d + cpml(dvz_dz(vz, s, z, x, top) * inv_dx, jz, z, az.a, az.b, o_p_z, n_p_z, s, jz, x)
+        keep = dtype(1.0)
+        if wp.static(fs):
+            if z == top:
+                keep = dtype(0.0)
+        p_new[s, z, x] = keep * (p[s, z, x] - dt * k[z, x] * d)
+
+    @unique_kernel
+    def materials(vp: arr2, rho: arr2, bx: arr2, bz: arr2, k: arr2):
+        # MATERIALS at the interior nodes from the padded vp (m/s) and rho (kg/m^3)
+        zi, xi = wp.tid()
+        z = zi + wp.static(M)
+        x = xi + wp.static(M)
+        r = rho[z, x]
+        bx[z, x] = dtype(0.5) * (dtype(1.0) / r + dtype(1.0) / rho[z, x + 1])
+        bz[z, x] = dtype(0.5) * (dtype(1.0) / r + dtype(1.0) / rho[z + 1, x])
+        k[z, x] = r * vp[z, x] * vp[z, x]
+
+    weights, inject, record = _points(ns)
+    return dict(velocity=velocity, pressure=pressure, materials=materials, weights=weights, inject=inject, record=record,
+                pad_model=elastic_build(ns.order, dtype, fs).pad_model, operator_points=ns.W**2)  # fmt: skip
+
+
+def _field_kernels_3d(ns):
+    """The 3D velocity and pressure half steps."""
+    M, fs, dtype, arr3, arr4, Axis = ns.M, ns.fs, ns.dtype, ns.arr3, ns.arr4, ns.Axis
+    cz, cy, cx = (make_cpml(ns, a) for a in range(3))
+    dp_dx, dp_dy = make_derivative(ns, 2, False, M, False), make_derivative(ns, 1, False, M, False)
+    dp_dz = make_derivative(ns, 0, False, M, True)  # p: odd image above a free surface
+    dvx_dx, dvy_dy = make_derivative(ns, 2, True, M, False), make_derivative(ns, 1, True, M, False)
+    dvz_dz = make_derivative(ns, 0, True, M, True, even=True)  # vz: even image
+
+    @unique_kernel
+    def velocity(
+        vx: arr4, vy: arr4, vz: arr4, p: arr4, bx: arr3, by: arr3, bz: arr3, o_x: arr4, o_y: arr4, o_z: arr4, n_x: arr4, n_y: arr4,
+        n_z: arr4, vx_new: arr4, vy_new: arr4, vz_new: arr4, az: Axis, ay: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        # v_new = v - dt b grad p at every interior velocity node
+        t, zi, yi, xi = wp.tid()
+        z = zi + wp.static(M)
+        y = yi + wp.static(M)
+        x = xi + wp.static(M)
+        jz = az.store[z]
+        jy = ay.store[y]
+        jx = ax.store[x]
+        gx = cx(dp_dx(p, t, z, y, x, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, t, z, y, x)
+        gy = cy(dp_dy(p, t, z, y, x, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, t, z, y, x)
+        gz = cz(dp_dz(p, t, z, y, x, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, t, z, y, x)
+        vx_new[t, z, y, x] = vx[t, z, y, x] - dt * bx[z, y, x] * gx
+        vy_new[t, z, y, x] = vy[t, z, y, x] - dt * by[z, y, x] * gy
+        vz_new[t, z, y, x] = vz[t, z, y, x] - dt * bz[z, y, x] * gz
+
+    @unique_kernel
+    def pressure(
+        vx: arr4, vy: arr4, vz: arr4, p: arr4, k: arr3, o_x: arr4, o_y: arr4, o_z: arr4, n_x: arr4, n_y: arr4, n_z: arr4,
+        p_new: arr4, az: Axis, ay: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+    ):  # fmt: skip
+        # p_new = p - dt K div v; 0 on a free surface's row
+        t, zi, yi, xi = wp.tid()
+        z = zi + wp.static(M)
+        y = yi + wp.static(M)
+        x = xi + wp.static(M)
+        jz = az.store[z]
+        jy = ay.store[y]
+        jx = ax.store[x]
+        d = cx(dvx_dx(vx, t, z, y, x, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, t, z, y, x)
+        d += cy(dvy_dy(vy, t, z, y, x, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, t, z, y, x)
+        d += cz(dvz_dz(vz, t, z, y, x, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, t, z, y, x)
+        keep = dtype(1.0)
+        if wp.static(fs):
+            if z == top:
+                keep = dtype(0.0)
+        p_new[t, z, y, x] = keep * (p[t, z, y, x] - dt * k[z, y, x] * d)
+
+    return velocity, pressure
+
+
+def _kernels_3d(ns):
+    """The 3D field, materials and point kernels (operators of p, vx, vy, vz: elastic3d's make_point)."""
+    M, dtype, arr3, arr4, iarr1, idx4 = ns.M, ns.dtype, ns.arr3, ns.arr4, ns.iarr1, ns.idx4
+    velocity, pressure = _field_kernels_3d(ns)
+    hicks = hicks_axis(dtype)
+    pt_p, pt_vx = make_point(ns, hicks, 0.0, 0.0, 0.0, True), make_point(ns, hicks, 0.0, 0.0, 0.5, True)
+    pt_vy, pt_vz = make_point(ns, hicks, 0.0, 0.5, 0.0, True), make_point(ns, hicks, 0.5, 0.0, 0.0, False)
+
+    @unique_kernel
+    def materials(vp: arr3, rho: arr3, bx: arr3, by: arr3, bz: arr3, k: arr3):
+        # MATERIALS at the interior nodes from the padded vp (m/s) and rho (kg/m^3)
+        zi, yi, xi = wp.tid()
+        z = zi + wp.static(M)
+        y = yi + wp.static(M)
+        x = xi + wp.static(M)
+        b = dtype(1.0) / rho[z, y, x]
+        bx[z, y, x] = dtype(0.5) * (b + dtype(1.0) / rho[z, y, x + 1])
+        by[z, y, x] = dtype(0.5) * (b + dtype(1.0) / rho[z, y + 1, x])
+        bz[z, y, x] = dtype(0.5) * (b + dtype(1.0) / rho[z + 1, y, x])
+        k[z, y, x] = rho[z, y, x] * vp[z, y, x] * vp[z, y, x]
+
+    @unique_kernel(enable_backward=False)  # computed once per run, never differentiated (locations are fixed)
+    def weights(loc: arr3, origin: wp.vec3i, inv_dx: dtype, top: int, idx: idx4, w: arr4):
+        # node and weight of point q of location r (metres (z, y, x)) for p, vx, vy, vz (first index)
+        s, r, q = wp.tid()
+        i, wq = pt_p(loc, s, r, q, origin, inv_dx, top)
+        idx[0, s, r, q] = i
+        w[0, s, r, q] = wq
+        i, wq = pt_vx(loc, s, r, q, origin, inv_dx, top)
+        idx[1, s, r, q] = i
+        w[1, s, r, q] = wq
+        i, wq = pt_vy(loc, s, r, q, origin, inv_dx, top)
+        idx[2, s, r, q] = i
+        w[2, s, r, q] = wq
+        i, wq = pt_vz(loc, s, r, q, origin, inv_dx, top)
+        idx[3, s, r, q] = i
+        w[3, s, r, q] = wq
+
+    @unique_kernel
+    def inject(p: arr4, amp: arr3, idx: idx4, w: arr4, n: int, clock: iarr1, scale: dtype):
+        # p += (S(t_{n+1}) - S(t_n)) w / dx^3 (scale = 1 / dx^3) at the p operator's points; sample n + clock[0]
+        s, src, q = wp.tid()
+        t = n + clock[0]
+        wq = w[0, s, src, q]
+        if wq != dtype(0.0):
+            i = idx[0, s, src, q]
+            wp.atomic_add(p, s, i[0], i[1], i[2], scale * (amp[s, src, t + 1] - amp[s, src, t]) * wq)
+
+    @wp.func
+    def sample(f: arr4, s: int, i: wp.vec3i, w: dtype) -> dtype:
+        if w != dtype(0.0):
+            return w * f[s, i[0], i[1], i[2]]
+        return dtype(0.0)
+
+    @unique_kernel
+    def record(vx: arr4, vy: arr4, vz: arr4, p: arr4, d_vx: arr3, d_vy: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4, n: int,
+               clock: iarr1):  # fmt: skip
+        # sample n of each receiver's vx, vy, vz, p through its operators
+        s, r, q = wp.tid()
+        t = n + clock[0]
+        wp.atomic_add(d_p, s, r, t, sample(p, s, idx[0, s, r, q], w[0, s, r, q]))
+        wp.atomic_add(d_vx, s, r, t, sample(vx, s, idx[1, s, r, q], w[1, s, r, q]))
+        wp.atomic_add(d_vy, s, r, t, sample(vy, s, idx[2, s, r, q], w[2, s, r, q]))
+        wp.atomic_add(d_vz, s, r, t, sample(vz, s, idx[3, s, r, q], w[3, s, r, q]))
+
+    return dict(velocity=velocity, pressure=pressure, materials=materials, weights=weights, inject=inject, record=record,
+                pad_model=elastic3d_build(ns.order, dtype, ns.fs).pad_model, operator_points=ns.W**3)  # fmt: skip
+
+
+@functools.lru_cache(maxsize=None)
+def build(order: int, dtype, free_surface: bool, ndim: int):
+    """Kernels for one (order, dtype, free_surface, ndim), compiled once per process."""
+    M = order // 2
+
+    @wp.struct
+    class Axis:
+        store: wp.array(dtype=wp.int32)  # strip index per padded index, -1 outside the PML strips
+        a: wp.array(dtype=dtype)  # CPML a, b at integer positions
+        b: wp.array(dtype=dtype)
+        ah: wp.array(dtype=dtype)  # at half positions (index p stands for p + 1/2)
+        bh: wp.array(dtype=dtype)
+
+    ns = SimpleNamespace(order=order, M=M, C=STAGGERED_DERIVATIVE[order], HR=HICKS_RADIUS, W=2 * HICKS_RADIUS, fs=bool(free_surface),
+                         dtype=dtype, arr1=wp.array(dtype=dtype), arr2=wp.array2d(dtype=dtype), arr3=wp.array3d(dtype=dtype),
+                         arr4=wp.array4d(dtype=dtype), iarr1=wp.array(dtype=wp.int32),
+                         idx4=wp.array4d(dtype=wp.vec2i if ndim == 2 else wp.vec3i), Axis=Axis)  # fmt: skip
+    return Kernels(Axis=Axis, halo=M, **(_kernels_2d(ns) if ndim == 2 else _kernels_3d(ns)))
+
+
+class State:
+    """Fields at one time level n: the velocities (VELOCITIES[ndim], m/s) at t = (n - 1/2) dt and p (Pa) at t = n dt,
+    each (n_shots, Lz, [Ly,] Lx), and the CPML memory variables psi (dict, see PSI)."""
+
+    def __init__(self, v: dict, p, psi: dict):
+        self.v, self.p, self.psi = v, p, psi
+
+    def __getattr__(self, name):
+        v = self.__dict__["v"]
+        if name in v:
+            return v[name]
+        raise AttributeError(name)
+
+    def arrays(self):
+        return [*self.v.values(), self.p, *self.psi.values()]
+
+
+class AcousticVD:
+    """Launch helper: padded grid, CPML coefficients and one time step of the variable-density acoustic scheme.
+
+    shape: physical grid (nz, nx) or (nz, ny, nx); dx (m), dt (s); pml_width cells on every absorbing side (all, or
+    all but the top with free_surface); vmax: CPML reference speed (m/s). Locations passed to `operator` are metres
+    (z, [y,] x) from the physical node 0."""
+
+    def __init__(self, shape, dx, dt, order, n_shots, pml_width, pml_reflection, pml_frequency, vmax, free_surface=False,
+                 dtype=wp.float32, device="cpu"):  # fmt: skip
+        self.shape = tuple(int(n) for n in shape)
+        self.ndim = nd = len(self.shape)
+        self.dx, self.dt, self.order, self.n_shots = float(dx), float(dt), int(order), int(n_shots)
+        self.dtype, self.device, self.free_surface = dtype, device, bool(free_surface)
+        self.k = build(self.order, dtype, self.free_surface, nd)
+        R = self.k.halo
+        nb = int(pml_width)
+        lo = (0 if free_surface else nb, *(nb,) * (nd - 1))
+        self.padded = tuple(self.shape[a] + lo[a] + nb + 2 * R for a in range(nd))
+        self.origin = (wp.vec2i if nd == 2 else wp.vec3i)(*(R + n for n in lo))
+        self.top = R
+        self.axes, self.strip_width = cpml_axes(self.k.Axis, lo, nb, self.padded, R, dx, dt, vmax, pml_reflection, pml_frequency, dtype,
+                                                device)  # fmt: skip
+        self.interior = (self.n_shots, *(n - 2 * R for n in self.padded))
+        self.inv_dx = dtype(1.0 / dx)
+        self.dt_device = dtype(dt)
+        self.cuda = wp.get_device(device).is_cuda
+        self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
+
+    def psi_shape(self, name):
+        axis = PSI[self.ndim][name]
+        shape = [self.n_shots, *self.padded]
+        shape[axis + 1] = self.strip_width[axis]
+        return tuple(shape)
+
+    def new_state(self, requires_grad=False) -> State:
+        def zeros(shape):
+            return wp.zeros(shape, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+
+        full = (self.n_shots, *self.padded)
+        return State({v: zeros(full) for v in VELOCITIES[self.ndim]}, zeros(full), {k: zeros(self.psi_shape(k)) for k in PSI[self.ndim]})
+
+    def pad_model(self, m, requires_grad=False):
+        """Padded model (Lz, [Ly,] Lx) from a physical one (a wp.array of shape), extended by edge replication."""
+        out = wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+        wp.launch(self.k.pad_model, dim=self.padded, inputs=[m, out, self.origin], device=self.device)
+        return out
+
+    def materials(self, vp, rho, requires_grad=False):
+        """MATERIALS[ndim] (padded arrays, interior nodes set) from the padded vp (m/s) and rho (kg/m^3)."""
+        out = [wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS[self.ndim]]
+        wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, rho, *out], device=self.device)
+        return tuple(out)
+
+    def operator(self, loc: wp.array):
+        """The fixed operators of locations loc (S, n, ndim) metres: (idx (1 + ndim, S, n, points) vec2i | vec3i, weights
+        (1 + ndim, S, n, points)) for p and the velocities (VELOCITIES[ndim])."""
+        shape = (1 + self.ndim, *loc.shape[:2], self.k.operator_points)
+        return host_operator(self.k.weights, loc, [self.origin, self.inv_dx, self.top], shape, wp.vec2i if self.ndim == 2 else wp.vec3i,
+                             self.dtype, self.device)  # fmt: skip
+
+    def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
+        """Advance st (level n) to level n + 1 with the explosive sources' samples n and n + 1 (+ clock[0]); sources:
+        (amplitudes (S, n_src, >= n + 2), their operator (operator)) or None. mat: MATERIALS[ndim] (materials). With
+        out=None in place; else into out's arrays (st unchanged), as under a tape (each level its own arrays)."""
+        out = st if out is None else out
+        clock = self.clock if clock is None else clock
+        names = VELOCITIES[self.ndim]
+        vpsi = [f"{v}_{v[1]}" for v in names]
+        ppsi = [f"p_{v[1]}" for v in names]
+        common = [*self.axes, self.dt_device, self.inv_dx, self.top]
+        wp.launch(self.k.velocity, dim=self.interior, device=self.device,
+                  inputs=[*st.v.values(), st.p, *mat[:-1], *(st.psi[k] for k in vpsi), *(out.psi[k] for k in vpsi), *out.v.values(),
+                          *common])  # fmt: skip
+        wp.launch(self.k.pressure, dim=self.interior, device=self.device,
+                  inputs=[*out.v.values(), st.p, mat[-1], *(st.psi[k] for k in ppsi), *(out.psi[k] for k in ppsi), out.p, *common])
+        if sources is not None:
+            amplitudes, (idx, w) = sources
+            wp.launch(self.k.inject, dim=idx.shape[1:], inputs=[out.p, amplitudes, idx, w, n, clock, self.dtype(self.dx**-self.ndim)],
+                      device=self.device)  # fmt: skip
+        return out
+
+    def record(self, st: State, data, receiver_op, k: int, clock=None):
+        """Add sample k (+ clock[0]) of the receivers' velocities and p into data (VELOCITIES[ndim] then pressure,
+        arrays (S, n_rec, >= k + 1))."""
+        idx, w = receiver_op
+        clock = self.clock if clock is None else clock
+        wp.launch(self.k.record, dim=idx.shape[1:], inputs=[*st.v.values(), st.p, *data, idx, w, k, clock], device=self.device)
