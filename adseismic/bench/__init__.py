@@ -10,6 +10,13 @@ Scenes (../shared/docs/reference.md section 6; dx 10 m, dt 1 ms, Ricker 15 Hz, P
     E2000     elastic 2000 x 2000 (vp 2000, vs vp/1.8, rho 2200 kg/m^3), 1 shot, nt 500
     E600x16   elastic 600 x 600, 16 shots, nt 1000
 
+The physics family (issue 26; ``--physics``, or by name with --scenes; bench/physics.py: models, geometry, Deepwave's
+counterparts and the conventions aligned): VD1000 (variable-density acoustic), Q1000 (visco-acoustic), VTI1000
+(acoustic VTI), each 1000 x 1000, nt 1000, and E3D200 (3D elastic, 200^3, nt 500), 1 shot each (CUDA default); VD40,
+Q40, VTI40 (40 x 40) and E3D16 (16^3), nt 30 (the CPU default: a quick check). Beside the rates, a live Deepwave
+forward's receiver data are compared with ours (relative L2 difference and scale, a table of bench.md); without
+Deepwave the physics rows say "reference failed: not installed".
+
 Every scene runs "forward" (adseismic.forward) and "gradient" (forward + gradient: adseismic.gradient
 with respect to the velocity, default checkpointing). Rate = padded-grid cell updates per second:
 prod(n + 2 PML + order over the axes) x nt x shots / seconds, the unit of the Deepwave anchors.
@@ -64,6 +71,7 @@ from types import SimpleNamespace
 import numpy as np
 import yaml
 
+from adseismic.bench import physics
 from adseismic.data.atomic import write_text_atomic
 from adseismic.runs import EXIT_ERROR, EXIT_OK, CommandError, RunLog, version
 
@@ -75,7 +83,7 @@ ORDERS = (2, 4, 8)
 SUITES = ("scenes", "speed-accuracy", "all")
 EST_RATE = {"cpu": 2.5e7, "cuda": 3.0e10}  # forward cell updates/s for time estimates (as scene.EST_RATE)
 EST_GRADIENT_FACTOR = 4.0  # forward+gradient time / forward time (docs/benchmarks.md: 3.6)
-EST_ELASTIC_FACTOR = 3.0  # elastic cell update / acoustic cell update
+EST_KIND_FACTOR = {"elastic": 3.0, "elastic3d": 5.0, "viscoacoustic": 2.0, "vti": 1.5, "acoustic_vd": 1.3}  # cell update / acoustic's
 WORKER_MARK = "ADSEISMIC_BENCH_ROWS "  # prefix of the worker's result line on stdout
 
 
@@ -91,6 +99,8 @@ class SceneSpec:
     nt: int
     cpu_default: bool
     description: str
+    family: str = "standard"  # "standard" (the default selection, `--scenes all`) or "physics" (`--physics`, physics.py)
+    gpu_default: bool = True  # in the default selection of its family on a GPU
 
 
 SCENES = {s.name: s for s in (
@@ -101,6 +111,14 @@ SCENES = {s.name: s for s in (
     SceneSpec("S3D400", "acoustic", (400, 400, 400), 1, 500, False, "400^3 two-layer 3D, 1 shot"),
     SceneSpec("E2000", "elastic", (2000, 2000), 1, 500, False, "elastic 2000x2000, 1 shot"),
     SceneSpec("E600x16", "elastic", (600, 600), 16, 1000, False, "elastic 600x600, 16 shots"),
+    SceneSpec("VD1000", "acoustic_vd", (1000, 1000), 1, 1000, False, "variable-density acoustic 1000x1000", "physics"),
+    SceneSpec("Q1000", "viscoacoustic", (1000, 1000), 1, 1000, False, "visco-acoustic 1000x1000", "physics"),
+    SceneSpec("VTI1000", "vti", (1000, 1000), 1, 1000, False, "acoustic VTI 1000x1000", "physics"),
+    SceneSpec("E3D200", "elastic3d", (200, 200, 200), 1, 500, False, "elastic 3D 200^3", "physics"),
+    SceneSpec("VD40", "acoustic_vd", (40, 40), 1, 30, True, "variable-density acoustic 40x40 (CPU test)", "physics", False),
+    SceneSpec("Q40", "viscoacoustic", (40, 40), 1, 30, True, "visco-acoustic 40x40 (CPU test)", "physics", False),
+    SceneSpec("VTI40", "vti", (40, 40), 1, 30, True, "acoustic VTI 40x40 (CPU test)", "physics", False),
+    SceneSpec("E3D16", "elastic3d", (16, 16, 16), 1, 30, True, "elastic 3D 16^3 (CPU test)", "physics", False),
 )}  # fmt: skip
 
 
@@ -153,7 +171,7 @@ def padded_cells(spec: SceneSpec, order: int) -> int:
 
 def estimate_seconds(spec: SceneSpec, nt: int, device: str, modes, repeat: int) -> float:
     """Rough wall time of one scene on a device (all modes, repeats and a warm-up), from EST_RATE."""
-    rate = EST_RATE[device_kind(device)] / (EST_ELASTIC_FACTOR if spec.kind == "elastic" else 1.0)
+    rate = EST_RATE[device_kind(device)] / EST_KIND_FACTOR.get(spec.kind, 1.0)
     once = padded_cells(spec, 4) * nt * spec.shots / rate
     per_mode = {"forward": 1.0, "gradient": EST_GRADIENT_FACTOR}
     return once * (repeat * sum(per_mode[m] for m in modes) + 1)  # + 1: the untimed forward a gradient needs
@@ -182,6 +200,9 @@ def build_arrays(spec: SceneSpec, nt: int | None = None) -> SceneArrays:
 
     nt = spec.nt if nt is None else int(nt)
     shape, shots = spec.shape, spec.shots
+    amp = np.broadcast_to(ricker(PEAK_FREQUENCY, nt, DT), (shots, 1, nt)).copy()
+    if spec.family == "physics":  # on-node sources and receivers (bench/physics.py)
+        return SceneArrays(spec, nt, *physics.scene(spec.kind, shape, DX), amp)
     nx = shape[-1]
     if spec.kind == "acoustic":
         v = np.full(shape, 1500.0)
@@ -195,13 +216,13 @@ def build_arrays(spec: SceneSpec, nt: int | None = None) -> SceneArrays:
     mid = [(shape[1] - 1) * DX / 2] if len(shape) == 3 else []
     src = np.array([[[20.0, *mid, x]] for x in xs])
     rec = np.broadcast_to(np.array([[20.0, *mid, x] for x in xr]), (shots, len(xr), len(shape))).copy()
-    amp = np.broadcast_to(ricker(PEAK_FREQUENCY, nt, DT), (shots, 1, nt)).copy()
     return SceneArrays(spec, nt, model, src, rec, amp)
 
 
 def small_version(spec: SceneSpec) -> SceneSpec:
-    """A 40-cell, 1-shot, 20-step scene of the same kind and dimension (kernel compile warm-up)."""
-    return SceneSpec(spec.name + "-warmup", spec.kind, (40,) * len(spec.shape), 1, 20, True, "warm-up")
+    """A 1-shot scene of the same kind and dimension, at most 40 cells an axis and 20 steps (kernel compile warm-up)."""
+    return SceneSpec(spec.name + "-warmup", spec.kind, tuple(min(40, n) for n in spec.shape), 1, min(20, spec.nt), True, "warm-up",
+                     spec.family)  # fmt: skip
 
 
 # --------------------------------------------------------------------------------- engines
@@ -234,13 +255,33 @@ def run_acoustic(mode: str, a: SceneArrays, device: str, order: int, memory_budg
 
 
 def run_deepwave(mode: str, a: SceneArrays, device: str, order: int):
-    """The same scene through Deepwave (scalar or elastic), returning a callable that runs it once
-    (forward, or forward + backward of the summed squared receiver data) and synchronises."""
-    import deepwave
+    """The same scene through Deepwave (scalar or elastic; a physics scene's counterpart, physics_reference),
+    returning a callable that runs it once (forward, or forward + backward of the summed squared receiver data) and
+    synchronises."""
     import torch
 
     dev = torch.device(device)
     grad = mode == "gradient"
+    if a.spec.family == "physics":
+        call = physics_reference(a, device, order, grad)
+    else:
+        call = _standard_reference(a, dev, order, grad)
+
+    def once():
+        out = call()
+        if grad:
+            sum((o**2).sum() for o in out).backward()
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+
+    return once
+
+
+def _standard_reference(a: SceneArrays, dev, order: int, grad: bool):
+    """Deepwave's scalar (acoustic scenes) or 2D elastic run of a standard scene on torch device dev: a callable
+    returning its receiver tensors, the models requiring grad when `grad`."""
+    import deepwave
+    import torch
 
     def tensor(x, requires_grad=False):
         return torch.tensor(np.asarray(x), dtype=torch.float32, device=dev, requires_grad=requires_grad)
@@ -262,15 +303,13 @@ def run_deepwave(mode: str, a: SceneArrays, device: str, order: int):
             lamb, mu, buoyancy = deepwave.common.vpvsrho_to_lambmubuoyancy(vp, vs, rho)
             return deepwave.elastic(lamb, mu, buoyancy, DX, DT, source_amplitudes_y=amp, source_locations_y=src,
                                     receiver_locations_y=rec, accuracy=order, pml_width=PML)[-3:]
+    return call
 
-    def once():
-        out = call()
-        if grad:
-            sum((o**2).sum() for o in out).backward()
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
 
-    return once
+def physics_reference(a: SceneArrays, device: str, order: int, grad: bool):
+    """Deepwave's counterpart of a physics scene (physics.deepwave_call): a callable returning (receiver tensor,)."""
+    return physics.deepwave_call(a.spec.kind, grad, a.model, DX, DT, a.amplitudes, a.sources, a.receivers, device=device,
+                                 order=order, pml_width=PML, f_peak=PEAK_FREQUENCY)  # fmt: skip
 
 
 def deepwave_available() -> bool:
@@ -291,7 +330,9 @@ class BenchRow:
     """One (scene, engine, device, mode) measurement. seconds: best of ``times`` (s); rate: padded
     cell updates per second; rate_per_core: cell updates per CPU-second (CPU only); peaks in bytes;
     peak_estimate_bytes: the gradient's own model of its peak (adseismic only); status "ok",
-    "skipped: why", "failed: why" (ours) or "reference failed: why" (a Deepwave row)."""
+    "skipped: why", "failed: why" (ours) or "reference failed: why" (a Deepwave row). A physics scene's Deepwave
+    forward row: reference_l2, the relative L2 difference of our receiver data from Deepwave's, and reference_scale,
+    the least-squares a of ours ~ a Deepwave (physics.difference), or reference_note why they are missing."""
 
     scene: str
     kind: str
@@ -317,6 +358,9 @@ class BenchRow:
     memory_scope: str = ""
     peak_estimate_bytes: int | None = None
     segments: str = ""
+    reference_l2: float | None = None
+    reference_scale: float | None = None
+    reference_note: str = ""
 
     @property
     def ok(self) -> bool:
@@ -410,6 +454,10 @@ def run_job(job: BenchJob, emit=None) -> list[BenchRow]:
     rows = []
 
     def engine(mode, a, observed=None, segment_length=None):
+        if spec.family == "physics":
+            return physics.run_ours(spec.kind, mode, a.model, DX, DT, a.amplitudes, a.sources, a.receivers, device=device,
+                                    order=job.order, pml_width=PML, f_peak=PEAK_FREQUENCY, memory_budget=job.memory_budget,
+                                    observed=observed, segment_length=segment_length)  # fmt: skip
         if spec.kind == "elastic":
             return run_elastic(mode, a, device, job.order, job.memory_budget, observed)
         return run_acoustic(mode, a, device, job.order, job.memory_budget, observed, segment_length)
@@ -429,7 +477,7 @@ def run_job(job: BenchJob, emit=None) -> list[BenchRow]:
     except Exception as exc:  # a broken engine fails its rows, not the whole benchmark
         rows = [BenchRow(engine="adseismic", mode=m, status=_failure(exc), **base) for m in job.modes]
         return rows + (_deepwave_rows_guarded(job, a, base, emit, rows) if job.deepwave else [])
-    observed = None
+    observed = traces = None  # traces: our forward's receiver data of a physics scene (the accuracy against Deepwave)
     for mode in job.modes:
         row = BenchRow(engine="adseismic", mode=mode, memory_scope=job.memory_scope, **base)
         rows.append(row)
@@ -443,6 +491,7 @@ def run_job(job: BenchJob, emit=None) -> list[BenchRow]:
             continue
         if mode == "forward":
             observed = np.zeros(out.receiver_amplitudes.shape)
+            traces = out.receiver_amplitudes if spec.family == "physics" else None
         else:
             est = getattr(out, "peak_bytes_estimate", None)
             row.peak_estimate_bytes = int(est) if est else None
@@ -456,19 +505,63 @@ def run_job(job: BenchJob, emit=None) -> list[BenchRow]:
         row.device_memory_source = "Warp CUDA mempool high-water mark" if row.peak_device_bytes is not None else ""
         log.info("%s %s on %s: %.3f s, %.3g cell updates/s", spec.name, mode, device, row.seconds, row.rate)
     if job.deepwave:
-        rows += _deepwave_rows_guarded(job, a, base, emit, rows)
+        rows += _deepwave_rows_guarded(job, a, base, emit, rows, traces)
     return rows
 
 
-def _deepwave_rows_guarded(job, a, base, emit, ours) -> list[BenchRow]:
-    """run_deepwave_rows after emitting ours; whatever goes wrong becomes "reference failed" rows."""
+def _deepwave_rows_guarded(job, a, base, emit, ours, traces=None) -> list[BenchRow]:
+    """run_deepwave_rows after emitting ours; whatever goes wrong becomes "reference failed" rows (Deepwave not
+    installed: "reference failed: not installed"). traces: our forward's receiver data of a physics scene, compared
+    with Deepwave's (reference_accuracy)."""
     if emit is not None:
         emit(ours)
+
+    def failed(status):
+        return [BenchRow(engine="deepwave", mode=m, memory_scope=job.memory_scope, status=status, **base) for m in job.modes]
+
+    if not deepwave_available():
+        return failed(f"{REFERENCE_FAILED}: not installed")
+    _release_warp_pool(job.device)
     try:
-        return run_deepwave_rows(job, a, base)
+        rows = run_deepwave_rows(job, a, base)
     except Exception as exc:  # e.g. torch missing or broken: the reference failed, not us
-        return [BenchRow(engine="deepwave", mode=m, memory_scope=job.memory_scope, status=_reference_failure(exc), **base)
-                for m in job.modes]  # fmt: skip
+        return failed(_reference_failure(exc))
+    forward = next((r for r in rows if r.mode == "forward" and r.ok), None)
+    if traces is not None and forward is not None:
+        reference_accuracy(forward, a, job, traces)
+    return rows
+
+
+def _release_warp_pool(device: str) -> None:
+    """Hand the memory Warp's CUDA mempool keeps from our freed arrays back to the driver (release threshold 0 for
+    one synchronisation, then restored), so that Deepwave's torch allocator can have it."""
+    if device_kind(device) != "cuda":
+        return
+    import gc
+
+    import warp as wp
+
+    gc.collect()
+    try:
+        old = wp.get_mempool_release_threshold(device)
+        wp.set_mempool_release_threshold(device, 0)
+        wp.synchronize_device(device)
+        wp.set_mempool_release_threshold(device, old)
+    except (RuntimeError, ValueError):  # no mempool on this device: nothing kept
+        pass
+
+
+def reference_accuracy(row: BenchRow, a: SceneArrays, job: BenchJob, traces) -> None:
+    """Fill row.reference_l2 and reference_scale: our forward's receiver data of a physics scene against one more
+    forward of Deepwave's (physics.difference); a failure is noted in row.reference_note, the timing row stays ok."""
+    try:
+        (out,) = physics_reference(a, job.device, job.order, False)()
+        row.reference_l2, row.reference_scale = physics.difference(traces, out.detach().cpu().numpy())
+        if row.reference_l2 is None:
+            row.reference_note = "our receiver data are all zero"
+    except Exception as exc:  # the comparison failed, not the timing
+        row.reference_note = _failure(exc, "comparison failed")
+        log.warning("%s on %s: %s", a.spec.name, job.device, row.reference_note)
 
 
 def run_deepwave_rows(job: BenchJob, a: SceneArrays, base: dict) -> list[BenchRow]:
@@ -662,6 +755,7 @@ def markdown(rows, machine: dict) -> str:
                   "|---|---|---|---|---|---|---|---|"]  # fmt: skip
         lines += [f"| {r.scene} | {r.device} | {r.mode} | {'' if r.seconds is None else f'{r.seconds:.3f}'} | {_g(r.rate)} | "
                   f"{_g(r.rate_per_core)} | {_gb(r.peak_device_bytes)} | {r.status.replace('|', '/')} |" for r in live]  # fmt: skip
+    lines += physics_accuracy_lines(rows)
     scopes = sorted({r.memory_scope for r in rows if r.memory_scope})
     lines += [
         "",
@@ -672,6 +766,25 @@ def markdown(rows, machine: dict) -> str:
         f"The CPU anchors used {ANCHOR_CPU_CORES} cores: divide them by {ANCHOR_CPU_CORES} to compare with our per-core rate.",
     ]  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+def physics_accuracy_lines(rows) -> list[str]:
+    """The bench.md table of the physics scenes' accuracy against Deepwave (none without physics scenes)."""
+    ours = [r for r in rows if r.engine == "adseismic" and r.mode == "forward" and r.kind in physics.KINDS]
+    if not ours:
+        return []
+    lines = ["", "Physics family against Deepwave (same grid, steps, order, PML, source and receivers; bench/physics.py says",
+             "what is aligned and what differs): relative L2 difference of our receiver data from Deepwave's, and the",
+             "least-squares scale a of ours ~ a Deepwave (1 when the conventions are aligned).", "",
+             "| scene | physics | device | recorded | rel. L2 difference | scale a | note |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for r in ours:
+        live = next((d for d in rows if d.engine == "deepwave" and (d.scene, d.mode, d.device, d.order, d.nt)
+                     == (r.scene, r.mode, r.device, r.order, r.nt)), None)  # fmt: skip
+        l2 = "" if live is None or live.reference_l2 is None else f"{live.reference_l2:.3g}"
+        scale = "" if live is None or live.reference_scale is None else f"{live.reference_scale:.4g}"
+        note = "Deepwave not run (--no-deepwave)" if live is None else (live.reference_note or ("" if live.ok else live.status))
+        lines.append(f"| {r.scene} | {r.kind} | {r.device} | {physics.COMPONENT[r.kind]} | {l2} | {scale} | {note.replace('|', '/')} |")
+    return lines
 
 
 def plot_bench(path, rows) -> pathlib.Path:
@@ -729,8 +842,11 @@ def register(p: argparse.ArgumentParser) -> None:
     """Options of ``adseismic bench``."""
     p.add_argument("--device", nargs="+", default=["cpu"], help="devices to run on, e.g. cpu cuda:0 (default: cpu)")
     p.add_argument("--scenes", nargs="+", metavar="NAME",
-                   help=f"scenes ({', '.join(SCENES)}, or all); default: all on CUDA, "
-                        f"{', '.join(s for s in SCENES if SCENES[s].cpu_default)} on the CPU")
+                   help=f"scenes ({', '.join(SCENES)}, or all: the standard ones); default: the standard ones on CUDA, "
+                        f"{', '.join(s for s in SCENES if SCENES[s].cpu_default and SCENES[s].family == 'standard')} on the CPU")
+    p.add_argument("--physics", action="store_true",
+                   help=f"the physics family instead of the standard scenes (issue 26, beside Deepwave): "
+                        f"{', '.join(_family('physics', 'cuda'))} on CUDA, {', '.join(_family('physics', 'cpu'))} (tiny) on the CPU")
     p.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES), help="forward and/or gradient (forward + gradient)")
     p.add_argument("--order", type=int, choices=ORDERS, default=4, help="spatial order of every scene (default 4)")
     p.add_argument("--steps", type=int, metavar="N", help="shorten every scene to at most N time steps (quick run; reported)")
@@ -761,6 +877,13 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar, log only warnings to stderr")
 
 
+def _family(family: str, kind: str | None) -> list[str]:
+    """The scenes of a family ("standard", "physics") in the default selection of a device kind ("cpu", "cuda";
+    None: every scene of the family)."""
+    return [s for s, spec in SCENES.items() if spec.family == family and
+            (kind is None or (spec.cpu_default if kind == "cpu" else spec.gpu_default))]  # fmt: skip
+
+
 def _check_args(args) -> tuple[list[str], dict]:
     """Validate before anything runs or is written: (resolved devices, {device: [BenchJob]})."""
     from adseismic.solve.common import resolve_device
@@ -788,7 +911,9 @@ def _check_args(args) -> tuple[list[str], dict]:
         raise CommandError(f"--sweep-cfl: {bad_cfl[0]:g} is not a fraction of the CFL limit in (0, 1]; e.g. 0.9 0.4")
     names = args.scenes
     if names is not None and "all" in names:
-        names = list(SCENES)
+        names = _family("standard", None)
+    if names is not None and getattr(args, "physics", False):
+        raise CommandError(f"--physics: give it or --scenes {' '.join(args.scenes)}, not both (name physics scenes with --scenes)")
     unknown = [n for n in names or [] if n not in SCENES]
     if unknown:
         raise CommandError(f"--scenes: unknown scene {unknown[0]!r}; choose from {', '.join(SCENES)} (or all)")
@@ -798,7 +923,7 @@ def _check_args(args) -> tuple[list[str], dict]:
     for dev in devices if args.suite != "speed-accuracy" else []:
         kind = device_kind(dev)
         repeat = args.repeat or (3 if kind == "cuda" else 1)
-        chosen = names if names is not None else [s for s in SCENES if kind == "cuda" or SCENES[s].cpu_default]
+        chosen = names if names is not None else _family("physics" if getattr(args, "physics", False) else "standard", kind)
         jobs[dev] = []
         for s in dict.fromkeys(chosen):
             spec = SCENES[s]
@@ -813,7 +938,8 @@ def _check_args(args) -> tuple[list[str], dict]:
                     f"{'--cpu-steps' if kind == 'cpu' else '--steps'} {fit} "
                     f"(rates stay comparable), raise --max-minutes, or drop the scene")  # fmt: skip
             scope = "process-wide high-water mark (--in-process)" if args.in_process else "scene (own process)"
-            jobs[dev].append(BenchJob(s, dev, tuple(args.modes), args.order, nt, repeat, budget, deepwave, scope))
+            reference = deepwave or (spec.family == "physics" and not args.no_deepwave)  # physics: "not installed" rows
+            jobs[dev].append(BenchJob(s, dev, tuple(args.modes), args.order, nt, repeat, budget, reference, scope))
     return devices, jobs
 
 
