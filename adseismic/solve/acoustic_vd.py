@@ -76,29 +76,12 @@ class AcousticVDSetup(StaggeredSetup):
 
     physics = DESCRIPTION
 
-    def model(self, on_tape=False):
-        """The padded model's MATERIALS (kernels/acoustic_vd); differentiable under a tape."""
-        return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape)
-
-    def sources_of(self, amplitudes, fixed=True):
-        return (amplitudes, self.source_op)
-
     def fields(self, st):
         return (st.p,)
-
-    def key(self):
-        p = self.prop
-        return ("acoustic_vd", p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, self.nt, self.amplitudes.shape,
-                self.receivers.shape)  # fmt: skip
 
     def loop_kernels(self):
         k = self.prop.k
         return [k.velocity, k.pressure, k.inject, k.record]
-
-    def inputs(self, src):
-        """The arrays a kept loop copies from a later setup: CPML coefficients and the sources' and receivers'
-        operators."""
-        return [*(getattr(ax, f) for ax in self.prop.axes for f in ("a", "b", "ah", "bh")), *src[1], *self.receiver_op]
 
 
 def setup_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4, pml_width=None,

@@ -102,10 +102,6 @@ class Elastic3DSetup(StaggeredSetup):
     physics = DESCRIPTION
     data_components = COMPONENTS  # in new_data's order
 
-    def model(self, on_tape=False):
-        """The padded model's MATERIALS (kernels/elastic3d); differentiable under a tape."""
-        return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape)
-
     def sources_of(self, amplitudes, fixed=True):
         return (self.kind, amplitudes, self.components, self.source_op)
 
@@ -113,19 +109,15 @@ class Elastic3DSetup(StaggeredSetup):
         return (st.vx, st.vy, st.vz)
 
     def key(self):
-        p = self.prop
-        return ("elastic3d", p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, self.nt, self.amplitudes.shape,
-                self.receivers.shape, self.kind)  # fmt: skip
+        return (*super().key(), self.kind)
 
     def loop_kernels(self):
         k = self.prop.k
         return [k.velocity, k.stress, k.record, k.inject_force if self.kind == "force" else k.inject_moment]
 
     def inputs(self, src):
-        """The arrays a kept loop copies from a later setup: CPML coefficients, the sources' components and the sources'
-        and receivers' operators."""
-        p = self.prop
-        return [*(getattr(ax, f) for ax in p.axes for f in ("a", "b", "ah", "bh")), self.components, *src[3], *self.receiver_op]
+        """StaggeredSetup.inputs and the sources' components."""
+        return [self.components, *super().inputs(src)]
 
 
 def setup_elastic3d(vp, vs, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, source_type="force",

@@ -1,6 +1,6 @@
-"""What the staggered velocity-stress physics (elastic, vti, viscoacoustic) share: the receivers' components, the
-verbs of the shared time loop (solve/loop.py) that do not depend on the physics, and (vti, viscoacoustic) the taped
-checkpointed gradient with its misfit."""
+"""What the staggered physics (vti, viscoacoustic, acoustic_vd, elastic3d; 2D elastic for COMPONENTS) share: the
+receivers' components, the verbs of the shared time loop (solve/loop.py) that do not depend on the physics, and the
+taped checkpointed gradient with its misfit."""
 
 import math
 
@@ -15,13 +15,34 @@ COMPONENTS = ("vx", "vz", "pressure")  # the order of the data arrays new_data g
 
 
 class StaggeredSetup:
-    """Mixin of the loop verbs common to the staggered physics' Setups. A Setup provides prop (its launch helper:
-    new_state, step(st, mat, sources, n, out, clock), record(st, data, receiver_op, k, clock)), receivers (S, n, 2)
-    and receiver_op, and the physics' own verbs: model, sources_of, fields, key, loop_kernels, inputs."""
+    """Mixin of the loop verbs common to the staggered physics' Setups. A Setup provides physics (its DESCRIPTION),
+    prop (its launch helper: k (the kernels), axes (the CPML coefficients), new_state, materials, pad_model, step(st,
+    mat, sources, n, out, clock), record(st, data, receiver_op, k, clock)), nt, models (physical wp.arrays),
+    amplitudes, receivers (S, n, ndim), source_op and receiver_op, and the physics' own verbs: fields and
+    loop_kernels; model, sources_of, key and inputs below serve an explosive-source physics whose materials come
+    from its padded models, and are overridden where a physics differs."""
 
     data_components = COMPONENTS  # the receivers' components in new_data's order (elastic3d: vx, vy, vz, pressure)
     period = 2  # a captured loop steps into a second state and back
     lookahead = 1  # a step reads source sample n + 1
+
+    def model(self, on_tape=False):
+        """The padded model's materials (prop.materials of each padded model); differentiable under a tape."""
+        return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape)
+
+    def sources_of(self, amplitudes, fixed=True):
+        return (amplitudes, self.source_op)
+
+    def key(self):
+        """What a kept loop must match: the physics, its kernels, grid, time step, steps, shots, sources, receivers."""
+        p = self.prop
+        return (self.physics.name, p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, self.nt, self.amplitudes.shape,
+                self.receivers.shape)  # fmt: skip
+
+    def inputs(self, src):
+        """The arrays a kept loop copies from a later setup: the CPML coefficients and the sources' (src: sources_of's,
+        the operator last) and receivers' operators."""
+        return [*(getattr(ax, f) for ax in self.prop.axes for f in ("a", "b", "ah", "bh")), *src[-1], *self.receiver_op]
 
     def fill_model(self, mat):
         for a, b in zip(mat, self.model()):

@@ -101,30 +101,16 @@ class ViscoacousticSetup(StaggeredSetup):
 
     physics = DESCRIPTION
 
-    def model(self, on_tape=False):
-        """The padded model's MATERIALS (kernels/viscoacoustic); differentiable under a tape."""
-        return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape)
-
-    def sources_of(self, amplitudes, fixed=True):
-        return (amplitudes, self.source_op)
-
     def fields(self, st):
         return (st.p,)
-
-    def key(self):
-        p = self.prop
-        return ("viscoacoustic", p.k, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, self.nt, self.amplitudes.shape,
-                self.receivers.shape)  # fmt: skip
 
     def loop_kernels(self):
         k = self.prop.k
         return [k.velocity, k.pressure, k.inject, k.record]
 
     def inputs(self, src):
-        """The arrays a kept loop copies from a later setup: CPML coefficients, the mechanisms' constants and the
-        sources' and receivers' operators."""
-        p = self.prop
-        return [*(getattr(ax, f) for ax in p.axes for f in ("a", "b", "ah", "bh")), p.c1, p.c2, *src[1], *self.receiver_op]
+        """StaggeredSetup.inputs and the mechanisms' constants."""
+        return [self.prop.c1, self.prop.c2, *super().inputs(src)]
 
 
 def setup_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, q_band=None, f_ref=None,

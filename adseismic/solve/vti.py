@@ -96,24 +96,12 @@ class VTISetup(StaggeredSetup):
         """The padded MATERIALS (kernels/vti); differentiable under a tape."""
         return self.prop.materials(*self.models, requires_grad=on_tape)
 
-    def sources_of(self, amplitudes, fixed=True):
-        return (amplitudes, self.source_op)
-
     def fields(self, st):
         return (st.vx, st.vz)
-
-    def key(self):
-        p = self.prop
-        return ("vti", p.order, p.free_surface, p.shape, p.padded, p.dx, p.dt, p.n_shots, p.device, p.dtype, self.nt,
-                self.amplitudes.shape, self.receivers.shape)  # fmt: skip
 
     def loop_kernels(self):
         k = self.prop.k
         return [k.velocity, k.stress, k.inject, k.record]
-
-    def inputs(self, src):
-        """The arrays a kept loop copies from a later setup: CPML coefficients and the receivers' and sources' operators."""
-        return [getattr(ax, f) for ax in self.prop.axes for f in ("a", "b", "ah", "bh")] + [*self.receiver_op, *src[1]]
 
 
 def setup_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4,
