@@ -43,7 +43,7 @@ class ImagingConfig:
 class ImageConfig:
     """An imaging run: ``forward.model`` is the migration model (smoothed by image.smoothing into the background);
     the data come from ``true_model`` (simulated) or ``observed`` (files, as fwi reads them); ``parallel``: acoustic
-    RTM's shots over workers (config.parallel), None: one process."""
+    RTM's and LSRTM's shots over workers (config.parallel; imaging.run.PooledBorn), None: one process."""
 
     forward: ForwardConfig
     image: ImagingConfig = field(default_factory=ImagingConfig)
@@ -88,9 +88,6 @@ def parse_image_config(raw: dict, base_dir: Path | str | None = None, path: Path
                           "the migration background's travel times do not depend on the density); use physics: acoustic "
                           "with model: the vp spec (or physics: elastic)")
     image = _parse_image(raw.get("image"), physics)
-    if raw.get("parallel") is not None and image.method == "lsrtm":
-        raise ConfigError("parallel: given with image.method lsrtm; LSRTM's Born simulations run in one process (only "
-                          "RTM is spread over workers yet): drop the parallel section, or use method: rtm")
     fwi = parse_fwi_config({k: v for k, v in raw.items() if k != "image"}, base_dir=base_dir, path=path)
     if getattr(fwi, "network", None) is not None:
         raise ConfigError("model.kind: nn is a parameterisation for fwi; an image needs the migration model itself: give "

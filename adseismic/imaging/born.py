@@ -83,8 +83,7 @@ class ImageResult:
     the reflection data. raw: B^T r before any filter (rtm) or the first CG direction's image (lsrtm).
     illumination: sum over time and shots of the background wavefield squared (source illumination; units of
     u^2), or None. residual_norms: ||r_k|| of the data residual (data units), k = 0 before any update (rtm: only
-    ||r_0||). residual: the reflection data r_0 = d_obs - F(v0) (n_shots, n_receivers, nt); None for an RTM over
-    workers (imaging.run.rtm_on_workers: the data stay there)."""
+    ||r_0||). residual: the reflection data r_0 = d_obs - F(v0) (n_shots, n_receivers, nt)."""
 
     method: str
     image: np.ndarray

@@ -15,8 +15,8 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -142,25 +142,58 @@ def rtm_elastic(cfg, prep: PreparedImage, observed: dict) -> ImageResult:
     return ImageResult("rtm", image, raw, None, [float(np.linalg.norm(r))], r)
 
 
-def rtm_on_workers(cfg, prep: PreparedImage, observed: np.ndarray, progress: bool = False) -> ImageResult:
-    """Acoustic RTM with one shot per task over the workers of cfg.parallel (solve.pools): B^T r is minus the "l2"
-    gradient of the shots (solve.distributed.batch_gradient, fwi's task: 1/2 |F(v0) - d_obs|^2 dt) over dt, summed in
-    shot order, so the image is the one-process image to rounding. ImageResult.residual is None (the reflection data
-    stay on the workers); residual_norms [|r|] from the misfit."""
-    p, s, im = prep.plan, prep.scene, cfg.image
-    op = born_operator(prep)
-    kw = {k: v for k, v in op.options.items() if k != "device"}  # (each task runs on its worker's device)
-    kw["pml_frequency"] = dominant_frequency(np.asarray(s.source_amplitudes, float), p.dt)  # all shots', as one process
-    with open_pool(cfg.parallel, p.device, p.n_shots, progress) as pool:
-        pool.keep([{"amplitudes": s.source_amplitudes[k:k + 1], "sources": s.source_locations[k:k + 1],
-                    "receivers": s.receiver_locations[k:k + 1], "weights": np.ones_like(observed[k:k + 1]),
-                    "observed": observed[k:k + 1], "first": k} for k in range(p.n_shots)])  # fmt: skip
-        results = pool.evaluate(prep.background["vp"], {"dx": p.dx, "dt": p.dt, "misfit": "l2", "illumination": im.illumination,
-                                                        "kw": kw}, desc="rtm")  # fmt: skip
-    loss, grad, illum = distributed.reduce_in_order(results, prep.background["vp"].shape)
-    raw = -grad / p.dt
-    image = rtm_filter(raw, p.dx, mask=prep.mask, illumination=illum, epsilon=im.epsilon, laplacian=im.laplacian)
-    return ImageResult("rtm", image, raw, illum, [math.sqrt(2.0 * loss / p.dt)], None)
+class PooledBorn:
+    """The Born operator `op` with its shots over the workers of a parallel section (solve.pools; one shot a task,
+    solve.distributed.batch_born / batch_born_adjoint), data joined and images summed in shot order: apply, adjoint
+    and migrate as op's, the one-process results to rounding, so rtm and lsrtm run on it unchanged. The background
+    and dm go to every worker per call; each call's shot data (geometry, observed data or the residual) are kept on
+    the workers for that call. A context manager: it opens and closes the pool."""
+
+    def __init__(self, op: BornOperator, par, progress: bool = False):
+        self.op, self.dx, self.progress = op, op.dx, progress
+        amp = np.asarray(op.source_amplitudes, float)
+        kw = {k: v for k, v in op.options.items() if k != "device"}  # (each task runs on its worker's device)
+        kw["pml_frequency"] = dominant_frequency(amp, op.dt)  # all shots', as one process
+        self.params = {"dx": op.dx, "dt": op.dt, "kw": kw, "illumination": False}
+        self.pool = open_pool(par, op.options.get("device", "cpu"), len(amp), progress)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.pool.close()
+
+    def _run(self, model, fn, per_shot: dict, desc: str, illumination: bool = False) -> list:
+        op = self.op
+        self.pool.keep([{"amplitudes": op.source_amplitudes[k:k + 1], "sources": op.source_locations[k:k + 1],
+                         "receivers": op.receiver_locations[k:k + 1], "first": k, **{n: a[k:k + 1] for n, a in per_shot.items()}}
+                        for k in range(len(op.source_amplitudes))])  # fmt: skip
+        return self.pool.evaluate(model, dict(self.params, illumination=illumination), fn=fn, desc=desc)
+
+    def _summed(self, results, illumination):
+        image, illum = np.zeros(self.op.background.shape), np.zeros(self.op.background.shape) if illumination else None
+        for r in results:  # in shot order
+            image += r["image"]
+            if illum is not None:
+                illum += r["illumination"]
+        return image, illum
+
+    def apply(self, dm: np.ndarray) -> np.ndarray:
+        """B dm (n_shots, n_receivers, nt), as BornOperator.apply."""
+        results = self._run({"background": self.op.background, "dm": np.asarray(dm, float)}, distributed.batch_born, {}, "born")
+        return np.concatenate([r["data"] for r in results])
+
+    def adjoint(self, data: np.ndarray, illumination: bool = False):
+        """(B^T data, illumination or None), as BornOperator.adjoint."""
+        results = self._run(self.op.background, distributed.batch_born_adjoint, {"residual": np.asarray(data, float)}, "adjoint",
+                            illumination)  # fmt: skip
+        return self._summed(results, illumination)
+
+    def migrate(self, observed: np.ndarray, illumination: bool = False):
+        """(B^T r, illumination or None, r = observed - F(v0)), as BornOperator.migrate."""
+        results = self._run(self.op.background, distributed.batch_born_adjoint, {"observed": np.asarray(observed, float)}, "migrate",
+                            illumination)  # fmt: skip
+        return (*self._summed(results, illumination), np.concatenate([r["data"] for r in results]))
 
 
 def run_image(cfg, outdir, progress: bool = False, prepared: PreparedImage | None = None) -> ImageResult:
@@ -184,12 +217,14 @@ def run_image(cfg, outdir, progress: bool = False, prepared: PreparedImage | Non
     options = {"mask": prep.mask, "illumination": im.illumination, "epsilon": im.epsilon}
     if cfg.physics == "elastic":
         res = rtm_elastic(cfg, prep, observed)
-    elif im.method == "rtm" and cfg.parallel is not None:
-        res = rtm_on_workers(cfg, prep, observed, progress)
-    elif im.method == "rtm":
-        res = rtm(op, observed, laplacian=im.laplacian, **options)
     else:
-        res = lsrtm(op, observed, im.iterations, **options)
+        with contextlib.ExitStack() as stack:
+            if cfg.parallel is not None:  # the shots over the workers
+                op = stack.enter_context(PooledBorn(op, cfg.parallel, progress))
+            if im.method == "rtm":
+                res = rtm(op, observed, laplacian=im.laplacian, **options)
+            else:
+                res = lsrtm(op, observed, im.iterations, **options)
     seconds = time.perf_counter() - t0
     log.info("%s done in %.1f s", im.method, seconds)
     write_image_h5(outdir / "image.h5", res, prep, cfg, seconds)

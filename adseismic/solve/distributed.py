@@ -223,6 +223,37 @@ def batch_gradient(model, data, params) -> dict:
             "misfit_seconds": spent[0], "pid": os.getpid()}  # fmt: skip
 
 
+def batch_born(model, data, params) -> dict:
+    """The Born (linearised) data of one shot batch (imaging's Born operator over workers): {first, data (n_shots,
+    n_receivers, nt)}, solve.acoustic.born of model {background, dm} (m/s). data: {amplitudes, sources, receivers,
+    first}; params: {dx, dt, kw (the solver's keywords), device, [devices]}."""
+    from adseismic.solve.acoustic import born
+
+    kw = dict(params["kw"], device=_device_of(params))
+    d = born(model["background"], model["dm"], params["dx"], params["dt"], data["amplitudes"], data["sources"], data["receivers"], **kw)
+    return {"first": data["first"], "data": np.asarray(d, float)}
+
+
+def batch_born_adjoint(model, data, params) -> dict:
+    """The Born operator's adjoint applied to one shot batch's data d: {first, image (B^T d, the model's shape),
+    illumination or None, data (d where it was simulated, else None)}, the gradient of <F(v), d> at the background `model` (m/s) with d held fixed.
+    data: {amplitudes, sources, receivers, first} and either residual (d itself) or observed (d = observed - F(v0),
+    the reflection data, simulated in the same run); params: {dx, dt, kw, illumination, device, [devices]}."""
+    from adseismic.solve.acoustic import gradient
+
+    kept = {}
+
+    def misfit(syn):
+        kept["d"] = np.asarray(data["residual"], float) if "residual" in data else np.asarray(data["observed"], float) - syn
+        return float(np.vdot(syn, kept["d"])), kept["d"]
+
+    kw = dict(params["kw"], device=_device_of(params))
+    g = gradient(model, params["dx"], params["dt"], data["amplitudes"], data["sources"], data["receivers"], misfit=misfit,
+                 illumination=params["illumination"], **kw)  # fmt: skip
+    return {"first": data["first"], "image": np.asarray(g.velocity, float), "illumination": g.illumination,
+            "data": kept["d"] if "observed" in data else None}  # (a residual given is not sent back)
+
+
 def batch_forward(model, data, params) -> dict:
     """The forward run of one shot batch (a task of either pool): {first, result (scene.run_forward's: a
     ForwardResult, an ElasticResult for physics elastic, an AcousticVDResult for acoustic_vd)}. model: {vp[, vs], [rho]}
