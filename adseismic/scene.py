@@ -428,7 +428,8 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     """Plan the simulation grid, time step, record and domain for a ForwardConfig (see config.py).
 
     velocity_range: (v_min, v_max) m/s to plan for instead of the model's own range (an inversion
-    plans for its velocity bounds, so that every model it may visit is stable and resolved).
+    plans for its velocity bounds, so that every model it may visit is stable and resolved; physics vti and
+    viscoacoustic: the slowest and the fastest wave speed, the qP or P phase speeds that the model's own range gives).
     f_max: highest frequency (Hz) the simulation must resolve, when below the wavelet's -20 dB edge
     (an inversion whose highest band is low-passed).
 
@@ -490,13 +491,13 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     i1 = np.ceil((hi - org) / spc - 1e-9).astype(int) + 1
     box = model.values[tuple(slice(a, b) for a, b in zip(i0, i1))]
     vmin, vmax = (float(box.min()), float(box.max())) if velocity_range is None else map(float, velocity_range)
-    if vti:  # the slowest qP speed (min over angles of the phase speed = of the group speed) and the horizontal speed
+    if vti and velocity_range is None:  # the slowest qP speed (min over angles of the phase = group speed), the horizontal one
         sl = tuple(slice(a, b) for a, b in zip(i0, i1))
         vmin = float((box * qp_min_speed_ratio(model.epsilon[sl], model.delta[sl])).min())
         vmax = float(model.horizontal_speed()[sl].max())
     if visco:  # the slowest P phase velocity (at the Q band's low end) and the fastest, the unrelaxed speed
         attenuation = attenuation_check(model, src, rec, config.wavelet, (i0, i1))
-        vmin, vmax = attenuation.v_slowest, attenuation.v_unrelaxed
+        vmin, vmax = (attenuation.v_slowest, attenuation.v_unrelaxed) if velocity_range is None else (vmin, vmax)
         if not attenuation.q_band[0] <= attenuation.f_dominant <= attenuation.q_band[1]:
             warnings.append(f"model.q_band: {list(attenuation.q_band)} Hz misses the wavelet's dominant frequency "
                             f"{attenuation.f_dominant:.3g} Hz; Q is flat (its target) only inside the band: widen it or leave it "
@@ -974,12 +975,24 @@ class AttenuationCheck:
                 f"{where}): physics acoustic_vd (acoustic where the density is constant) gives the same amplitudes, faster")
 
 
+def p_speeds(vp, q, mechanisms, f_ref: float, f: float) -> tuple:
+    """(the P phase velocity at f Hz, the unrelaxed (w -> infinity) speed), m/s arrays of vp's shape, of a medium of phase
+    velocity vp (m/s) at f_ref (Hz) and quality factor q (arrays of one shape) with the relaxation `mechanisms`."""
+    from adseismic.solve.viscoacoustic import unrelaxed_velocity
+
+    y = mechanisms.y(np.asarray(q, float))
+    unrelaxed = unrelaxed_velocity(vp, q, mechanisms, f_ref)
+    wt = 2.0 * math.pi * f * mechanisms.tau
+    c = unrelaxed / np.sqrt(1.0 + y.sum(-1)) * np.sqrt(1.0 + (y * (1j * wt) / (1.0 + 1j * wt)).sum(-1))  # sqrt(M / rho)
+    return 1.0 / np.real(1.0 / c), unrelaxed
+
+
 def attenuation_check(model: ViscoacousticModel, sources: np.ndarray, receivers: np.ndarray, wavelet, box=None) -> AttenuationCheck:
     """:class:`AttenuationCheck` of ``model`` for sources (n_s, 2) and receivers (n_r, 2) (world metres, (z, x)) and the
     config's ``wavelet`` (kind, params); speeds and Q over the index box ``box`` = (i0, i1) (per axis, end exclusive;
     None: the whole model), travel times over the whole model."""
     from adseismic.kernels.viscoacoustic import fit_mechanisms
-    from adseismic.solve.viscoacoustic import DEFAULT_MECHANISMS, unrelaxed_velocity
+    from adseismic.solve.viscoacoustic import DEFAULT_MECHANISMS
 
     w, dt0 = _sampled_wavelet(wavelet.kind, wavelet.params)
     f_dom = dominant_frequency(w[None], dt0)
@@ -988,14 +1001,11 @@ def attenuation_check(model: ViscoacousticModel, sources: np.ndarray, receivers:
     mech = fit_mechanisms(*band, count)
     sl = tuple(slice(None) for _ in range(2)) if box is None else tuple(slice(a, b) for a, b in zip(*box))
     vp, q = model.vp.values[sl], model.q[sl]
-    y = mech.y(q)
-    unrelaxed = unrelaxed_velocity(vp, q, mech, f_ref)
-    wt = 2.0 * math.pi * band[0] * mech.tau
-    c_low = unrelaxed / np.sqrt(1.0 + y.sum(-1)) * np.sqrt(1.0 + (y * (1j * wt) / (1.0 + 1j * wt)).sum(-1))  # sqrt(M / rho)
+    c_low, unrelaxed = p_speeds(vp, q, mech, f_ref, band[0])
     t_longest = float(straight_ray_times(model.vp, sources, receivers).max())
     t_star = straight_ray_times(model.vp, sources, receivers, slowness=1.0 / (model.vp.values * model.q))
     k = np.unravel_index(int(np.argmax(t_star)), t_star.shape)
     return AttenuationCheck(tuple(float(f) for f in band), float(f_ref), int(count), float(f_dom),
-                            float((1.0 / np.real(1.0 / c_low)).min()), float(unrelaxed.max()), float(q.min()), float(q.max()),
+                            float(c_low.min()), float(unrelaxed.max()), float(q.min()), float(q.max()),
                             t_longest, float(1.0 - np.exp(-math.pi * f_dom * t_longest / q.min())),
                             float(1.0 - np.exp(-math.pi * f_dom * t_star[k])), (int(k[0]), int(k[1])), t_star)

@@ -166,6 +166,8 @@ ATRUE = "true_model:\n  vp: {kind: constant, shape: [21, 31], spacing: 10.0, vel
 ETRUE = "true_model:\n  vp: {kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2100.0}\n  vs: {vp_ratio: 1.8}\n  rho: {gardner: true}\n"
 VTI = AVD.replace("physics: acoustic_vd", "physics: vti").replace("  rho:", "  epsilon: 0.1\n  delta: 0.05\n  rho:")  # {vp, epsilon, delta, rho}
 VQ = AVD.replace("physics: acoustic_vd", "physics: viscoacoustic").replace("  rho:", "  q: 30.0\n  rho:")  # viscoacoustic: {vp, q, rho}
+VTRUE = ATRUE.replace("  rho:", "  epsilon: 0.1\n  delta: 0.05\n  rho:")  # a vti true model
+VQTRUE = ATRUE.replace("  rho:", "  q: 30.0\n  rho:")  # a viscoacoustic true model
 LOC = ["locate", "{d}/c.yaml", "-o", "{out}"]
 IMAGE = ["image", "{d}/c.yaml", "-o", "{out}"]
 ELOCATE = ("physics: elastic\npreprocess: {noise_window: [0.0, 0.3]}\nmodel:\n"
@@ -387,7 +389,7 @@ CATALOGUE = [
       "use physics: acoustic"),
     C("locate with acoustic_vd", {"c.yaml": ELOCATE.replace("physics: elastic", "physics: acoustic_vd")}, LOC, 2,
       "physics: acoustic_vd is not available for adseismic locate", "use physics: acoustic"),
-    # --- physics vti (issue 26): 2D pseudo-acoustic VTI, forward only
+    # --- physics vti (issue 26): 2D pseudo-acoustic VTI, forward and fwi
     C("vti epsilon below delta", {"c.yaml": VTI.replace("delta: 0.05", "delta: 0.2")}, FWD, 2,
       "model.epsilon, model.delta: epsilon < delta", "epsilon = 0.1, delta = 0.2", "use epsilon >= delta"),
     C("vti delta at -1/2", {"c.yaml": VTI.replace("delta: 0.05", "delta: -0.5")}, FWD, 2,
@@ -408,13 +410,19 @@ CATALOGUE = [
       "source.type: 'moment' with physics vti", "set type: explosive"),
     C("vti parallel", {"c.yaml": VTI + "parallel: {engine: threads, devices: [cpu]}\n"}, FWD, 2,
       "parallel: given with physics vti", "drop the parallel section"),
-    C("fwi with vti", {"c.yaml": VTI + "true_model: {kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2100.0}\n"}, FWI, 2,
-      "physics: vti is not available for adseismic fwi", "forward modelling only", "physics: acoustic"),
+    C("fwi vti with a parameterization", {"c.yaml": VTI + VTRUE + "inversion: {parameterization: lambda-mu-rho}\n"}, FWI, 2,
+      "inversion.parameterization: lambda-mu-rho with physics vti", "vp, epsilon, delta, rho", "drop it"),
+    C("fwi vti delta bound below -1/2", {"c.yaml": VTI + VTRUE + "inversion: {parameters: [delta], bounds: {delta: [-0.6, 0.2]}}\n"},
+      FWI, 2, "inversion.bounds.delta: [-0.6, 0.2] allows delta <= -0.5", "delta > -1/2", "give finite bounds above -0.5"),
+    C("fwi vti bounds for epsilon not inverted", {"c.yaml": VTI + VTRUE + "inversion: {bounds: {epsilon: [0, 0.3]}}\n"}, FWI, 2,
+      "inversion.bounds.epsilon: [0.0, 0.3] bounds a quantity that is not inverted (inverted: vp)", "add epsilon to inversion.parameters"),
+    C("fwi vti one bounds pair", {"c.yaml": VTI + VTRUE + "inversion: {bounds: [1500, 2500]}\n"}, FWI, 2,
+      "inversion.bounds: [1500.0, 2500.0] is one [min, max] pair but physics vti", "epsilon: [0, 0.3]"),
     C("image with vti", {"c.yaml": VTI + "true_model: {kind: constant, shape: [21, 31], spacing: 10.0, velocity: 2100.0}\n"}, IMAGE, 2,
       "physics: vti is not available for adseismic image", "physics: acoustic"),
     C("locate with vti", {"c.yaml": ELOCATE.replace("physics: elastic", "physics: vti")}, LOC, 2,
       "physics: vti is not available for adseismic locate", "physics: acoustic"),
-    # --- physics viscoacoustic (issue 26): 2D constant Q, forward only
+    # --- physics viscoacoustic (issue 26): 2D constant Q, forward and fwi
     C("viscoacoustic q 0", {"c.yaml": VQ.replace("q: 30.0", "q: 0.0")}, FWD, 2,
       "model.q: 0.0 at z = 0 m, x = 0 m", "Q must be > 0", ".inf: lossless"),
     C("viscoacoustic layered q below 0", {"c.yaml": VQ.replace("q: 30.0", "q: {kind: layered, values: [50.0, -5.0], interfaces: [100.0]}")},
@@ -436,8 +444,20 @@ CATALOGUE = [
       "output.snapshot_interval: 0.05 s", "visco-acoustic (constant Q) solver"),
     C("viscoacoustic parallel", {"c.yaml": VQ + "parallel: {engine: threads, devices: [cpu]}\n"}, FWD, 2,
       "parallel: given with physics viscoacoustic", "drop the parallel section"),
-    C("fwi with viscoacoustic", {"c.yaml": VQ + ATRUE}, FWI, 2,
-      "physics: viscoacoustic is not available for adseismic fwi", "forward modelling only", "physics: acoustic"),
+    C("fwi viscoacoustic inverting vs", {"c.yaml": VQ + VQTRUE + "inversion: {parameters: [vs]}\n"}, FWI, 2,
+      "inversion.parameters: vs is not a quantity here (physics viscoacoustic has vp, q, rho)", "use any of vp, q, rho"),
+    C("fwi viscoacoustic q bound 0", {"c.yaml": VQ + VQTRUE + "inversion: {parameters: [q], bounds: {q: [0, 100]}}\n"}, FWI, 2,
+      "inversion.bounds.q: [0, 100] allows q <= 0", "Q > 0", "give finite bounds above 0"),
+    C("fwi viscoacoustic lossless start with q inverted", {"c.yaml": VQ.replace("q: 30.0", "q: .inf") + VQTRUE + "inversion: {parameters: [q]}\n"},
+      FWI, 2, "inversion.parameters: q is inverted but the start model's q is infinite (lossless)", "give a finite start Q"),
+    C("fwi viscoacoustic true model's own q_band", {"c.yaml": VQ + VQTRUE + "  q_band: [2.0, 20.0]\n"}, FWI, 2,
+      "true_model.q_band: (2.0, 20.0) differs from model.q_band (None)", "the start model's relaxation mechanisms"),
+    C("fwi viscoacoustic parallel", {"c.yaml": VQ + VQTRUE + "parallel: {engine: threads, devices: [cpu]}\n"}, FWI, 2,
+      "parallel: given with physics viscoacoustic", "acoustic shots only", "drop it"),
+    C("fwi viscoacoustic observed files", {"c.yaml": VQ + "observed: {kind: hdf5, path: d.h5}\n"}, FWI, 2,
+      "observed: given with physics viscoacoustic", "use true_model"),
+    C("fwi viscoacoustic pseudo-Hessian", {"c.yaml": VQ + VQTRUE + "inversion: {preconditioning: pseudo_hessian}\n"}, FWI, 2,
+      "inversion.preconditioning: pseudo_hessian is acoustic only", "use none or depth"),
     C("image with viscoacoustic", {"c.yaml": VQ + ATRUE}, IMAGE, 2,
       "physics: viscoacoustic is not available for adseismic image", "physics: acoustic"),
     C("locate with viscoacoustic", {"c.yaml": ELOCATE.replace("physics: elastic", "physics: viscoacoustic")}, LOC, 2,

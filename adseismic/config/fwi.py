@@ -15,7 +15,7 @@ import numpy as np
 
 from adseismic.config import schema
 from adseismic.config.common import ConfigError, _check_keys, _choice, _mapping, _positive, _read_yaml, _short
-from adseismic.config.forward import AXES, ForwardConfig, parse_config, refuse_elastic3d, refuse_forward_only
+from adseismic.config.forward import AXES, ForwardConfig, parse_config, refuse_elastic3d
 from adseismic.config.parallel import ParallelConfig, parse_parallel
 from adseismic.config.schema import given, validate_section
 from adseismic.data.models import ElasticModel, Model, ModelError, load_physics_model
@@ -39,8 +39,10 @@ class InversionConfig:
     """Full-waveform inversion settings (units: Hz, m/s, m). bands: list of (f_low or None, f_high or
     None) pass bands, inverted in order; iterations / evaluations: limits per band (an evaluation is
     one misfit + gradient over all shots); bounds: (v_min, v_max) m/s, or {quantity: (min, max)} in its unit
-    (m/s, kg/m^3, Pa), or None (start model range +-25%); parameters: the inverted quantities of parameterization
-    (vp-vs-rho or lambda-mu-rho; None: all; acoustic: vp) (adseismic.inversion.model_space); water_depth / source_radius: gradient masks (m, 0 = off); smoothing: Gaussian sigma of
+    (m/s, kg/m^3, Pa; q, epsilon, delta dimensionless), or None (start model range +-25%; q, epsilon, delta:
+    inversion.fwi._default_bounds); parameters: the inverted quantities of parameterization (vp-vs-rho or
+    lambda-mu-rho; None: all; acoustic: vp) or of physics viscoacoustic (vp, q, rho) and vti (vp, epsilon, delta, rho)
+    (None: vp) (adseismic.inversion.model_space); water_depth / source_radius: gradient masks (m, 0 = off); smoothing: Gaussian sigma of
     the gradient (m); tikhonov / tv: regularisation weights (relative to the band's initial misfit);
     offsets: (min, max) source-receiver distance (m) of the traces used (others muted); time_window:
     (start, end) s of the samples used (cosine taper over 10% of the window at each end)."""
@@ -156,6 +158,11 @@ def _check_inversion_physics(inv: InversionConfig, physics: str, network, raw) -
             raise ConfigError(f"inversion.parameterization: {inv.parameterization} needs physics: elastic (acoustic physics "
                               f"inverts the velocity vp alone); drop it or set physics: elastic with model: {{vp, vs, rho}}")
         quantities = ("vp",)
+    elif physics in schema.OWN_QUANTITIES:  # viscoacoustic, vti: their solver's parameters themselves
+        quantities = schema.OWN_QUANTITIES[physics]
+        if "parameterization" in (raw.get("inversion") or {}):
+            raise ConfigError(f"inversion.parameterization: {inv.parameterization} with physics {physics}, which inverts its own "
+                              f"quantities ({', '.join(quantities)}) directly; drop it and list them in inversion.parameters")
     else:
         quantities = schema.PARAMETERIZATION_QUANTITIES[inv.parameterization]
         if physics == "acoustic_vd" and inv.parameterization == "lambda-mu-rho":
@@ -170,11 +177,12 @@ def _check_inversion_physics(inv: InversionConfig, physics: str, network, raw) -
         if q not in quantities:
             why = (f"physics {physics} has the one parameter vp" if physics == "acoustic" else
                    "physics acoustic_vd is a fluid: vs stays 0" if q == "vs" and physics == "acoustic_vd" else
+                   f"physics {physics} has {', '.join(quantities)}" if physics in schema.OWN_QUANTITIES else
                    f"parameterization {inv.parameterization} moves {', '.join(quantities)}")
             raise ConfigError(f"inversion.parameters: {q} is not a quantity here ({why}); use any of {', '.join(quantities)}")
     if inv.parameters is not None and len(set(inv.parameters)) != len(inv.parameters):
         raise ConfigError(f"inversion.parameters: {list(inv.parameters)} names a quantity twice; list each once")
-    inverted = inv.parameters or quantities
+    inverted = inv.parameters or (("vp",) if physics in schema.OWN_QUANTITIES else quantities)  # (inversion.fwi._inverted)
     if isinstance(inv.bounds, dict):
         for q in inv.bounds:
             if q not in inverted:
@@ -183,19 +191,25 @@ def _check_inversion_physics(inv: InversionConfig, physics: str, network, raw) -
         if "lambda" in inv.bounds and inv.bounds["lambda"][0] < 0:
             raise ConfigError(f"inversion.bounds.lambda: [{inv.bounds['lambda'][0]:g}, {inv.bounds['lambda'][1]:g}] Pa allows "
                               f"lambda < 0 (vs > vp / sqrt(2)), which the elastic solver refuses; give a lower bound >= 0")
+        for q, floor, why in (("q", 0.0, "Q > 0 (30 a lossy sediment, 100-1000 rock)"),
+                              ("epsilon", -0.5, "the horizontal qP speed vp sqrt(1 + 2 epsilon) needs epsilon > -1/2"),
+                              ("delta", -0.5, "the VTI solver needs delta > -1/2")):  # fmt: skip
+            if q in inv.bounds and not (inv.bounds[q][0] > floor and math.isfinite(inv.bounds[q][1])):
+                raise ConfigError(f"inversion.bounds.{q}: [{inv.bounds[q][0]:g}, {inv.bounds[q][1]:g}] allows {q} <= {floor:g} or "
+                                  f"infinite: {why}; give finite bounds above {floor:g}")
     elif inv.bounds is not None and physics != "acoustic":
-        example = ("{vp: [1500, 3500], vs: [800, 2000]} (m/s)" if physics == "elastic" else
-                   "{vp: [1500, 3500], rho: [1000, 2600]} (m/s, kg/m^3)")
+        example = {"elastic": "{vp: [1500, 3500], vs: [800, 2000]} (m/s)", "viscoacoustic": "{vp: [1500, 3500], q: [10, 500]}",
+                   "vti": "{vp: [1500, 3500], epsilon: [0, 0.3]}"}.get(physics, "{vp: [1500, 3500], rho: [1000, 2600]} (m/s, kg/m^3)")
         raise ConfigError(f"inversion.bounds: {list(inv.bounds)} is one [min, max] pair but physics {physics} inverts "
                           f"{', '.join(inverted)}; give one per quantity, e.g. {example}")
-    if physics != "acoustic":  # elastic and acoustic_vd (which runs on the elastic solver)
-        for key, bad, why, fix in (("preconditioning", inv.preconditioning == "pseudo_hessian", "the elastic gradient returns no illumination", "use none or depth"),
+    if physics != "acoustic":  # the staggered solvers (elastic, acoustic_vd, viscoacoustic, vti)
+        for key, bad, why, fix in (("preconditioning", inv.preconditioning == "pseudo_hessian", f"the {physics} gradient has no illumination", "use none or depth"),
                                    ("wavelet_estimation", inv.wavelet_estimation, "the wavelet fit is for one data channel", "set it false")):  # fmt: skip
             if bad:
                 raise ConfigError(f"inversion.{key}: {getattr(inv, key)} is acoustic only ({why}); {fix}")
         for section in ("observed", "parallel"):
             if raw.get(section) is not None:
-                what = ("elastic FWI simulates its observed data from true_model" if section == "observed" else
+                what = (f"FWI with physics {physics} simulates its observed data from true_model" if section == "observed" else
                         "the parallel shot pools (dask, threads) run acoustic shots only")
                 raise ConfigError(f"{section}: given with physics {physics}; {what}: drop {section} (use true_model)"
                                   if section == "observed" else f"{section}: given with physics {physics}; {what}: drop it")
@@ -205,9 +219,6 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
     """Validate an inversion config: the forward sections (model = start model) plus `inversion`
     and exactly one of `true_model` (synthetic study) or `observed` (data files)."""
     base_dir = pathlib.Path.cwd() if base_dir is None else pathlib.Path(base_dir)
-    if isinstance(raw, dict):  # forward_vti and gradient_viscoacoustic exist, the inversion has no model space for them yet
-        refuse_forward_only(raw.get("physics"), "fwi", "invert with physics: acoustic (model: the vp spec) or acoustic_vd / "
-                            "elastic")
     network, raw_forward = _parse_network(raw)
     forward = parse_config(raw_forward, base_dir, path, extra_sections=FWI_SECTIONS)
     refuse_elastic3d(forward.model)
@@ -227,6 +238,11 @@ def parse_fwi_config(raw: dict, base_dir: Path | str | None = None, path: Path |
             raise ConfigError(f"true_{e}" if str(e).startswith("model") else f"true_model.{e}") from e
         if true_model.ndim != forward.model.ndim:
             raise ConfigError(f"true_model: {true_model.ndim}D but the start model is {forward.model.ndim}D")
+        for key in ("q_band", "f_ref", "mechanisms") if forward.physics == "viscoacoustic" else ():  # one physics for both
+            mine, start = getattr(true_model, key), getattr(forward.model, key)
+            if mine is not None and mine != start:
+                raise ConfigError(f"true_model.{key}: {mine} differs from model.{key} ({start}); the observed data and the "
+                                  f"inversion use the start model's relaxation mechanisms: give the same or leave it out")
         for name in ("sources", "receivers"):
             pts = getattr(forward.geometry, name)
             inside = true_model.contains(pts)

@@ -486,8 +486,11 @@ _NONNEG = "give 0 (off) or a positive value"
 PARAMETERIZATION_QUANTITIES = {"vp-vs-rho": ("vp", "vs", "rho"), "lambda-mu-rho": ("lambda", "mu", "rho"),
                                "ip-rho": ("ip", "rho")}
 PARAMETERIZATIONS = tuple(PARAMETERIZATION_QUANTITIES)
-INVERTED_QUANTITIES = ("vp", "vs", "rho", "lambda", "mu", "ip")
-_BOUND_UNITS = {"vp": "m/s", "vs": "m/s", "rho": "kg/m^3", "lambda": "Pa", "mu": "Pa", "ip": "kg/(m^2 s)"}
+# physics viscoacoustic and vti invert their solver's own parameters (adseismic.inversion.model_space.PHYSICS_PARAMETERS)
+OWN_QUANTITIES = {"viscoacoustic": ("vp", "q", "rho"), "vti": ("vp", "epsilon", "delta", "rho")}
+INVERTED_QUANTITIES = ("vp", "vs", "rho", "lambda", "mu", "ip", "q", "epsilon", "delta")
+_BOUND_UNITS = {"vp": "m/s", "vs": "m/s", "rho": "kg/m^3", "lambda": "Pa", "mu": "Pa", "ip": "kg/(m^2 s)", "q": "(dimensionless)",
+                "epsilon": "(dimensionless)", "delta": "(dimensionless)"}
 
 
 def _bounds(v):
@@ -526,8 +529,9 @@ class Inversion(_Section):
         1e-4, "stop a band when an iteration lowers the misfit by less than this fraction", exclusiveMinimum=0)
     parameters: Annotated[list[Literal[INVERTED_QUANTITIES]] | None, _nonempty_list("[vp, vs]")] = F(
         None, "the inverted quantities, any of the parameterization's (vp, vs, rho or lambda, mu, rho or ip, rho; "
-              "acoustic: vp; acoustic_vd: vp, rho or ip, rho); "
-              "the others stay at the start model; null: all of them")
+              "acoustic: vp; acoustic_vd: vp, rho or ip, rho) or the physics' (viscoacoustic: vp, q, rho; vti: vp, "
+              "epsilon, delta, rho); the others stay at the start model; null: all of them (viscoacoustic, vti: vp alone, "
+              "the others opt-in)")
     transform: Annotated[Literal["linear", "sigmoid"] | None, OneOf("linear", "sigmoid")] = F(
         "sigmoid", "how the optimiser's x gives each inverted cell: sigmoid (q = lo + (hi - lo) sigmoid(x) inside the "
                    "bounds, x free: Deepwave's FWI recipe; a cell near a bound, such as water near the lower velocity "
@@ -540,8 +544,11 @@ class Inversion(_Section):
                      "(1000 m/s, 1000 kg/m^3, 1 GPa, 1e6 kg/(m^2 s)) so the optimiser sees O(1) numbers")
     bounds: Annotated[list[float] | dict[str, list[float]] | None, _opt(_bounds)] = F(
         None, "[v_min, v_max] (m/s, acoustic vp), or per inverted quantity {vp: [min, max], vs: ..., rho: ..., "
-              "lambda: ..., mu: ...} in its unit (m/s, kg/m^3, Pa); the plan (dt, dx) is made for these ranges; "
-              "null (or a quantity left out): the start model's range +-25%", "m/s, kg/m^3, Pa")
+              "lambda: ..., mu: ..., q: ..., epsilon: ..., delta: ...} in its unit (m/s, kg/m^3, Pa; q, epsilon, delta "
+              "dimensionless: q > 0, epsilon, delta > -0.5; a delta above epsilon is clamped to epsilon, the VTI "
+              "solver's stability); the plan (dt, dx) is made for these ranges; null (or a quantity left out): the "
+              "start model's range +-25%; q [5, 1000] widened to hold the start +-25%; epsilon, delta the start's "
+              "range -0.1 / +0.2", "m/s, kg/m^3, Pa")
     offsets: Annotated[list[float] | None, _pair("m", what="[min, max]")] = F(
         None, "[min, max] source-receiver distance of the traces used (others muted); null: all", "m")
     time_window: Annotated[list[float] | None, _pair("s", what="[min, max]")] = F(
@@ -627,14 +634,17 @@ class FWISchema(ForwardSchema):
     """A full-waveform inversion (adseismic fwi): the forward sections (model is the START model), inversion and
     exactly one of true_model or observed."""
 
-    model: ModelSpec | ElasticModelSpec | AcousticVDModelSpec | NNModelSpec = F(
-        ..., "the START model (m/s); physics elastic: {vp, vs, rho}; acoustic_vd: {vp, rho}; {kind: nn, ...}: a "
-             "neural-network velocity")
+    model: ModelSpec | ElasticModelSpec | AcousticVDModelSpec | VTIModelSpec | ViscoacousticModelSpec | NNModelSpec = F(
+        ..., "the START model (m/s); physics elastic: {vp, vs, rho}; acoustic_vd: {vp, rho}; vti: {vp, epsilon, delta, "
+             "rho}; viscoacoustic: {vp, q, rho} (its q_band, f_ref, mechanisms hold for every band); {kind: nn, ...}: "
+             "a neural-network velocity")
     inversion: Inversion | None = F(None, "inversion settings; null: all defaults")
-    true_model: ModelSpec | ElasticModelSpec | AcousticVDModelSpec | None = F(
+    true_model: ModelSpec | ElasticModelSpec | AcousticVDModelSpec | VTIModelSpec | ViscoacousticModelSpec | None = F(
         None, "a model spec (synthetic study: data are simulated from it); exactly one of true_model and observed")
-    observed: Observed | None = F(None, "observed data files; exactly one of true_model and observed")
-    parallel: Parallel | None = F(None, "the shots over Dask workers or the devices of this process; null: one process")
+    observed: Observed | None = F(None, "observed data files; exactly one of true_model and observed (acoustic physics "
+                                        "only)")
+    parallel: Parallel | None = F(None, "the shots over Dask workers or the devices of this process (acoustic physics "
+                                        "only); null: one process")
 
 
 # ------------------------------------------------------------------------------ image sections

@@ -37,21 +37,33 @@ from scipy.signal import butter, sosfiltfilt
 from adseismic import plotting
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
 from adseismic.inversion import conditioning
-from adseismic.inversion.model_space import PARAMETERIZATIONS, PHYSICS_PARAMETERS, REFERENCE, UNITS, ModelSpace, quantities_of
+from adseismic.inversion.model_space import (OWN_QUANTITIES, PARAMETERIZATIONS, PHYSICS_PARAMETERS, REFERENCE, UNITS, ModelSpace,
+                                              quantities_of)
 from adseismic.inversion.optimize import minimize
 from adseismic.inversion.parameterization import MLP
 from adseismic.runs import format_band, format_position
-from adseismic.scene import build_scene, plan_scene
+from adseismic.scene import attenuation_check, build_scene, p_speeds, plan_scene, qp_min_speed_ratio
 from adseismic.solve.acoustic import forward, gradient
 from adseismic.solve.batch import shot_slices
 from adseismic.solve.distributed import reduce_in_order
 from adseismic.solve.pools import check_pool, open_pool
+from adseismic.solve.acoustic_vd import MODELS as ACOUSTIC_VD_MODELS
 from adseismic.solve.acoustic_vd import forward_acoustic_vd, gradient_acoustic_vd
 from adseismic.solve.elastic import forward_elastic, gradient_elastic
 from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.solve.receivers import UNITS as RECORDED_UNITS
+from adseismic.solve.viscoacoustic import MODELS as VISCOACOUSTIC_MODELS
+from adseismic.solve.viscoacoustic import forward_viscoacoustic, gradient_viscoacoustic
+from adseismic.solve.vti import MODELS as VTI_MODELS
+from adseismic.solve.vti import forward_vti, gradient_vti
 
 log = logging.getLogger(__name__)
+
+# The physics whose solvers take the explosive source's moment S(t) (Simulator._moment) and their own parameters:
+# (forward, gradient, the solver's model arguments in order).
+MOMENT_SOLVERS = {"acoustic_vd": (forward_acoustic_vd, gradient_acoustic_vd, ACOUSTIC_VD_MODELS),
+                  "viscoacoustic": (forward_viscoacoustic, gradient_viscoacoustic, VISCOACOUSTIC_MODELS),
+                  "vti": (forward_vti, gradient_vti, VTI_MODELS)}
 
 
 @dataclass
@@ -259,10 +271,13 @@ def inversion_bounds(cfg) -> dict:
     out = {}
     for name in _inverted(cfg):
         lo, hi = float(np.min(q[name])), float(np.max(q[name]))
+        if not np.isfinite(hi):  # (q = inf: lossless)
+            raise ValueError(f"inversion.parameters: {name} is inverted but the start model's {name} is infinite (lossless) at "
+                             f"{int(np.sum(~np.isfinite(q[name])))} cells; give a finite start Q there (e.g. 1000), or do not invert q")
         given_bounds = inv.bounds.get(name) if isinstance(inv.bounds, dict) else inv.bounds
         net = getattr(cfg, "network", None)
         reach = (lo, hi) if net is None else (net["v0"] - net["scale"], net["v0"] + net["scale"])  # a network: v0 +- scale
-        b = tuple(given_bounds) if given_bounds is not None else (0.75 * min(lo, reach[0]), 1.25 * max(hi, reach[1]))
+        b = tuple(given_bounds) if given_bounds is not None else _default_bounds(name, lo, hi, reach)
         if not (b[0] <= lo and hi <= b[1]):
             key = "inversion.bounds" if not isinstance(inv.bounds, dict) else f"inversion.bounds.{name}"
             raise ValueError(f"{key}: [{b[0]:g}, {b[1]:g}] {UNITS[name]} do not contain the start model's range "
@@ -271,13 +286,29 @@ def inversion_bounds(cfg) -> dict:
     return out
 
 
+def _default_bounds(name: str, lo: float, hi: float, reach: tuple) -> tuple:
+    """The box of an inverted quantity whose inversion.bounds are not given, around the start model's range [lo, hi]
+    (reach: the range a network may give): speeds, densities, moduli +-25%; q [5, 1000] (lossy sediments to hard rock)
+    widened to hold the start +-25%; epsilon, delta (which may be 0) 0.1 below and 0.2 above the start (Thomsen's rocks
+    span about -0.1..0.3), never below -0.45 (the solver needs > -1/2). The start lies inside, not on a bound, where the
+    sigmoid transform would hardly move it."""
+    if name == "q":
+        return (min(5.0, 0.75 * lo), max(1000.0, 1.25 * hi))
+    if name in ("epsilon", "delta"):
+        return (max(lo - 0.1, min(lo, -0.45)), hi + 0.2)
+    return (0.75 * min(lo, reach[0]), 1.25 * max(hi, reach[1]))
+
+
 def _inverted(cfg) -> tuple:
-    """The inverted quantities: inversion.parameters, else every quantity of the parameterisation (acoustic: vp)."""
+    """The inverted quantities: inversion.parameters, else every quantity of the parameterisation (acoustic: vp;
+    viscoacoustic, vti: vp, their other quantities are opt-in)."""
     inv = cfg.inversion
     if _physics(cfg) == "acoustic":
         return ("vp",)
     if inv.parameters:
         return tuple(inv.parameters)
+    if _physics(cfg) in OWN_QUANTITIES:
+        return ("vp",)
     return tuple(q for q in PARAMETERIZATIONS[inv.parameterization] if not (q == "vs" and _physics(cfg) == "acoustic_vd"))
 
 
@@ -289,12 +320,12 @@ def prepare_fwi(cfg) -> Prepared:
     bounds_of = inversion_bounds(cfg)
     probe = ModelSpace(physics, _start_models(fwd.model, physics), _inverted(cfg), inv.parameterization, bounds_of)
     ranges = probe.physical_ranges()
-    bounds = ranges["vp"]
+    bounds = wave_speed_range(cfg, ranges)
     highs = [hi for _, hi in inv.bands]
     # a low-passed last band needs no grid for the wavelet's full band (Butterworth: -20 dB at 1.33 f_high)
     f_max = None if None in highs else 1.33 * max(highs)
     # the inversion checks its own memory estimate (below), not the planner's forward-run one
-    extra = {} if physics == "acoustic" else {"vs_range": ranges["vs"]}
+    extra = {"vs_range": ranges["vs"]} if "vs" in ranges else {}
     plan = plan_scene(fwd, velocity_range=bounds, f_max=f_max, check_memory_of_run=False, **extra)
     nyq = 0.5 / plan.dt
     for i, (lo, hi) in enumerate(inv.bands):
@@ -320,6 +351,27 @@ def prepare_fwi(cfg) -> Prepared:
     space = ModelSpace(physics, _start_models(scene.model, physics), _inverted(cfg), inv.parameterization, bounds_of, network,
                        inv.transform)
     return Prepared(plan, scene, bounds, observed, space)
+
+
+def wave_speed_range(cfg, ranges: dict) -> tuple:
+    """(slowest, fastest) wave speed (m/s) of every model within ranges (ModelSpace.physical_ranges): vp's range, but
+    for vti the qP speeds (the slowest at the lowest epsilon and delta, delta <= epsilon; the fastest horizontal,
+    vp_max sqrt(1 + 2 epsilon_max)) and for viscoacoustic the P phase velocity at the Q band's low end and the
+    unrelaxed speed (the start model's q_band, f_ref and mechanisms, scene.attenuation_check; lower Q disperses more)."""
+    physics, vp = _physics(cfg), ranges["vp"]
+    if physics == "vti":  # qP speeds grow with epsilon and with delta
+        (e0, e1), d0 = ranges["epsilon"], min(ranges["delta"][0], ranges["epsilon"][0])
+        return (vp[0] * float(qp_min_speed_ratio(np.array([e0]), np.array([d0]))[0]), vp[1] * float(np.sqrt(1.0 + 2.0 * e1)))
+    if physics == "viscoacoustic":
+        from adseismic.kernels.viscoacoustic import fit_mechanisms
+
+        fwd = cfg.forward
+        a = attenuation_check(fwd.model, np.asarray(fwd.geometry.sources, float), np.asarray(fwd.geometry.receivers, float), fwd.wavelet)
+        mech, q = fit_mechanisms(*a.q_band, a.mechanisms), np.array(ranges["q"])
+        slow, _ = p_speeds(np.full(2, vp[0]), q, mech, a.f_ref, a.q_band[0])
+        _, fast = p_speeds(np.full(2, vp[1]), q, mech, a.f_ref, a.q_band[0])
+        return float(slow.min()), float(fast.max())
+    return vp
 
 
 def check_fwi_memory(cfg, plan) -> str:
@@ -565,8 +617,9 @@ class Simulator:
     solver records at recording.locations (the receiver locations passed in) and maps them to the channels with the
     exact adjoint for the misfit's residuals. kw: the solver's keyword arguments (order, PML, free surface, device,
     precision, memory budget). Elastic: source_type and source_components (n_shots, n_src, 2|3) as solve.elastic takes
-    them; n_receivers: the receiver points. physics "acoustic_vd" runs solve.acoustic_vd (the explosive moment M0 =
-    source_components[..., 0] x the wavelet), the channels and recording as elastic's."""
+    them; n_receivers: the receiver points. physics "acoustic_vd", "viscoacoustic" and "vti" run their own solvers
+    (MOMENT_SOLVERS: the explosive moment M0 = source_components[..., 0] x the wavelet), the channels and recording as
+    elastic's; viscoacoustic's kw pins q_band, f_ref and mechanisms (the plan's, fixed through the inversion)."""
 
     def __init__(self, physics: str, kw: dict, recording=None, n_receivers=0, source_type="force", source_components=None):
         self.physics, self.kw, self.recording, self.n = physics, dict(kw), recording, n_receivers
@@ -578,20 +631,22 @@ class Simulator:
         return dict(self.kw, source_type=self.source_type, source_components=comp)
 
     def forward(self, physical, dx, dt, amp, src, rec, sl=slice(None), progress=False) -> dict:
-        """{channel: (n_shots, n_receivers, nt)} for physical {vp, [vs, rho]} (m/s, kg/m^3)."""
+        """{channel: (n_shots, n_receivers, nt)} for physical {vp, [vs, rho]} (m/s, kg/m^3) (viscoacoustic {vp, q, rho},
+        vti {vp, epsilon, delta, rho})."""
         if self.physics == "acoustic":
             kw = {k: v for k, v in self.kw.items() if k != "memory_budget"}
             return {"data": forward(physical["vp"], dx, dt, amp, src, rec, progress=progress, **kw).receiver_amplitudes}
-        if self.physics == "acoustic_vd":
+        if self.physics in MOMENT_SOLVERS:
+            solve, _, models = MOMENT_SOLVERS[self.physics]
             kw = {k: v for k, v in self.kw.items() if k != "memory_budget"}
-            r = forward_acoustic_vd(physical["vp"], physical["rho"], dx, dt, self._moment(amp, sl), src, rec, progress=progress, **kw)
+            r = solve(*(physical[k] for k in models), dx, dt, self._moment(amp, sl), src, rec, progress=progress, **kw)
         else:
             kw = {k: v for k, v in self._elastic_kw(sl).items() if k != "memory_budget"}
             r = forward_elastic(physical["vp"], physical["vs"], physical["rho"], dx, dt, amp, src, rec, progress=progress, **kw)
         return self.recording.data({c: np.asarray(getattr(r, c), float) for c in ("vx", "vz", "pressure")}, self.n)
 
     def _moment(self, amp, sl):
-        """acoustic_vd's source S(t): the explosive moment M0 (source_components[..., 0]) x the wavelet amp."""
+        """MOMENT_SOLVERS' source S(t): the explosive moment M0 (source_components[..., 0]) x the wavelet amp."""
         return amp * self.source_components[sl][:, :, :1]
 
     def gradient(self, physical, dx, dt, amp, src, rec, misfit, wrt, sl=slice(None), illumination=False):
@@ -610,15 +665,16 @@ class Simulator:
             j, adj = misfit(self.recording.data({c: np.asarray(syn[c], float) for c in ("vx", "vz", "pressure")}, self.n))
             return j, self.recording.adjoint(adj, self.n)
 
-        if self.physics == "acoustic_vd":  # vs stays 0 (never inverted): its gradient 0
-            r = gradient_acoustic_vd(physical["vp"], physical["rho"], dx, dt, self._moment(amp, sl), src, rec, misfit=recorded_misfit,
-                                     wrt=tuple(k for k in wrt if k != "vs"), **self.kw)  # fmt: skip
+        if self.physics in MOMENT_SOLVERS:  # (acoustic_vd: vs stays 0, never inverted: its gradient 0)
+            _, differentiate, models = MOMENT_SOLVERS[self.physics]
+            r = differentiate(*(physical[k] for k in models), dx, dt, self._moment(amp, sl), src, rec, misfit=recorded_misfit,
+                              wrt=tuple(k for k in wrt if k in models), **self.kw)  # fmt: skip
         else:
+            models = wrt
             r = gradient_elastic(physical["vp"], physical["vs"], physical["rho"], dx, dt, amp, src, rec, misfit=recorded_misfit,
                                  wrt=tuple(wrt), **self._elastic_kw(sl))  # fmt: skip
         syn = self.recording.data({c: np.asarray(r.synthetic[c], float) for c in ("vx", "vz", "pressure")}, self.n)
-        grads = {k: np.zeros(np.shape(physical["vp"])) if k == "vs" and self.physics == "acoustic_vd" else np.asarray(getattr(r, k), float)
-                 for k in wrt}  # fmt: skip
+        grads = {k: np.asarray(getattr(r, k), float) if k in models else np.zeros(np.shape(physical["vp"])) for k in wrt}
         return r.loss, grads, syn, None
 
 
@@ -786,6 +842,9 @@ def _simulator(cfg, prep: Prepared, inv, bounds) -> Simulator:
           "free_surface": p.free_surface, "device": p.device, "precision": p.precision, "memory_budget": budget}
     if _physics(cfg) == "acoustic":
         return Simulator("acoustic", kw)
+    if _physics(cfg) == "viscoacoustic":  # the plan's relaxation mechanisms for every band: the model means one thing
+        a = p.attenuation
+        kw.update(q_band=a.q_band, f_ref=a.f_ref, mechanisms=a.mechanisms)
     sc = prep.scene
     return Simulator(_physics(cfg), kw, sc.recording, len(cfg.forward.geometry.receivers), sc.source_type, sc.source_components)
 
@@ -807,7 +866,8 @@ def _history_units(space: ModelSpace) -> str:
     grads = "; ".join(f"gradient_{k} d(misfit/misfit_0)/d({k}/{REFERENCE[k]:g} {UNITS[k]})" for k in space.names)
     if space.network is not None:
         return f"model m/s; gradient d(misfit/misfit_0)/d(network weights); {grads} (per cell)"
-    return f"model_vp, model_vs m/s, model_rho kg/m^3; {grads}"
+    models = ", ".join(f"model_{k} {UNITS[k]}" for k in PHYSICS_PARAMETERS[space.physics])
+    return f"{models}; {grads}"
 
 
 def _history_models(space: ModelSpace, pt) -> dict | np.ndarray:
@@ -863,14 +923,15 @@ def _write_synthetic_asdf(rundir: Path, fwd, scene, p, model, progress):
 
 
 def _write_result(rundir: Path, res: FWIResult, fwd, space: ModelSpace | None = None):
-    """model.h5: acoustic the datasets model and start_model (m/s); elastic vp, vs (m/s), rho (kg/m^3) and
-    start_vp, start_vs, start_rho, each with its units attribute, and the attribute inverted (the quantities the
-    inversion changed); summary.json: bands, errors, seconds."""
+    """model.h5: acoustic the datasets model and start_model (m/s); other physics each solver parameter (elastic and
+    acoustic_vd vp, vs (m/s), rho (kg/m^3); viscoacoustic vp, q, rho; vti vp, epsilon, delta, rho) and its start_<name>,
+    each with its units attribute, and the attribute inverted (the quantities the inversion changed); summary.json:
+    bands, errors, seconds."""
     elastic = space is not None and space.physics != "acoustic"
 
     def fill(f):
         if elastic:
-            for k in ("vp", "vs", "rho"):
+            for k in res.models:
                 f.create_dataset(k, data=res.models[k]).attrs["units"] = UNITS[k]
                 f.create_dataset(f"start_{k}", data=res.start_models[k]).attrs["units"] = UNITS[k]
             f.attrs["inverted"], f.attrs["parameterization"] = list(space.names), space.parameterization
@@ -878,7 +939,7 @@ def _write_result(rundir: Path, res: FWIResult, fwd, space: ModelSpace | None = 
             f.create_dataset("model", data=res.model)
             f.create_dataset("start_model", data=res.start_model)
         f.attrs["dx"], f.attrs["origin"] = res.dx, res.origin
-        f.attrs["units"] = "vp, vs m/s; rho kg/m^3" if elastic else "m/s"
+        f.attrs["units"] = "; ".join(f"{k} {UNITS[k]}" for k in res.models) if elastic else "m/s"
         f.attrs["summary"] = json.dumps({"bands": res.bands, "errors": res.errors})
 
     write_h5_atomic(rundir / "model.h5", fill)

@@ -17,7 +17,9 @@ x -> m -> q -> physical, arrays (nz, [ny,] nx) on the simulation grid:
   path's x = v / 1000 m/s (and its regularisation weights) exactly as before;
 - parameterisation (q -> physical): "vp-vs-rho" (identity), "lambda-mu-rho" (vp = sqrt((lambda + 2 mu) / rho),
   vs = sqrt(mu / rho)) or, for acoustic_vd (a fluid, vs = 0 throughout), "ip-rho" (vp = ip / rho, the acoustic
-  impedance ip = rho vp); quantities not inverted stay at the start model's values. The elastic solver needs
+  impedance ip = rho vp); physics viscoacoustic (vp, q, rho) and vti (vp, epsilon, delta, rho) invert their solver's
+  parameters themselves; quantities not inverted stay at the start model's values. VTI is stable for epsilon >= delta
+  only: a delta above epsilon is clamped to epsilon (with the clamp's exact (sub)gradient, as vs below). The elastic solver needs
   vs <= vp / sqrt(2) (lambda >= 0): in vp-vs-rho a box on vp and vs cannot say that, so vs is clamped to
   vp / sqrt(2) (1 - 1e-9) with the clamp's exact (sub)gradient; the nn representation clips v into its bounds
   (the plan's velocity range, so every model is stable), with zero gradient outside.
@@ -34,16 +36,24 @@ from dataclasses import dataclass
 import numpy as np
 
 V_REF = 1000.0  # m/s
-REFERENCE = {"vp": V_REF, "vs": V_REF, "rho": 1000.0, "lambda": 1e9, "mu": 1e9, "ip": 1e6}  # m/s, m/s, kg/m^3, Pa, Pa, kg/(m^2 s)
-UNITS = {"vp": "m/s", "vs": "m/s", "rho": "kg/m^3", "lambda": "Pa", "mu": "Pa", "ip": "kg/(m^2 s)"}
-# the solver's parameters per physics (acoustic_vd runs on the elastic solver with vs = 0 and never inverts vs)
-PHYSICS_PARAMETERS = {"acoustic": ("vp",), "elastic": ("vp", "vs", "rho"), "acoustic_vd": ("vp", "vs", "rho")}
+# The dimensionless quantities get references of their own scale, so that L-BFGS sees O(1) numbers for them too: the
+# quality factor q 100 (rock Q 30-1000: x = q / 100 is 0.3-10), Thomsen's epsilon and delta 1 (they are O(0.1) already;
+# a reference of 1 keeps x = epsilon, and a 0.1 change of epsilon moves the qP speed as much as ~10% of vp does).
+REFERENCE = {"vp": V_REF, "vs": V_REF, "rho": 1000.0, "lambda": 1e9, "mu": 1e9, "ip": 1e6, "q": 100.0, "epsilon": 1.0,
+             "delta": 1.0}  # m/s, m/s, kg/m^3, Pa, Pa, kg/(m^2 s), dimensionless x 3
+UNITS = {"vp": "m/s", "vs": "m/s", "rho": "kg/m^3", "lambda": "Pa", "mu": "Pa", "ip": "kg/(m^2 s)", "q": "(dimensionless)",
+         "epsilon": "(dimensionless)", "delta": "(dimensionless)"}
+# the solver's parameters per physics (acoustic_vd's vs is 0 and never inverted: kept for the elastic layout)
+PHYSICS_PARAMETERS = {"acoustic": ("vp",), "elastic": ("vp", "vs", "rho"), "acoustic_vd": ("vp", "vs", "rho"),
+                      "viscoacoustic": ("vp", "q", "rho"), "vti": ("vp", "epsilon", "delta", "rho")}
+OWN_QUANTITIES = ("viscoacoustic", "vti")  # physics whose quantities are their solver's parameters (no parameterisation)
 PARAMETERIZATIONS = {"vp-vs-rho": ("vp", "vs", "rho"), "lambda-mu-rho": ("lambda", "mu", "rho"), "ip-rho": ("ip", "rho")}
 _VS_MAX = (1.0 - 1e-9) / math.sqrt(2.0)  # vs <= vp / sqrt(2): lambda >= 0 (the elastic solver's check)
 
 
 def quantities_of(physical: dict, parameterization: str) -> dict:
-    """The parameterisation's quantities {name: array} of physical {vp, [vs, rho]} (m/s, kg/m^3)."""
+    """The parameterisation's quantities {name: array} of physical {vp, [vs, rho]} (m/s, kg/m^3) (viscoacoustic {vp, q,
+    rho} and vti {vp, epsilon, delta, rho} are their own quantities: vp-vs-rho, the identity)."""
     if parameterization == "ip-rho":
         vp, rho = (np.asarray(physical[k], float) for k in ("vp", "rho"))
         return {"ip": rho * vp, "rho": rho}
@@ -63,13 +73,16 @@ class Point:
     physical: dict
     vs_clamped: np.ndarray | None = None
     clipped: np.ndarray | None = None
+    delta_clamped: np.ndarray | None = None  # vti: where delta > epsilon was clamped to epsilon
 
 
 class ModelSpace:
     """The inverted part of a model and its map to the physics (module docstring).
 
-    physics "acoustic" | "elastic" | "acoustic_vd"; start {vp, [vs, rho]} (nz, [ny,] nx) m/s, kg/m^3; names: the inverted
-    quantities (of PARAMETERIZATIONS[parameterization], or ("vp",) for acoustic); bounds {name: (min, max)} in
+    physics "acoustic" | "elastic" | "acoustic_vd" | "viscoacoustic" | "vti"; start {vp, [vs, rho]} (nz, [ny,] nx) m/s,
+    kg/m^3 (viscoacoustic {vp, q, rho}, vti {vp, epsilon, delta, rho}); names: the inverted quantities (of
+    PARAMETERIZATIONS[parameterization], of PHYSICS_PARAMETERS[physics] for viscoacoustic and vti, or ("vp",) for
+    acoustic); bounds {name: (min, max)} in
     the quantity's unit (each inverted name has one); network: an inversion.parameterization.MLP (acoustic vp only)
     or None for pixels."""
 
@@ -148,6 +161,12 @@ class ModelSpace:
         q.update({k: m[k] * REFERENCE[k] for k in self.names})
         if self.physics == "acoustic":
             return Point(m, q, {"vp": q["vp"]})
+        if self.physics == "viscoacoustic":
+            return Point(m, q, {k: q[k] for k in PHYSICS_PARAMETERS["viscoacoustic"]})
+        if self.physics == "vti":  # the solver is stable for epsilon >= delta only: a delta above epsilon is clamped to it
+            clamped = q["delta"] > q["epsilon"]
+            return Point(m, q, {"vp": q["vp"], "epsilon": q["epsilon"], "delta": np.where(clamped, q["epsilon"], q["delta"]),
+                                "rho": q["rho"]}, delta_clamped=clamped)  # fmt: skip
         if self.parameterization == "lambda-mu-rho":
             lam, mu, rho = q["lambda"], q["mu"], q["rho"]
             return Point(m, q, {"vp": np.sqrt((lam + 2 * mu) / rho), "vs": np.sqrt(mu / rho), "rho": rho})
@@ -162,6 +181,12 @@ class ModelSpace:
         kg/m^3) at the point pt: the exact chain rule of the parameterisation and the clamps."""
         if self.physics == "acoustic":
             gq = {"vp": g["vp"] if pt.clipped is None else np.where(pt.clipped, 0.0, g["vp"])}
+        elif self.physics == "viscoacoustic":
+            gq = g
+        elif self.physics == "vti":  # delta = min(delta, epsilon): the clamped cells' delta gradient belongs to epsilon
+            c = pt.delta_clamped
+            gq = {"vp": g["vp"], "epsilon": g["epsilon"] + np.where(c, g["delta"], 0.0), "delta": np.where(c, 0.0, g["delta"]),
+                  "rho": g["rho"]}  # fmt: skip
         elif self.parameterization == "lambda-mu-rho":
             vp, vs, rho = pt.physical["vp"], pt.physical["vs"], pt.physical["rho"]
             gvp, gvs = g["vp"] / (2 * rho * vp), g["vs"] / (2 * rho * vs)  # dJ/dvp dvp/d(lambda + 2 mu), dJ/dvs dvs/dmu
@@ -191,13 +216,16 @@ class ModelSpace:
 
     def physical_ranges(self) -> dict:
         """{vp: (min, max), [vs: (min, max)]} (m/s) that every model the optimiser may visit stays within: what the
-        plan (grid, time step) is made for."""
+        plan (grid, time step) is made for. viscoacoustic and vti: the range of each of their parameters ({vp, q, rho},
+        {vp, epsilon, delta, rho}; the wave speeds follow from them: inversion.fwi.wave_speed_range)."""
         lo = {k: float(np.min(v)) for k, v in self.fixed.items()}
         hi = {k: float(np.max(v)) for k, v in self.fixed.items()}
         for k in self.names:  # an inverted quantity stays in its box (pixels: the optimiser's bounds; nn: clipped)
             lo[k], hi[k] = self.bounds[k]
         if self.physics == "acoustic":
             return {"vp": (lo["vp"], hi["vp"])}
+        if self.physics in OWN_QUANTITIES:
+            return {k: (lo[k], hi[k]) for k in PHYSICS_PARAMETERS[self.physics]}
         if self.parameterization == "lambda-mu-rho":
             vp = (math.sqrt((lo["lambda"] + 2 * lo["mu"]) / hi["rho"]), math.sqrt((hi["lambda"] + 2 * hi["mu"]) / lo["rho"]))
             return {"vp": vp, "vs": (math.sqrt(lo["mu"] / hi["rho"]), math.sqrt(hi["mu"] / lo["rho"]))}
