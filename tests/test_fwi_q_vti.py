@@ -179,6 +179,17 @@ def test_plan_is_made_for_the_bounds(tmp_path, physics):
     assert got[name] == ((5.0, 1000.0) if name == "q" else pytest.approx((-0.05, 0.25), abs=1e-12))
 
 
+def test_a_band_outside_the_q_band_is_warned_about(tmp_path):
+    # Q is flat over q_band only (the full wavelet's f_dom 6 Hz: 2-15 Hz): a band below it fits another attenuation
+    from adseismic.config import parse_fwi_config
+    from adseismic.inversion.fwi import prepare_fwi
+
+    cfg = _config("viscoacoustic", tmp_path)
+    cfg["inversion"]["bands"] = [1.5, 4.0, None]
+    warned = [w for w in prepare_fwi(parse_fwi_config(cfg, base_dir=tmp_path)).plan.warnings if "q_band" in w]
+    assert len(warned) == 1 and warned[0].startswith("inversion.bands[0]: ") and "lies outside model.q_band" in warned[0], warned
+
+
 def test_config_and_model_space_agree_on_the_physics_quantities():
     # the config names them without importing the workflow; the two tables must not drift
     from adseismic.config import schema

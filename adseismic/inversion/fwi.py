@@ -334,6 +334,12 @@ def prepare_fwi(cfg) -> Prepared:
                 raise ValueError(f"inversion.bands[{i}]: {name} {f:g} Hz is above 0.9 x the Nyquist frequency {nyq:.3g} Hz of the "
                                  f"simulation (dt = {plan.dt:.4g} s, planned for the wavelet's band up to {plan.f_max:.3g} Hz): the "
                                  f"wavelet has no energy there; use a corner below {0.9 * nyq:.3g} Hz, or null for the full band")  # fmt: skip
+    a = plan.attenuation if physics == "viscoacoustic" else None
+    for i, (lo, hi) in enumerate(inv.bands if a is not None else []):  # Q is flat over q_band only
+        if (hi is not None and hi < a.q_band[0]) or (lo is not None and lo > a.q_band[1]):
+            plan.warnings.append(f"inversion.bands[{i}]: {format_band(lo, hi)} lies outside model.q_band {[round(f, 3) for f in a.q_band]} Hz, "
+                                 f"where Q is not the constant Q of the model: the Q this band fits is another attenuation; set "
+                                 f"model.q_band to cover the inversion's bands")  # fmt: skip
     memory_line = check_fwi_memory(cfg, plan)
     plan.reasons["memory"] = memory_line
     if "density" in plan.reasons and {"rho", "ip"} & set(_inverted(cfg)):  # (acoustic_vd) the start model's contrasts say nothing
