@@ -409,20 +409,20 @@ def test_kill_during_save_in_a_run_then_resume(tmp_path, monkeypatch):
     kw = dict(method="lbfgs", max_iterations=12, rel_decrease=0)
     a = minimize(rosen, X0_ROSEN, **kw)
     path = tmp_path / "j.h5"
-    original = Journal.save
+    original = Journal._save  # every save, the background appends' included
     calls = []
 
-    def failing(self, p):
+    def failing(self, p, compact, upto=None):
         calls.append(1)
         if len(calls) == 5:                              # dies while saving evaluation 5
             (tmp_path / "j.h5.part").write_bytes(b"half-written garbage")
             raise KeyboardInterrupt
-        return original(self, p)
+        return original(self, p, compact, upto)
 
-    monkeypatch.setattr(Journal, "save", failing)
+    monkeypatch.setattr(Journal, "_save", failing)
     with pytest.raises(KeyboardInterrupt):
         minimize(rosen, X0_ROSEN, journal_path=path, **kw)
-    monkeypatch.setattr(Journal, "save", original)
+    monkeypatch.setattr(Journal, "_save", original)
     assert len(Journal.load(path)) == 4
     fun = Counting(rosen)
     b = minimize(fun, X0_ROSEN, journal_path=path, **kw)     # a stale .part file is harmless
@@ -445,3 +445,10 @@ def test_equal_cost_comparison(tmp_path):
                                  options_per_method={"adam": {"lr": 0.05}}, journal_dir=tmp_path)
     assert again.calls == 0
     assert all(res2[m].x.tobytes() == res[m].x.tobytes() for m in res)
+
+
+def test_a_failed_background_journal_write_surfaces(tmp_path):
+    # the journal is written on a background thread: its error must end the run, not vanish
+    (tmp_path / "file").write_text("not a folder")
+    with pytest.raises(OSError):
+        minimize(rosen, X0_ROSEN, journal_path=tmp_path / "file" / "j.h5", method="lbfgs", max_iterations=3)
