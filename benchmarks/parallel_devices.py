@@ -4,8 +4,9 @@ observed data and weights resident there, "l2" formed on the device), on 1, 2, .
 (adseismic.solve.devices.DevicePool: a thread and a stream per device in this process) and on 1 and all devices with
 Dask (solve.distributed.ShotPool, a LocalCluster worker process per device; skipped without dask). Each time is the
 best of REPEATS warm evaluations (a first one builds the kernels and captures the graphs); every path's gradient is
-compared with the plain one. Prints the efficiency of N devices against the plain path, T1 / (N x TN), and the
-overhead of each pool on one device against it.
+compared with the plain one. Prints the efficiency of N devices against the plain path, T1 / (N x TN), the
+overhead of each pool on one device against it, and the seconds spent inside solve.acoustic.gradient per device
+(the rest of an evaluation is the path's own: dispatch, transfers, reduction).
 
     python benchmarks/parallel_devices.py                       # every GPU of this host (32 shots, < 3 min on H100s)
     python benchmarks/parallel_devices.py --device cpu --cpus 2 --shots 4 --n 150 --nt 800   # CPU threads
@@ -79,11 +80,16 @@ def main():
     params = {"dx": dx, "dt": dt, "misfit": "l2", "illumination": False, "kw": kw}
     resident = [tuple(wp.array(a[sl], dtype=wp.float64, device=devices[0]) for a in (obs, w)) for sl in slices]
 
+    inside = {}  # path -> seconds inside solve.acoustic.gradient in its last evaluation (the rest is the path's own)
+
     def plain():  # fwi's single-process loop: one batch after the other on one device, data resident there
-        loss, grad = 0.0, np.zeros(v0.shape)
+        loss, grad, spent = 0.0, np.zeros(v0.shape), 0.0
         for sl, (o, ww) in zip(slices, resident):
+            t = time.perf_counter()
             r = gradient(v0, dx, dt, amp[sl], src[sl], rec[sl], o, weights=ww, **kw)
+            spent += time.perf_counter() - t
             loss, grad = loss + r.loss, grad + r.velocity
+        inside["plain"] = spent
         return loss, grad
 
     def best(fn):
@@ -96,13 +102,18 @@ def main():
         return min(times), out
 
     t1, (loss1, grad1) = best(plain)
-    rows = [("one process, one device (plain)", 1, t1, 0.0)]
+    rows = [("one process, one device (plain)", 1, t1, 0.0, inside["plain"])]
 
     def pooled(name, pool, nd):
+        def evaluate():
+            rs = pool.evaluate(v0, params)
+            inside[name] = sum(r["seconds"] for r in rs) / nd
+            return distributed.reduce_in_order(rs, v0.shape)
+
         with pool:
             pool.keep(batches)
-            tn, (loss, grad, _) = best(lambda: distributed.reduce_in_order(pool.evaluate(v0, params), v0.shape))
-        rows.append((name, nd, tn, float(np.linalg.norm(grad - grad1) / np.linalg.norm(grad1))))
+            tn, (loss, grad, _) = best(evaluate)
+        rows.append((name, nd, tn, float(np.linalg.norm(grad - grad1) / np.linalg.norm(grad1)), inside[name]))
 
     for nd in range(1, len(devices) + 1):
         pooled(f"threads, {nd} device(s)", DevicePool(ParallelConfig(engine="threads", devices=devices[:nd]), devices[0], S), nd)
@@ -120,11 +131,11 @@ def main():
             pool.keep(batches)
             fault(pool, lambda: pool.evaluate(v0, params), v0.shape)
 
-    print("| path | devices | s an evaluation | efficiency T1 / (N TN) | gradient vs plain (rel. L2) |")
-    print("|---|---|---|---|---|")
-    for name, nd, tn, err in rows:
-        print(f"| {name} | {nd} | {tn:.3f} | {t1 / (nd * tn):.0%} | {err:.1e} |")
-    one = {name.split(",")[0]: tn for name, nd, tn, _ in rows if nd == 1 and "plain" not in name}
+    print("| path | devices | s an evaluation | efficiency T1 / (N TN) | gradient vs plain (rel. L2) | s inside gradient() a device |")
+    print("|---|---|---|---|---|---|")
+    for name, nd, tn, err, spent in rows:
+        print(f"| {name} | {nd} | {tn:.3f} | {t1 / (nd * tn):.0%} | {err:.1e} | {spent:.3f} |")
+    one = {name.split(",")[0]: tn for name, nd, tn, *_ in rows if nd == 1 and "plain" not in name}
     print("overhead on one device against the plain path: "
           + ", ".join(f"{k} {v / t1 - 1:+.1%}" for k, v in one.items()) + f"; load average {os.getloadavg()[0]:.2f}")
 

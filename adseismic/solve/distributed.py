@@ -367,10 +367,16 @@ class ShotPool:
         # no input of the others with it (fetching from a dead peer waits out distributed.comm.timeouts.connect, 30 s)
         [model] = self.client.scatter([model], broadcast=True, hash=False)
         futures = [self.client.submit(fn, model, d, params, key=f"adseismic-eval-{tag}-{k}") for k, d in enumerate(self.futures)]
+        results = {}
+
+        def completions():  # each result fetched as its batch ends, beside the batches still running
+            for fut, result in distributed.as_completed(futures, with_results=True, loop=self.client.loop):
+                results[fut.key] = result
+                yield
+
         try:
-            done = distributed.as_completed(futures, loop=self.client.loop)
-            count_batches(done, len(futures), desc or f"evaluation {self.evaluations}", len(self.devices), self.progress)
-            return self.client.gather(futures)
+            count_batches(completions(), len(futures), desc or f"evaluation {self.evaluations}", len(self.devices), self.progress)
+            return [results[f.key] for f in futures]
         finally:
             del futures, model
 
