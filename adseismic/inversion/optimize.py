@@ -592,7 +592,8 @@ def minimize(fun: Callable, x0, *, method: str = "lbfgs", bounds=None, max_itera
         replay, so a resumed run reproduces the same side effects.
     on_evaluation : ``on_evaluation(index, seconds)`` after each real (not replayed) evaluation and
         its journal save; index is 0-based in the journal (as in :class:`JournalMismatch`), seconds
-        ``{"objective": time in fun, "journal": time appending and saving the journal}`` (s,
+        ``{"objective": time in fun, "journal": time handing the evaluation to the journal's background
+        writer}`` (s,
         perf_counter).
 
     Method details
