@@ -11,7 +11,7 @@ import pytest
 from scipy.fft import irfft, next_fast_len, rfft, rfftfreq
 from scipy.special import hankel2
 
-from adseismic.kernels.viscoacoustic import fit_mechanisms
+from adseismic.kernels.viscoacoustic import Viscoacoustic, fit_mechanisms
 from adseismic.solve import viscoacoustic
 from adseismic.solve.elastic import forward_elastic
 from adseismic.solve.viscoacoustic import COMPONENTS
@@ -229,3 +229,10 @@ def test_bad_inputs_are_refused(change, message):
     with pytest.raises(ValueError, match=message):
         forward_viscoacoustic(a["vp"], a["q"], a["rho"], DX, a["dt"], a["source_amplitudes"], src, rec, q_band=a["q_band"],
                               f_ref=a["f_ref"], mechanisms=a["mechanisms"], order=4, precision="float64")  # fmt: skip
+
+
+def test_too_many_cells_for_int32_indices_is_refused():
+    # the field kernels index flat arrays with int32 (kernels/viscoacoustic Grid): 2 shots x 3 mechanisms x ~19000^2
+    # padded cells (2.2e9 >= 2^31) must fail before any field is allocated, naming the fix
+    with pytest.raises(ValueError, match="int32 flat indices.*fewer shots"):
+        Viscoacoustic((19000, 19000), 10.0, 1e-3, 4, 2, fit_mechanisms(*BAND, 3), F_PEAK, 10, 1e-3, F_PEAK, 2500.0)

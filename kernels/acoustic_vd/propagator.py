@@ -29,10 +29,13 @@ order. Sources and receivers: the Kaiser-windowed sinc operator (kernels/common.
 position, folded across a free surface (odd for p, vx, vy; even for vz); weights computed once per run (`weights`).
 
 Kernels, plain per-cell Warp kernels that Warp differentiates (Tape): `velocity`, `pressure` (a half step each, in
-place or out of place), `inject`, `record`, `weights`, `materials` (vp, rho -> MATERIALS), `pad_model`.
+place or out of place), `inject`, `record`, `weights`, `materials` (vp, rho -> MATERIALS), `pad_model`. In 2D the
+field kernels take flat views (State.flat, Materials.flat) and a 1D launch with int32 flat offsets, as
+kernels/viscoacoustic's; the 3D ones 4D arrays and a 4D launch.
 """
 
 import functools
+import math
 from types import SimpleNamespace
 
 import warp as wp
@@ -43,7 +46,7 @@ from adseismic.kernels.elastic.propagator import cpml_axes
 from adseismic.kernels.elastic3d.propagator import build as elastic3d_build
 from adseismic.kernels.elastic3d.propagator import make_cpml, make_derivative, make_point
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
-from adseismic.kernels.viscoacoustic.propagator import _derivatives, _points, _velocity
+from adseismic.kernels.viscoacoustic.propagator import Grid, Materials, _derivatives, _points, _velocity, field_grid
 
 # per ndim: the velocities, the CPML memory variables (name -> axis of its derivative and strips) of the velocity and
 # the pressure half steps, the materials (buoyancy at each velocity's nodes, K = rho vp^2 at the p nodes)
@@ -54,26 +57,24 @@ MATERIALS = {2: ("bx", "bz", "k"), 3: ("bx", "by", "bz", "k")}
 
 def _kernels_2d(ns):
     """The 2D velocity (kernels/viscoacoustic's), pressure, materials and point kernels."""
-    M, fs, dtype, arr2, arr3, Axis = ns.M, ns.fs, ns.dtype, ns.arr2, ns.arr3, ns.Axis
-    cpml, velocity = _velocity(ns)
+    M, fs, dtype, arr1, arr2, Axis = ns.M, ns.fs, ns.dtype, ns.arr1, ns.arr2, ns.Axis
+    cpml, velocity, cell = _velocity(ns)
     dvx_dx, dvz_dz = _derivatives(ns)[2:]
 
-    @unique_kernel
-    def pressure(vx: arr3, vz: arr3, p: arr3, k: arr2, o_p_x: arr3, o_p_z: arr3, n_p_x: arr3, n_p_z: arr3, p_new: arr3, az: Axis,
-                 ax: Axis, dt: dtype, inv_dx: dtype, top: int):  # fmt: skip
+    @unique_kernel(grid_stride=False)
+    def pressure(vx: arr1, vz: arr1, p: arr1, k: arr1, o_p_x: arr1, o_p_z: arr1, n_p_x: arr1, n_p_z: arr1, p_new: arr1, az: Axis,
+                 ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid):  # fmt: skip
         # p_new = p - dt K div v; 0 on a free surface's row
-        s, zi, xi = wp.tid()
-        z = zi + wp.static(M)
-        x = xi + wp.static(M)
+        s, z, x, m, c = cell(grid, wp.tid())
         jz = az.store[z]
         jx = ax.store[x]
-        d = cpml(dvx_dx(vx, s, z, x) * inv_dx, jx, x, ax.a, ax.b, o_p_x, n_p_x, s, z, jx)
-        d = d + cpml(dvz_dz(vz, s, z, x, top) * inv_dx, jz, z, az.a, az.b, o_p_z, n_p_z, s, jz, x)
+        d = cpml(dvx_dx(vx, c) * inv_dx, jx, x, ax.a, ax.b, o_p_x, n_p_x, (s * grid.lz + z) * grid.wx + jx)
+        d = d + cpml(dvz_dz(vz, c, z, grid.lx, top) * inv_dx, jz, z, az.a, az.b, o_p_z, n_p_z, (s * grid.wz + jz) * grid.lx + x)
         keep = dtype(1.0)
         if wp.static(fs):
             if z == top:
                 keep = dtype(0.0)
-        p_new[s, z, x] = keep * (p[s, z, x] - dt * k[z, x] * d)
+        p_new[c] = keep * (p[c] - dt * k[m] * d)
 
     @unique_kernel
     def materials(vp: arr2, rho: arr2, bx: arr2, bz: arr2, k: arr2):
@@ -240,6 +241,14 @@ class State:
 
     def __init__(self, v: dict, p, psi: dict):
         self.v, self.p, self.psi = v, p, psi
+        self._flat = None
+
+    def flat(self) -> "State":
+        """The State of the arrays' flat (1D) views, the 2D field kernels' inputs; made once, they share memory and
+        .grad with the arrays."""
+        if self._flat is None:
+            self._flat = State({k: a.flatten() for k, a in self.v.items()}, self.p.flatten(), {k: a.flatten() for k, a in self.psi.items()})
+        return self._flat
 
     def __getattr__(self, name):
         v = self.__dict__["v"]
@@ -274,6 +283,7 @@ class AcousticVD:
         self.axes, self.strip_width = cpml_axes(self.k.Axis, lo, nb, self.padded, R, dx, dt, vmax, pml_reflection, pml_frequency, dtype,
                                                 device)  # fmt: skip
         self.interior = (self.n_shots, *(n - 2 * R for n in self.padded))
+        self.grid = field_grid(self.padded, R, self.strip_width, self.n_shots * math.prod(self.padded)) if nd == 2 else None
         self.inv_dx = dtype(1.0 / dx)
         self.dt_device = dtype(dt)
         self.cuda = wp.get_device(device).is_cuda
@@ -302,7 +312,7 @@ class AcousticVD:
         """MATERIALS[ndim] (padded arrays, interior nodes set) from the padded vp (m/s) and rho (kg/m^3)."""
         out = [wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS[self.ndim]]
         wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, rho, *out], device=self.device)
-        return tuple(out)
+        return Materials(out)
 
     def operator(self, loc: wp.array):
         """The fixed operators of locations loc (S, n, ndim) metres: (idx (1 + ndim, S, n, points) vec2i | vec3i, weights
@@ -313,7 +323,7 @@ class AcousticVD:
 
     def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
         """Advance st (level n) to level n + 1 with the explosive sources' samples n and n + 1 (+ clock[0]); sources:
-        (amplitudes (S, n_src, >= n + 2), their operator (operator)) or None. mat: MATERIALS[ndim] (materials). With
+        (amplitudes (S, n_src, >= n + 2), their operator (operator)) or None. mat: MATERIALS[ndim] (materials' Materials). With
         out=None in place; else into out's arrays (st unchanged), as under a tape (each level its own arrays)."""
         out = st if out is None else out
         clock = self.clock if clock is None else clock
@@ -321,11 +331,13 @@ class AcousticVD:
         vpsi = [f"{v}_{v[1]}" for v in names]
         ppsi = [f"p_{v[1]}" for v in names]
         common = [*self.axes, self.dt_device, self.inv_dx, self.top]
-        wp.launch(self.k.velocity, dim=self.interior, device=self.device,
-                  inputs=[*st.v.values(), st.p, *mat[:-1], *(st.psi[k] for k in vpsi), *(out.psi[k] for k in vpsi), *out.v.values(),
-                          *common])  # fmt: skip
-        wp.launch(self.k.pressure, dim=self.interior, device=self.device,
-                  inputs=[*out.v.values(), st.p, mat[-1], *(st.psi[k] for k in ppsi), *(out.psi[k] for k in ppsi), out.p, *common])
+        f, o, m, dim = st, out, mat, self.interior
+        if self.ndim == 2:  # the 2D kernels: flat views, a 1D launch over the interior cells
+            f, o, m, common, dim = st.flat(), out.flat(), mat.flat, [*common, self.grid], math.prod(self.interior)
+        wp.launch(self.k.velocity, dim=dim, device=self.device,
+                  inputs=[*f.v.values(), f.p, *m[:-1], *(f.psi[k] for k in vpsi), *(o.psi[k] for k in vpsi), *o.v.values(), *common])
+        wp.launch(self.k.pressure, dim=dim, device=self.device,
+                  inputs=[*o.v.values(), f.p, m[-1], *(f.psi[k] for k in ppsi), *(o.psi[k] for k in ppsi), o.p, *common])
         if sources is not None:
             amplitudes, (idx, w) = sources
             wp.launch(self.k.inject, dim=idx.shape[1:], inputs=[out.p, amplitudes, idx, w, n, clock, self.dtype(self.dx**-self.ndim)],

@@ -41,9 +41,12 @@ and vx, even for vz); their weights are computed once per run (`weights`).
 Kernels, plain per-cell Warp kernels that Warp differentiates (Tape): `velocity` and `pressure` (a half step each,
 in place or out of place: a cell reads only its own old value of a field it writes), `inject`, `record`,
 `weights`, `materials` (vp, q, rho -> b_x, b_z, M_U, g_l; Warp's adjoint is the chain rule to vp, q, rho).
+`velocity` and `pressure` take the arrays' flat views (State.flat, Materials.flat: same memory and .grad) and a 1D
+launch over the interior cells, indexing with int32 flat offsets (Grid), not 3D arrays' 64-bit, bounds-checked ones.
 """
 
 import functools
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -61,94 +64,123 @@ PSI = {"vx_x": 1, "vz_z": 0, "p_x": 1, "p_z": 0}
 MATERIALS = ("bx", "bz", "mu", "g")  # buoyancy at vx and vz nodes, M_U, g_l = M_R y_l (L, Lz, Lx)
 
 
+@wp.struct
+class Grid:
+    """The sizes a flat field kernel indexes with (int32): interior cells per shot (nz, nx), padded (lz, lx), the CPML
+    strips' widths (wz, wx)."""
+
+    nz: int
+    nx: int
+    lz: int
+    lx: int
+    wz: int
+    wx: int
+
+
+def _cell(ns):
+    """cell(grid, t): thread t of a 1D launch over the interior cells (S nz nx) as (s, z, x, model cell z lx + x, field
+    cell (s lz + z) lx + x), with int32 arithmetic."""
+    M = ns.M
+
+    @wp.func
+    def cell(grid: Grid, t: int):
+        r = t / grid.nx
+        x = t - r * grid.nx + wp.static(M)
+        s = r / grid.nz
+        z = r - s * grid.nz + wp.static(M)
+        m = z * grid.lx + x
+        return s, z, x, m, s * grid.lz * grid.lx + m
+
+    return cell
+
+
 def _derivatives(ns):
-    """build's staggered first derivatives (times dx) of p at the velocity nodes and of vx, vz at the p nodes, reading
-    above a free surface the images (p odd, vz even)."""
-    dtype, arr3, fs, M, C = ns.dtype, ns.arr3, ns.fs, ns.M, ns.C
+    """build's staggered first derivatives (times dx) of p at the velocity nodes and of vx, vz at the p nodes on flat
+    fields (c: the flat cell at row z, lx: the row stride), reading above a free surface the images (p odd, vz even)."""
+    dtype, arr1, fs, M, C = ns.dtype, ns.arr1, ns.fs, ns.M, ns.C
 
     @wp.func
-    def p_at(p: arr3, s: int, z: int, x: int, top: int) -> dtype:
-        # p, the odd image of the row 2 top - z above a free surface
+    def p_at(p: arr1, c: int, z: int, lx: int, top: int) -> dtype:
+        # p at cell c (row z), the odd image of the row 2 top - z above a free surface
         if wp.static(fs):
             if z < top:
-                return -p[s, 2 * top - z, x]
-        return p[s, z, x]
+                return -p[c + 2 * (top - z) * lx]
+        return p[c]
 
     @wp.func
-    def vz_at(vz: arr3, s: int, z: int, x: int, top: int) -> dtype:
-        # vz (index z at z + 1/2), the even image of index 2 top - 1 - z above a free surface
+    def vz_at(vz: arr1, c: int, z: int, lx: int, top: int) -> dtype:
+        # vz at cell c (row z, at z + 1/2), the even image of the row 2 top - 1 - z above a free surface
         if wp.static(fs):
             if z < top:
-                return vz[s, 2 * top - 1 - z, x]
-        return vz[s, z, x]
+                return vz[c + (2 * (top - z) - 1) * lx]
+        return vz[c]
 
     @wp.func
-    def dp_dx(p: arr3, s: int, z: int, x: int) -> dtype:
+    def dp_dx(p: arr1, c: int) -> dtype:
         # dp/dx times dx at (z, x + 1/2)
         acc = dtype(0.0)
         for m in range(wp.static(M)):
-            acc += dtype(wp.static(C[m])) * (p[s, z, x + m + 1] - p[s, z, x - m])
+            acc += dtype(wp.static(C[m])) * (p[c + m + 1] - p[c - m])
         return acc
 
     @wp.func
-    def dp_dz(p: arr3, s: int, z: int, x: int, top: int) -> dtype:
+    def dp_dz(p: arr1, c: int, z: int, lx: int, top: int) -> dtype:
         # dp/dz times dx at (z + 1/2, x)
         acc = dtype(0.0)
         for m in range(wp.static(M)):
-            acc += dtype(wp.static(C[m])) * (p_at(p, s, z + m + 1, x, top) - p_at(p, s, z - m, x, top))
+            acc += dtype(wp.static(C[m])) * (p_at(p, c + (m + 1) * lx, z + m + 1, lx, top) - p_at(p, c - m * lx, z - m, lx, top))
         return acc
 
     @wp.func
-    def dvx_dx(vx: arr3, s: int, z: int, x: int) -> dtype:
+    def dvx_dx(vx: arr1, c: int) -> dtype:
         # dvx/dx times dx at (z, x)
         acc = dtype(0.0)
         for m in range(wp.static(M)):
-            acc += dtype(wp.static(C[m])) * (vx[s, z, x + m] - vx[s, z, x - m - 1])
+            acc += dtype(wp.static(C[m])) * (vx[c + m] - vx[c - m - 1])
         return acc
 
     @wp.func
-    def dvz_dz(vz: arr3, s: int, z: int, x: int, top: int) -> dtype:
+    def dvz_dz(vz: arr1, c: int, z: int, lx: int, top: int) -> dtype:
         # dvz/dz times dx at (z, x)
         acc = dtype(0.0)
         for m in range(wp.static(M)):
-            acc += dtype(wp.static(C[m])) * (vz_at(vz, s, z + m, x, top) - vz_at(vz, s, z - m - 1, x, top))
+            acc += dtype(wp.static(C[m])) * (vz_at(vz, c + m * lx, z + m, lx, top) - vz_at(vz, c - (m + 1) * lx, z - m - 1, lx, top))
         return acc
 
     return dp_dx, dp_dz, dvx_dx, dvz_dz
 
 
 def _velocity(ns):
-    """The 2D CPML memory update (cpml: d + psi written at a strip cell) and the lossless velocity half step v_new = v -
-    dt b grad p (velocity), shared with kernels/acoustic_vd."""
-    M, dtype, arr1, arr2, arr3, Axis = ns.M, ns.dtype, ns.arr1, ns.arr2, ns.arr3, ns.Axis
+    """The 2D CPML memory update (cpml: d + psi written at a flat strip cell) and the lossless velocity half step v_new
+    = v - dt b grad p (velocity, flat arrays, a 1D launch over the interior cells), shared with kernels/acoustic_vd."""
+    dtype, arr1, Axis = ns.dtype, ns.arr1, ns.Axis
     dp_dx, dp_dz = _derivatives(ns)[:2]
+    cell = _cell(ns)
 
     @wp.func
-    def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr3, new: arr3, s: int, row: int, col: int) -> dtype:
-        # d + psi, psi = b psi_old + a d stored at strip cell (row, col) (profile index i); d outside the strips (j < 0)
+    def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr1, new: arr1, k: int) -> dtype:
+        # d + psi, psi = b psi_old + a d stored at flat strip cell k (profile index i); d outside the strips (j < 0)
         if j < 0:
             return d
-        psi = b[i] * old[s, row, col] + a[i] * d
-        new[s, row, col] = psi
+        psi = b[i] * old[k] + a[i] * d
+        new[k] = psi
         return d + psi
 
-    @unique_kernel
+    @unique_kernel(grid_stride=False)
     def velocity(
-        vx: arr3, vz: arr3, p: arr3, bx: arr2, bz: arr2, o_vx_x: arr3, o_vz_z: arr3, n_vx_x: arr3, n_vz_z: arr3,
-        vx_new: arr3, vz_new: arr3, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        vx: arr1, vz: arr1, p: arr1, bx: arr1, bz: arr1, o_vx_x: arr1, o_vz_z: arr1, n_vx_x: arr1, n_vz_z: arr1,
+        vx_new: arr1, vz_new: arr1, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid,
     ):  # fmt: skip
         # v_new = v - dt b grad p at every interior velocity node
-        s, zi, xi = wp.tid()
-        z = zi + wp.static(M)
-        x = xi + wp.static(M)
+        s, z, x, m, c = cell(grid, wp.tid())
         jz = az.store[z]
         jx = ax.store[x]
-        gx = cpml(dp_dx(p, s, z, x) * inv_dx, jx, x, ax.ah, ax.bh, o_vx_x, n_vx_x, s, z, jx)
-        gz = cpml(dp_dz(p, s, z, x, top) * inv_dx, jz, z, az.ah, az.bh, o_vz_z, n_vz_z, s, jz, x)
-        vx_new[s, z, x] = vx[s, z, x] - dt * bx[z, x] * gx
-        vz_new[s, z, x] = vz[s, z, x] - dt * bz[z, x] * gz
+        gx = cpml(dp_dx(p, c) * inv_dx, jx, x, ax.ah, ax.bh, o_vx_x, n_vx_x, (s * grid.lz + z) * grid.wx + jx)
+        gz = cpml(dp_dz(p, c, z, grid.lx, top) * inv_dx, jz, z, az.ah, az.bh, o_vz_z, n_vz_z, (s * grid.wz + jz) * grid.lx + x)
+        vx_new[c] = vx[c] - dt * bx[m] * gx
+        vz_new[c] = vz[c] - dt * bz[m] * gz
 
-    return cpml, velocity
+    return cpml, velocity, cell
 
 
 def _points(ns):
@@ -231,32 +263,32 @@ def build(order: int, dtype, free_surface: bool, mechanisms: int):
 
     ns.Axis, ns.arr1, ns.arr2 = Axis, arr1, arr2
     dvx_dx, dvz_dz = _derivatives(ns)[2:]
-    cpml, velocity = _velocity(ns)
+    cpml, velocity, cell = _velocity(ns)
 
-    @unique_kernel
+    @unique_kernel(grid_stride=False)
     def pressure(
-        vx: arr3, vz: arr3, p: arr3, r: arr4, mu: arr2, g: arr3, c1: arr1, c2: arr1, o_p_x: arr3, o_p_z: arr3,
-        n_p_x: arr3, n_p_z: arr3, p_new: arr3, r_new: arr4, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        vx: arr1, vz: arr1, p: arr1, r: arr1, mu: arr1, g: arr1, c1: arr1, c2: arr1, o_p_x: arr1, o_p_z: arr1,
+        n_p_x: arr1, n_p_z: arr1, p_new: arr1, r_new: arr1, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid,
     ):  # fmt: skip
         # p and the memory variables r_l from level n to n + 1 (module docstring); 0 on a free surface's row
-        s, zi, xi = wp.tid()
-        z = zi + wp.static(M)
-        x = xi + wp.static(M)
+        s, z, x, m, c = cell(grid, wp.tid())
         jz = az.store[z]
         jx = ax.store[x]
-        d = cpml(dvx_dx(vx, s, z, x) * inv_dx, jx, x, ax.a, ax.b, o_p_x, n_p_x, s, z, jx)
-        d = d + cpml(dvz_dz(vz, s, z, x, top) * inv_dx, jz, z, az.a, az.b, o_p_z, n_p_z, s, jz, x)
+        d = cpml(dvx_dx(vx, c) * inv_dx, jx, x, ax.a, ax.b, o_p_x, n_p_x, (s * grid.lz + z) * grid.wx + jx)
+        d = d + cpml(dvz_dz(vz, c, z, grid.lx, top) * inv_dx, jz, z, az.a, az.b, o_p_z, n_p_z, (s * grid.wz + jz) * grid.lx + x)
         keep = dtype(1.0)
         if wp.static(fs):
             if z == top:
                 keep = dtype(0.0)
+        area = grid.lz * grid.lx
         rsum = dtype(0.0)
         for l in range(wp.static(L)):
-            old = r[s, l, z, x]
-            new = keep * (c1[l] * old - c2[l] * g[l, z, x] * d)
-            r_new[s, l, z, x] = new
+            k = (s * wp.static(L) + l) * area + m  # r[s, l, z, x]
+            old = r[k]
+            new = keep * (c1[l] * old - c2[l] * g[l * area + m] * d)
+            r_new[k] = new
             rsum += old + new
-        p_new[s, z, x] = keep * (p[s, z, x] - dt * (mu[z, x] * d + dtype(0.5) * rsum))
+        p_new[c] = keep * (p[c] - dt * (mu[m] * d + dtype(0.5) * rsum))
 
     @wp.func
     def weight(series: arr2, l: int, iq: dtype) -> dtype:
@@ -308,9 +340,39 @@ class State:
 
     def __init__(self, vx, vz, p, r, psi):
         self.vx, self.vz, self.p, self.r, self.psi = vx, vz, p, r, psi
+        self._flat = None
 
     def arrays(self):
         return [self.vx, self.vz, self.p, self.r, *(self.psi[k] for k in PSI)]
+
+    def flat(self) -> "State":
+        """The State of the arrays' flat (1D) views, the field kernels' inputs; made once, they share memory and .grad
+        with the arrays."""
+        if self._flat is None:
+            self._flat = State(*(a.flatten() for a in (self.vx, self.vz, self.p, self.r)), {k: a.flatten() for k, a in self.psi.items()})
+        return self._flat
+
+
+class Materials(tuple):
+    """A launch helper's materials (a tuple of padded arrays) with their flat (1D) views `flat`, the field kernels'
+    inputs, made once (they share memory and .grad with the arrays)."""
+
+    def __new__(cls, arrays):
+        mat = super().__new__(cls, arrays)
+        mat.flat = tuple(a.flatten() for a in arrays)
+        return mat
+
+
+def field_grid(padded: tuple, halo: int, strip_width: tuple, size: int) -> Grid:
+    """The Grid of a 2D launch helper; ValueError if an array of `size` cells (its largest) is past int32 flat indices."""
+    if size >= 2**31:
+        raise ValueError(f"{size} cells in one array (n_shots x padded grid (x mechanisms)) exceed the kernels' int32 flat indices "
+                         f"(2^31); use fewer shots per call or a smaller grid")  # fmt: skip
+    grid = Grid()
+    grid.nz, grid.nx = padded[0] - 2 * halo, padded[1] - 2 * halo
+    grid.lz, grid.lx = padded
+    grid.wz, grid.wx = strip_width
+    return grid
 
 
 class Viscoacoustic:
@@ -341,6 +403,7 @@ class Viscoacoustic:
         self.series = wp.array(mechanisms.series, dtype=dtype, device=device)
         self.tau = wp.array(mechanisms.tau, dtype=dtype, device=device)
         self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * R)
+        self.grid = field_grid(self.padded, R, self.strip_width, self.n_shots * mechanisms.count * math.prod(self.padded))
         self.inv_dx = dtype(1.0 / dx)
         self.dt_device = dtype(dt)
         self.cuda = wp.get_device(device).is_cuda
@@ -375,7 +438,7 @@ class Viscoacoustic:
         out = (zeros(self.padded), zeros(self.padded), zeros(self.padded), zeros((self.mechanisms.count, *self.padded)))
         w_ref = self.dtype(2.0 * np.pi * self.f_ref)
         wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, q, rho, self.series, self.tau, w_ref, *out], device=self.device)
-        return out
+        return Materials(out)
 
     def operator(self, loc: wp.array):
         """The fixed operator of locations loc (S, n, 2) metres (z, x): (idx (3, S, n, points) vec2i, weights (3, S, n,
@@ -385,18 +448,19 @@ class Viscoacoustic:
 
     def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
         """Advance st (level n) to level n + 1 with the explosive sources' samples n and n + 1 (+ clock[0]); sources:
-        (amplitudes (S, n_src, >= n + 2), their operator (operator)) or None. mat: MATERIALS (materials). With
+        (amplitudes (S, n_src, >= n + 2), their operator (operator)) or None. mat: MATERIALS (materials' Materials). With
         out=None in place; else into out's arrays (st unchanged), as under a tape (each level its own arrays)."""
         out = st if out is None else out
         clock = self.clock if clock is None else clock
-        bx, bz, mu, g = mat
-        common = [*self.axes, self.dt_device, self.inv_dx, self.top]
-        wp.launch(self.k.velocity, dim=self.interior, device=self.device,
-                  inputs=[st.vx, st.vz, st.p, bx, bz, st.psi["vx_x"], st.psi["vz_z"], out.psi["vx_x"], out.psi["vz_z"], out.vx,
-                          out.vz, *common])  # fmt: skip
-        wp.launch(self.k.pressure, dim=self.interior, device=self.device,
-                  inputs=[out.vx, out.vz, st.p, st.r, mu, g, self.c1, self.c2, st.psi["p_x"], st.psi["p_z"], out.psi["p_x"],
-                          out.psi["p_z"], out.p, out.r, *common])  # fmt: skip
+        f, o = st.flat(), out.flat()
+        bx, bz, mu, g = mat.flat
+        common = [*self.axes, self.dt_device, self.inv_dx, self.top, self.grid]
+        cells = math.prod(self.interior)
+        wp.launch(self.k.velocity, dim=cells, device=self.device,
+                  inputs=[f.vx, f.vz, f.p, bx, bz, f.psi["vx_x"], f.psi["vz_z"], o.psi["vx_x"], o.psi["vz_z"], o.vx, o.vz, *common])
+        wp.launch(self.k.pressure, dim=cells, device=self.device,
+                  inputs=[o.vx, o.vz, f.p, f.r, mu, g, self.c1, self.c2, f.psi["p_x"], f.psi["p_z"], o.psi["p_x"], o.psi["p_z"], o.p,
+                          o.r, *common])  # fmt: skip
         if sources is not None:
             amplitudes, (idx, w) = sources
             wp.launch(self.k.inject, dim=idx.shape[1:], inputs=[out.p, amplitudes, idx, w, n, clock, self.dtype(1.0 / self.dx**2)],
