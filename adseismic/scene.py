@@ -195,22 +195,21 @@ def check_velocity_units(vmin: float, vmax: float, key: str = "model") -> list:
 
 
 def forward_memory_bytes(padded: int, n_shots: int, n_receivers: int, nt: int, itemsize: int,
-                         physics: str = "acoustic") -> int:
+                         physics: str = "acoustic", ndim: int = 2) -> int:
     """Estimated peak bytes of a forward run of every shot at once: acoustic, per shot u_prev, u and the CPML strips
     (~3 padded grids), one padded model, and the receiver data on the device and on the host; elastic, per shot two
     states of 5 fields and their CPML memory (bounded by 16 padded grids), 6 padded material grids, three
     components' data; elastic3d (3D elastic), per shot two states of 9 fields and their CPML memory (bounded by 54
     padded grids), 11 padded material grids, four components' data; acoustic_vd (2D or 3D), per shot two states of
     ndim + 1 fields and their CPML memory (bounded by 2 (2 ndim + 1) + 1 padded grids), ndim + 3 padded model and
-    material grids, ndim + 1 components' data (ndim: 3 when physics is "acoustic_vd3")."""
+    material grids, ndim + 1 components' data."""
     if physics == "elastic":
         return int(itemsize * (16 * padded * n_shots + 6 * padded) + 6 * itemsize * n_shots * n_receivers * nt)
     if physics == "elastic3d":  # an upper bound: two states of 9 fields, their CPML memory (6 strips of 3 components
         # each) counted as whole padded grids, 3 + 8 padded material grids, four components' data on device and host
         return int(itemsize * (54 * padded * n_shots + 11 * padded) + 8 * itemsize * n_shots * n_receivers * nt)
-    if physics.startswith("acoustic_vd"):
-        nd = 3 if physics.endswith("3") else 2
-        return int(itemsize * ((4 * nd + 3) * padded * n_shots + (nd + 3) * padded) + 2 * (nd + 1) * itemsize * n_shots * n_receivers * nt)
+    if physics == "acoustic_vd":
+        return int(itemsize * ((4 * ndim + 3) * padded * n_shots + (ndim + 3) * padded) + 2 * (ndim + 1) * itemsize * n_shots * n_receivers * nt)
     return int(itemsize * (3 * padded * n_shots + padded) + 2 * itemsize * n_shots * n_receivers * nt)
 
 
@@ -360,16 +359,16 @@ def _staggered_reasons(grid, model, vmin, vmax, box, attenuation, dx_planned: bo
     return why_dx, why_dt
 
 
-def _forward_cost(kind: str, padded: int, nt: int, n_shots: int, n_receivers: int, sim) -> tuple[float, float]:
+def _forward_cost(kind: str, ndim: int, padded: int, nt: int, n_shots: int, n_receivers: int, sim) -> tuple[float, float]:
     """(peak bytes of a forward run of every shot, estimated seconds a shot) of a scheme kind ("acoustic", "elastic"
     (every other 2D staggered physics; vti: an upper bound, 4 fields and 4 memory variables where the elastic step has 5
-    and 8, docs/vti.md), "elastic3d", "acoustic_vd" or "acoustic_vd3" (its 3D kernels)) on padded cells x nt steps, in
-    sim's precision and on its device."""
+    and 8, docs/vti.md), "elastic3d" or "acoustic_vd" (its own kernels, 2D or 3D)) on padded cells x nt steps in ndim
+    dimensions, in sim's precision and on its device."""
     itemsize = 4 if sim.precision == "float32" else 8
-    memory = forward_memory_bytes(padded, n_shots, n_receivers, nt, itemsize, kind)
+    memory = forward_memory_bytes(padded, n_shots, n_receivers, nt, itemsize, kind, ndim)
     device_kind = "cuda" if str(sim.device).startswith("cuda") else "cpu"
     step_cost = {"acoustic": 1.0, "elastic": ELASTIC_STEP_COST, "elastic3d": ELASTIC3D_STEP_COST,
-                 "acoustic_vd": ACOUSTIC_VD_STEP_COST[2], "acoustic_vd3": ACOUSTIC_VD_STEP_COST[3]}[kind]
+                 "acoustic_vd": ACOUSTIC_VD_STEP_COST[ndim]}[kind]
     seconds = padded * nt / EST_RATE[device_kind] * step_cost
     if kind in ("elastic", "elastic3d") and device_kind == "cpu":
         seconds += nt * ELASTIC_CPU_STEP_SECONDS
@@ -550,8 +549,8 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     padded = math.prod(int(n) + 2 * pml + order for n in shape)  # Python ints: no int64 overflow for absurd grids
     kind = "elastic3d" if elastic and ndim == 3 else "elastic" if staggered else "acoustic"
     if fluid:  # acoustic_vd's own kernels
-        kind = "acoustic_vd3" if ndim == 3 else "acoustic_vd"
-    memory, seconds = _forward_cost(kind, padded, nt, len(src), len(rec), sim)
+        kind = "acoustic_vd"
+    memory, seconds = _forward_cost(kind, ndim, padded, nt, len(src), len(rec), sim)
     if seconds * len(src) > LONG_RUN_SECONDS:
         warnings.append(f"long run: an estimated {seconds * len(src) / 3600:.3g} h on {sim.device} for {len(src)} shot(s) "
                         f"({padded:,} padded cells x {nt:,} steps each); check the velocities, the wavelet's frequency and "
