@@ -9,6 +9,7 @@ import functools
 import numpy as np
 import pytest
 
+from adseismic.kernels.vti import VTI
 from adseismic.solve import vti
 from adseismic.solve.elastic import forward_elastic
 from adseismic.wavelets import ricker
@@ -214,3 +215,10 @@ def test_qsv_artefact_and_its_removal():
     assert with_artefact > 0.1
     assert with_artefact > 10.0 * without
 
+
+
+def test_too_many_cells_for_int32_indices_is_refused():
+    # the field kernels index flat arrays with int32 (kernels/viscoacoustic's Grid): 2 shots x 33024^2 padded cells
+    # (2.18e9 >= 2^31) must fail before any field is allocated, naming the fix
+    with pytest.raises(ValueError, match="int32 flat indices.*fewer shots"):
+        VTI((33000, 33000), 10.0, 1e-3, 4, 2, 10, 1e-3, 15.0, 2500.0)

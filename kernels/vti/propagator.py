@@ -17,8 +17,8 @@ Staggering (Virieux 1986), positions in cells from padded node (0, 0) as (z, x);
     sH, sV, vp, epsilon, delta, rho, c11, c13, c33   (i, k)      vx, bx   (i, k + 1/2)      vz, bz   (i + 1/2, k)
 
 with the buoyancy b = 1/rho at a velocity node the mean of 1/rho at its two neighbours (as kernels/elastic). Staggered
-first derivatives of order 2/4/8 (numerics.STAGGERED_DERIVATIVE; kernels/elastic's make_dx and make_dz, and vz's own
-z-derivative for its even image). Time: leapfrog; level n holds v at t = (n - 1/2) dt
+first derivatives of order 2/4/8 (numerics.STAGGERED_DERIVATIVE; kernels/viscoacoustic's flat ones: the stresses'
+images are odd as its p, vz's even). Time: leapfrog; level n holds v at t = (n - 1/2) dt
 and the stresses at t = n dt; one step: v^{n+1/2} = v^{n-1/2} + dt b div(s^n), s^{n+1} = s^n + dt C grad(v^{n+1/2})
 - (M(t_{n+1}) - M(t_n)) delta.
 
@@ -34,18 +34,22 @@ kernels/common's Hicks operator folded onto the images (kernels/elastic's make_p
 even for vz).
 
 Kernels are per cell and written for Warp's generated adjoints (gradients through wp.Tape): they may run in place
-(each cell reads only its own old value of a field it writes) or out of place into a level's own arrays.
+(each cell reads only its own old value of a field it writes) or out of place into a level's own arrays. `velocity` and
+`stress` take the arrays' flat views (State.flat, Materials.flat: same memory and .grad) and a 1D launch over the
+interior cells, indexing with int32 flat offsets (kernels/viscoacoustic's Grid; psi at the field's own cell).
 """
 
 import functools
+import math
 from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
 from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, host_operator, unique_kernel
-from adseismic.kernels.elastic.propagator import cpml_axes, make_dx, make_dz, make_point
+from adseismic.kernels.elastic.propagator import cpml_axes, make_point
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
+from adseismic.kernels.viscoacoustic.propagator import Grid, Materials, _cell, _derivatives, field_grid
 
 MATERIALS = ("bx", "bz", "c11", "c13", "c33")
 PSI = ("h_x", "v_z", "x", "z")  # d(sH)/dx at vx nodes, d(sV)/dz at vz nodes, d(vx)/dx and d(vz)/dz at stress nodes
@@ -63,28 +67,12 @@ def build(order: int, dtype, free_surface: bool):
     iarr1 = wp.array(dtype=wp.int32)
     idx4 = wp.array4d(dtype=wp.vec2i)
 
-    # the elastic kernels' staggered derivatives (times dx): along x at x + 1/2 of a field on integer nodes and at x of one
-    # on half nodes; along z at z + 1/2 of a stress, with its odd image above a free surface
-    ns = SimpleNamespace(M=M, C=C, fs=fs, dtype=dtype, arr3=arr3, HR=HICKS_RADIUS, W=W)
-    dx_int, _ = make_dx(ns, False)
-    dx_half, _ = make_dx(ns, True)
-    dz_stress, _ = make_dz(ns, M, False, True)
-
-    @wp.func
-    def vz_at(f: arr3, s: int, z: int, x: int, top: int) -> dtype:
-        # vz at row z (z + 1/2); above a free surface its even image
-        if wp.static(fs):
-            if z < top:
-                return f[s, 2 * top - 1 - z, x]
-        return f[s, z, x]
-
-    @wp.func
-    def dz_vz(f: arr3, s: int, z: int, x: int, top: int) -> dtype:
-        # d/dz (times dx) of vz, at z
-        acc = dtype(0.0)
-        for m in range(wp.static(M)):
-            acc += dtype(wp.static(C[m])) * (vz_at(f, s, z + m, x, top) - vz_at(f, s, z - m - 1, x, top))
-        return acc
+    # kernels/viscoacoustic's staggered derivatives (times dx) on flat fields: along x at x + 1/2 of a field on integer
+    # nodes (dp_dx) and at x of one on half nodes (dvx_dx); along z at z + 1/2 of a stress with its odd image above a
+    # free surface (dp_dz, p's), at z of vz with its even image (dvz_dz)
+    ns = SimpleNamespace(M=M, C=C, fs=fs, dtype=dtype, arr1=arr1, arr3=arr3, HR=HICKS_RADIUS, W=W)
+    dx_int, dz_stress, dx_half, dz_vz = _derivatives(ns)
+    cell = _cell(ns)
 
     @unique_kernel
     def materials(vp: arr2, eps: arr2, delta: arr2, rho: arr2, origin: wp.vec2i, bx: arr2, bz: arr2, c11: arr2, c13: arr2, c33: arr2):
@@ -104,55 +92,52 @@ def build(order: int, dtype, free_surface: bool):
         c11[z, x] = m * (dtype(1.0) + dtype(2.0) * eps[i, k])
         c13[z, x] = m * wp.sqrt(dtype(1.0) + dtype(2.0) * delta[i, k])
 
-    @unique_kernel
-    def velocity(vx: arr3, vz: arr3, sh: arr3, sv: arr3, bx: arr2, bz: arr2, p_hx: arr3, p_vz: arr3, n_hx: arr3, n_vz: arr3,
-                 vx_new: arr3, vz_new: arr3, ax_ah: arr1, ax_bh: arr1, az_ah: arr1, az_bh: arr1, dt: dtype, inv_dx: dtype,
-                 top: int):  # fmt: skip
+    @unique_kernel(grid_stride=False)
+    def velocity(vx: arr1, vz: arr1, sh: arr1, sv: arr1, bx: arr1, bz: arr1, p_hx: arr1, p_vz: arr1, n_hx: arr1, n_vz: arr1,
+                 vx_new: arr1, vz_new: arr1, ax_ah: arr1, ax_bh: arr1, az_ah: arr1, az_bh: arr1, dt: dtype, inv_dx: dtype,
+                 top: int, grid: Grid):  # fmt: skip
         # v += dt b (ds/dx_i + psi), psi = b_pml psi + a_pml ds/dx_i at the derivative's own (half) position
-        s, zi, xi = wp.tid()
-        z = zi + wp.static(M)
-        x = xi + wp.static(M)
-        d1 = dx_int(sh, s, z, x) * inv_dx
-        d2 = dz_stress(sv, s, z, x, top) * inv_dx
-        q1 = ax_bh[x] * p_hx[s, z, x] + ax_ah[x] * d1
-        q2 = az_bh[z] * p_vz[s, z, x] + az_ah[z] * d2
-        ux = vx[s, z, x]
-        uz = vz[s, z, x]
-        n_hx[s, z, x] = q1
-        n_vz[s, z, x] = q2
-        vx_new[s, z, x] = ux + dt * bx[z, x] * (d1 + q1)
-        vz_new[s, z, x] = uz + dt * bz[z, x] * (d2 + q2)
+        s, z, x, m, c = cell(grid, wp.tid())
+        d1 = dx_int(sh, c) * inv_dx
+        d2 = dz_stress(sv, c, z, grid.lx, top) * inv_dx
+        q1 = ax_bh[x] * p_hx[c] + ax_ah[x] * d1
+        q2 = az_bh[z] * p_vz[c] + az_ah[z] * d2
+        ux = vx[c]
+        uz = vz[c]
+        n_hx[c] = q1
+        n_vz[c] = q2
+        vx_new[c] = ux + dt * bx[m] * (d1 + q1)
+        vz_new[c] = uz + dt * bz[m] * (d2 + q2)
 
-    @unique_kernel
-    def stress(vx: arr3, vz: arr3, sh: arr3, sv: arr3, c11: arr2, c13: arr2, c33: arr2, p_x: arr3, p_z: arr3, n_x: arr3, n_z: arr3,
-               sh_new: arr3, sv_new: arr3, ax_a: arr1, ax_b: arr1, az_a: arr1, az_b: arr1, dt: dtype, inv_dx: dtype, top: int):  # fmt: skip
+    @unique_kernel(grid_stride=False)
+    def stress(vx: arr1, vz: arr1, sh: arr1, sv: arr1, c11: arr1, c13: arr1, c33: arr1, p_x: arr1, p_z: arr1, n_x: arr1, n_z: arr1,
+               sh_new: arr1, sv_new: arr1, ax_a: arr1, ax_b: arr1, az_a: arr1, az_b: arr1, dt: dtype, inv_dx: dtype, top: int,
+               grid: Grid):  # fmt: skip
         # sH += dt (c11 ex + c13 ez), sV += dt (c13 ex + c33 ez), e the CPML'd strain rates at the stress node;
         # both stay 0 on a free surface
-        s, zi, xi = wp.tid()
-        z = zi + wp.static(M)
-        x = xi + wp.static(M)
-        d1 = dx_half(vx, s, z, x) * inv_dx
-        d2 = dz_vz(vz, s, z, x, top) * inv_dx
-        q1 = ax_b[x] * p_x[s, z, x] + ax_a[x] * d1
-        q2 = az_b[z] * p_z[s, z, x] + az_a[z] * d2
-        fh = sh[s, z, x]
-        fv = sv[s, z, x]
+        s, z, x, m, c = cell(grid, wp.tid())
+        d1 = dx_half(vx, c) * inv_dx
+        d2 = dz_vz(vz, c, z, grid.lx, top) * inv_dx
+        q1 = ax_b[x] * p_x[c] + ax_a[x] * d1
+        q2 = az_b[z] * p_z[c] + az_a[z] * d2
+        fh = sh[c]
+        fv = sv[c]
         ex = d1 + q1
         ez = d2 + q2
-        a11 = c11[z, x]
-        a13 = c13[z, x]
-        a33 = c33[z, x]
-        n_x[s, z, x] = q1
-        n_z[s, z, x] = q2
+        a11 = c11[m]
+        a13 = c13[m]
+        a33 = c33[m]
+        n_x[c] = q1
+        n_z[c] = q2
         surface = False
         if wp.static(fs):
             surface = z == top
         if surface:
-            sh_new[s, z, x] = dtype(0.0)
-            sv_new[s, z, x] = dtype(0.0)
+            sh_new[c] = dtype(0.0)
+            sv_new[c] = dtype(0.0)
         else:
-            sh_new[s, z, x] = fh + dt * (a11 * ex + a13 * ez)
-            sv_new[s, z, x] = fv + dt * (a13 * ex + a33 * ez)
+            sh_new[c] = fh + dt * (a11 * ex + a13 * ez)
+            sv_new[c] = fv + dt * (a13 * ex + a33 * ez)
 
     hicks = hicks_axis(dtype)
     point_vx = make_point(ns, hicks, 0.0, 0.5, True)
@@ -207,9 +192,17 @@ class State:
 
     def __init__(self, vx, vz, sh, sv, psi):
         self.vx, self.vz, self.sh, self.sv, self.psi = vx, vz, sh, sv, psi
+        self._flat = None
 
     def arrays(self):
         return [self.vx, self.vz, self.sh, self.sv, *(self.psi[k] for k in PSI)]
+
+    def flat(self) -> "State":
+        """The State of the arrays' flat (1D) views, the field kernels' inputs; made once, they share memory and .grad
+        with the arrays."""
+        if self._flat is None:
+            self._flat = State(*(a.flatten() for a in (self.vx, self.vz, self.sh, self.sv)), {k: self.psi[k].flatten() for k in PSI})
+        return self._flat
 
 
 class VTI:
@@ -236,6 +229,8 @@ class VTI:
         # per axis (z, x): CPML a, b at integer and ah, bh at half positions
         self.axes = cpml_axes(SimpleNamespace, lo, nb, self.padded, R, dx, dt, vmax, pml_reflection, pml_frequency, dtype, device)[0]
         self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * R)
+        # psi lies on the whole padded grid: strips as wide as the grid, so its flat cell is the field's
+        self.grid = field_grid(self.padded, R, self.padded, self.n_shots * math.prod(self.padded))
         self.inv_dx = dtype(1.0 / dx)
         self.dt_device = dtype(dt)
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
@@ -247,26 +242,30 @@ class VTI:
         return State(zeros(), zeros(), zeros(), zeros(), {k: zeros() for k in PSI})
 
     def materials(self, vp, epsilon, delta, rho, requires_grad=False):
-        """MATERIALS (padded (Lz, Lx) arrays, interior nodes set) from the physical models (nz, nx) wp.array2d."""
+        """MATERIALS (padded (Lz, Lx) arrays, interior nodes set; a viscoacoustic Materials, with their flat views) from
+        the physical models (nz, nx) wp.array2d."""
         out = [wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS]
         wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, epsilon, delta, rho, self.origin, *out], device=self.device)
-        return tuple(out)
+        return Materials(out)
 
     def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
         """Advance st (level n) to level n + 1 with source sample n (+ clock[0]). mat: MATERIALS; sources: (amplitudes
-        (S, n_src, >= n + 2), operator (VTI.operator)) or None. out=None: in place; else into out (st unchanged)."""
+        (S, n_src, >= n + 2), operator (VTI.operator)) or None. mat: MATERIALS (materials' Materials). out=None: in place;
+        else into out (st unchanged)."""
         out = st if out is None else out
         clock = self.clock if clock is None else clock
-        bx, bz, c11, c13, c33 = mat
-        P, Q = st.psi, out.psi
+        f, o = st.flat(), out.flat()
+        bx, bz, c11, c13, c33 = mat.flat
+        P, Q = f.psi, o.psi
         az, ax = self.axes
-        common = [self.dt_device, self.inv_dx, self.top]
-        wp.launch(self.k.velocity, dim=self.interior, device=self.device,
-                  inputs=[st.vx, st.vz, st.sh, st.sv, bx, bz, P["h_x"], P["v_z"], Q["h_x"], Q["v_z"], out.vx, out.vz, ax.ah, ax.bh, az.ah,
-                          az.bh, *common])  # fmt: skip
-        wp.launch(self.k.stress, dim=self.interior, device=self.device,
-                  inputs=[out.vx, out.vz, st.sh, st.sv, c11, c13, c33, P["x"], P["z"], Q["x"], Q["z"], out.sh, out.sv, ax.a, ax.b, az.a,
-                          az.b, *common])  # fmt: skip
+        common = [self.dt_device, self.inv_dx, self.top, self.grid]
+        cells = math.prod(self.interior)
+        wp.launch(self.k.velocity, dim=cells, device=self.device,
+                  inputs=[f.vx, f.vz, f.sh, f.sv, bx, bz, P["h_x"], P["v_z"], Q["h_x"], Q["v_z"], o.vx, o.vz, ax.ah, ax.bh, az.ah, az.bh,
+                          *common])  # fmt: skip
+        wp.launch(self.k.stress, dim=cells, device=self.device,
+                  inputs=[o.vx, o.vz, f.sh, f.sv, c11, c13, c33, P["x"], P["z"], Q["x"], Q["z"], o.sh, o.sv, ax.a, ax.b, az.a, az.b,
+                          *common])  # fmt: skip
         if sources is not None:
             amp, (idx, w) = sources
             wp.launch(self.k.inject, dim=w.shape[1:], inputs=[out.sh, out.sv, amp, idx, w, n, clock, self.dtype(1.0 / self.dx**2)],
