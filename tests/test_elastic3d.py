@@ -11,7 +11,7 @@ import pytest
 from scipy.fft import irfft, next_fast_len, rfft, rfftfreq
 
 from adseismic.analytic import elastic_3d_force
-from adseismic.kernels.elastic3d import DESCRIPTION
+from adseismic.kernels.elastic3d import DESCRIPTION, Elastic3D
 from adseismic.solve.elastic3d import forward_elastic3d
 from adseismic.wavelets import ricker
 
@@ -157,3 +157,6 @@ def test_refusals():
         forward_elastic3d(vp, vs, rho, dx, dt, amp, src, rec[:, :, :2], **kw)
     with pytest.raises(ValueError, match="outside the grid"):
         forward_elastic3d(vp, vs, rho, dx, dt, amp, src, rec + 100.0, **kw)
+    # the kernels' flat int32 indices: 1302^3 padded cells (2.2e9 > 2^31) per shot and field are refused before any allocation
+    with pytest.raises(ValueError, match="int32 indices; use fewer shots"):
+        Elastic3D((1290, 1290, 1290), dx, dt, 4, 1, 4, 1e-3, 15.0, VP)

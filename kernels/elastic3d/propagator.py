@@ -25,6 +25,9 @@ R = order / 2 (no PML on top with a free surface), halo cells zero and never wri
 kappa = 1; kernels/elastic's cpml_axes): one memory variable per spatial derivative (18), stored per axis in strips
 along that axis as 4D arrays (3 n_shots, ...) whose first index is 3 s + c: PSI["v_a"] for the velocity update's
 derivative along axis a of the stress s_{c a} (c: vx, vy, vz = 0, 1, 2), PSI["s_a"] for the stress update's dv_c/da.
+`velocity` and `stress` read all of these as flat 1D views (State.flat) with int32 flat indices (Grid): field cell
+((s Lz + z) Ly + y) Lx + x, model cell (z Ly + y) Lx + x, a strip cell likewise with the strip index in place of its
+axis's coordinate; steps along x, y, z are 1, Lx, Lx Ly (arrays must stay below 2^31 cells).
 
 Free surface (stress imaging, Levander 1988; Graves 1996), as kernels/elastic in 2D: the top row of normal-stress
 nodes (padded row `top`, physical z = 0) is the surface, szz = 0 there and sxx, syy follow from szz = 0
@@ -36,11 +39,15 @@ as kernels/elastic's make_point (odd for szz, sxz, syz; a point on the surface r
 are computed once per run (`weights`).
 
 Kernels, plain per-cell Warp kernels that Warp differentiates (Tape): `velocity`, `stress` (a half step each, in place
-or out of place: a cell reads only its own old value of a field it writes), `inject_force`, `inject_moment`, `record`,
-`weights`, `materials`, `pad_model`.
+or out of place: a cell reads only its own old value of a field it writes; a 1D launch over the interior cells of
+every shot, decomposed in int32 by flat_cell: less index arithmetic than 4D arrays and a 4D launch), `inject_force`,
+`inject_moment`, `record`, `weights`, `materials`, `pad_model`. The flat stencils (make_flat_derivative,
+make_flat_reduced_dz, make_flat_cpml, flat_strips) serve any staggered 3D field; make_derivative and make_cpml are
+their 4D-array forms (kernels/acoustic_vd's 3D kernels).
 """
 
 import functools
+import math
 from types import SimpleNamespace
 
 import warp as wp
@@ -88,31 +95,6 @@ def make_derivative(ns, axis: int, half_in: bool, mr: int, image: bool, even: bo
     return d
 
 
-def make_reduced_dz(ns, half_in: bool):
-    """d/dz times dx of a velocity on half (vz) or integer (vx, vy) z nodes, of the highest order whose stencil stays
-    below a free surface: order 2 q for the q-th row (q = z - top + 1 - half_in) while q < M, else full order."""
-    M, fs, dtype, arr4 = ns.M, ns.fs, ns.dtype, ns.arr4
-    h = 1 if half_in else 0
-    full = make_derivative(ns, 0, half_in, M, False)
-    d1, d2, d3 = (make_derivative(ns, 0, half_in, m, False) for m in (1, 2, 3))
-
-    @wp.func
-    def dz(f: arr4, s: int, z: int, y: int, x: int, top: int) -> dtype:
-        q = z - top + wp.static(1 - h)
-        if wp.static(fs and M >= 2):
-            if q == 1:
-                return d1(f, s, z, y, x, top)
-        if wp.static(fs and M >= 3):
-            if q == 2:
-                return d2(f, s, z, y, x, top)
-        if wp.static(fs and M >= 4):
-            if q == 3:
-                return d3(f, s, z, y, x, top)
-        return full(f, s, z, y, x, top)
-
-    return dz
-
-
 def make_cpml(ns, axis: int):
     """d + psi, psi = b psi_old + a d written at strip cell j of the axis (j >= 0; d alone outside the strips);
     c = 3 s + component, i: the profile index; (z, y, x): the cell, whose index along the axis j replaces."""
@@ -131,99 +113,228 @@ def make_cpml(ns, axis: int):
     return cpml
 
 
-def _velocity(ns):
-    """The velocity half step: v_new = v + dt b div s at every interior velocity node."""
-    M, dtype, arr3, arr4, Axis = ns.M, ns.dtype, ns.arr3, ns.arr4, ns.Axis
-    pz, py, px = ns.pz, ns.py, ns.px
-    dx_int, dx_half = make_derivative(ns, 2, False, M, False), make_derivative(ns, 2, True, M, False)
-    dy_int, dy_half = make_derivative(ns, 1, False, M, False), make_derivative(ns, 1, True, M, False)
-    dz_int, dz_half = make_derivative(ns, 0, False, M, True), make_derivative(ns, 0, True, M, True)  # szz; sxz, syz
+@wp.struct
+class Grid:
+    """Sizes of a flat 3D layout (int32, kernels' flat indexing): the interior (the launch) and the padded axes,
+    their products and the CPML strips' widths and sizes."""
 
-    @unique_kernel
+    nz: int  # interior cells along z, y, x (padded minus the halos)
+    ny: int
+    nx: int
+    lz: int  # padded Lz, Ly, Lx
+    ly: int
+    lx: int
+    lxy: int  # Lx Ly (a z step), Lx Ly Lz (a shot)
+    shot: int
+    wz: int  # strip widths along z, y, x
+    wy: int
+    wx: int
+    sz: int  # the size of one component's strip of each axis (wz Ly Lx, Lz wy Lx, Lz Ly wx)
+    sy: int
+    sx: int
+
+
+def flat_grid(interior, padded, widths) -> Grid:
+    """The Grid of interior (nz, ny, nx), padded (Lz, Ly, Lx) and strip widths (wz, wy, wx) cells."""
+    g = Grid()
+    (g.nz, g.ny, g.nx), (g.lz, g.ly, g.lx), (g.wz, g.wy, g.wx) = interior, padded, widths
+    g.lxy, g.shot = g.lx * g.ly, g.lx * g.ly * g.lz
+    g.sz, g.sy, g.sx = g.wz * g.lxy, g.lz * g.wy * g.lx, g.lz * g.ly * g.wx
+    return g
+
+
+@wp.func
+def flat_cell(t: int, g: Grid, halo: int) -> wp.vec4i:
+    """(s, z, y, x) padded of a 1D launch's thread t over (n_shots, nz, ny, nx) interior cells."""
+    r = t / g.nx
+    x = t - r * g.nx
+    q = r / g.ny
+    y = r - q * g.ny
+    s = q / g.nz
+    z = q - s * g.nz
+    return wp.vec4i(s, z + halo, y + halo, x + halo)
+
+
+@wp.func
+def flat_strips(g: Grid, k: int, z: int, y: int, x: int, jz: int, jy: int, jx: int) -> wp.vec3i:
+    """The flat cells of (z, y, x) in the z, y and x strips (strip index jz, jy, jx in place of that coordinate) of
+    component k (the strip arrays' first index); component k + i is i g.sz, g.sy, g.sx further."""
+    cz = (k * g.wz + jz) * g.lxy + y * g.lx + x
+    cy = ((k * g.lz + z) * g.wy + jy) * g.lx + x
+    return wp.vec3i(cz, cy, ((k * g.lz + z) * g.ly + y) * g.wx + jx)
+
+
+def make_flat_derivative(ns, axis: int, half_in: bool, mr: int, image: bool, even: bool = False):
+    """make_derivative on a flat field: d(f, c, step, z, top), f 1D, c the flat cell, step its stride along the axis
+    (1, Lx or Lx Ly), z the cell's padded row, top the surface row (read only by a z derivative's image)."""
+    dtype, arr1, fs = ns.dtype, ns.arr1, ns.fs
+    c = STAGGERED_DERIVATIVE[2 * mr]
+    h = 1 if half_in else 0
+    mirrored = bool(image and fs and axis == 0)
+    sign = 1.0 if even else -1.0
+
+    @wp.func
+    def read(f: arr1, cell: int, k: int, step: int, z: int, top: int) -> dtype:
+        # the value k cells along the axis from cell (of row z)
+        if wp.static(mirrored):
+            if z + k < top:
+                return dtype(wp.static(sign)) * f[cell + (2 * top - wp.static(h) - 2 * z - k) * step]
+        if wp.static(axis == 2):
+            return f[cell + k]
+        return f[cell + k * step]
+
+    @wp.func
+    def d(f: arr1, cell: int, step: int, z: int, top: int) -> dtype:
+        acc = dtype(0.0)
+        for m in range(wp.static(mr)):
+            up = read(f, cell, m + wp.static(1 - h), step, z, top)
+            down = read(f, cell, -m - wp.static(h), step, z, top)
+            acc += dtype(wp.static(c[m])) * (up - down)
+        return acc
+
+    return d
+
+
+def make_flat_reduced_dz(ns, half_in: bool):
+    """d/dz times dx of a velocity on half (vz) or integer (vx, vy) z nodes, of the highest order whose stencil stays
+    below a free surface (order 2 q for the q-th row, q = z - top + 1 - half_in, while q < M, else full order), on a
+    flat field: dz(f, c, step, z, top) as make_flat_derivative's d (step = Lx Ly)."""
+    M, fs, dtype, arr1 = ns.M, ns.fs, ns.dtype, ns.arr1
+    h = 1 if half_in else 0
+    full = make_flat_derivative(ns, 0, half_in, M, False)
+    d1, d2, d3 = (make_flat_derivative(ns, 0, half_in, m, False) for m in (1, 2, 3))
+
+    @wp.func
+    def dz(f: arr1, cell: int, step: int, z: int, top: int) -> dtype:
+        q = z - top + wp.static(1 - h)
+        if wp.static(fs and M >= 2):
+            if q == 1:
+                return d1(f, cell, step, z, top)
+        if wp.static(fs and M >= 3):
+            if q == 2:
+                return d2(f, cell, step, z, top)
+        if wp.static(fs and M >= 4):
+            if q == 3:
+                return d3(f, cell, step, z, top)
+        return full(f, cell, step, z, top)
+
+    return dz
+
+
+def make_flat_cpml(ns):
+    """make_cpml on flat strips: cpml(d, j, i, a, b, old, new, p) = d + psi, psi = b[i] old[p] + a[i] d written to
+    new[p] where j >= 0 (d alone outside the strips); old, new 1D, p the strip cell (flat_strips)."""
+    dtype, arr1 = ns.dtype, ns.arr1
+
+    @wp.func
+    def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr1, new: arr1, p: int) -> dtype:
+        if j < 0:
+            return d
+        psi = b[i] * old[p] + a[i] * d
+        new[p] = psi
+        return d + psi
+
+    return cpml
+
+
+def _velocity(ns):
+    """The velocity half step: v_new = v + dt b div s at every interior velocity node (flat arrays, a 1D launch)."""
+    M, dtype, arr1, Axis, cpml = ns.M, ns.dtype, ns.arr1, ns.Axis, ns.cpml
+    dx_int, dx_half = make_flat_derivative(ns, 2, False, M, False), make_flat_derivative(ns, 2, True, M, False)
+    dy_int, dy_half = make_flat_derivative(ns, 1, False, M, False), make_flat_derivative(ns, 1, True, M, False)
+    dz_int, dz_half = make_flat_derivative(ns, 0, False, M, True), make_flat_derivative(ns, 0, True, M, True)  # szz; sxz, syz
+
+    @unique_kernel(grid_stride=False)
     def velocity(
-        vx: arr4, vy: arr4, vz: arr4, sxx: arr4, syy: arr4, szz: arr4, sxy: arr4, sxz: arr4, syz: arr4, bx: arr3, by: arr3,
-        bz: arr3, o_z: arr4, o_y: arr4, o_x: arr4, n_z: arr4, n_y: arr4, n_x: arr4, vx_new: arr4, vy_new: arr4, vz_new: arr4,
-        az: Axis, ay: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        vx: arr1, vy: arr1, vz: arr1, sxx: arr1, syy: arr1, szz: arr1, sxy: arr1, sxz: arr1, syz: arr1, bx: arr1, by: arr1,
+        bz: arr1, o_z: arr1, o_y: arr1, o_x: arr1, n_z: arr1, n_y: arr1, n_x: arr1, vx_new: arr1, vy_new: arr1, vz_new: arr1,
+        az: Axis, ay: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, g: Grid,
     ):  # fmt: skip
-        t, zi, yi, xi = wp.tid()
-        z = zi + wp.static(M)
-        y = yi + wp.static(M)
-        x = xi + wp.static(M)
+        p = flat_cell(wp.tid(), g, wp.static(M))
+        t = p[0]
+        z = p[1]
+        y = p[2]
+        x = p[3]
+        m = (z * g.ly + y) * g.lx + x  # model cell
+        f = t * g.shot + m  # field cell
         jz = az.store[z]
         jy = ay.store[y]
         jx = ax.store[x]
-        c = 3 * t
+        k = flat_strips(g, 3 * t, z, y, x, jz, jy, jx)  # component vx's; vy, vz one strip (g.sz, g.sy, g.sx) further
         # vx at (z, y, x + 1/2): dsxx/dx + dsxy/dy + dsxz/dz
-        g = px(dx_int(sxx, t, z, y, x, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, c, z, y, x)
-        g += py(dy_half(sxy, t, z, y, x, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, c, z, y, x)
-        g += pz(dz_half(sxz, t, z, y, x, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, c, z, y, x)
-        vx_new[t, z, y, x] = vx[t, z, y, x] + dt * bx[z, y, x] * g
+        gr = cpml(dx_int(sxx, f, 1, z, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, k[2])
+        gr += cpml(dy_half(sxy, f, g.lx, z, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, k[1])
+        gr += cpml(dz_half(sxz, f, g.lxy, z, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, k[0])
+        vx_new[f] = vx[f] + dt * bx[m] * gr
         # vy at (z, y + 1/2, x): dsxy/dx + dsyy/dy + dsyz/dz
-        g = px(dx_half(sxy, t, z, y, x, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, c + 1, z, y, x)
-        g += py(dy_int(syy, t, z, y, x, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, c + 1, z, y, x)
-        g += pz(dz_half(syz, t, z, y, x, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, c + 1, z, y, x)
-        vy_new[t, z, y, x] = vy[t, z, y, x] + dt * by[z, y, x] * g
+        gr = cpml(dx_half(sxy, f, 1, z, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, k[2] + g.sx)
+        gr += cpml(dy_int(syy, f, g.lx, z, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, k[1] + g.sy)
+        gr += cpml(dz_half(syz, f, g.lxy, z, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, k[0] + g.sz)
+        vy_new[f] = vy[f] + dt * by[m] * gr
         # vz at (z + 1/2, y, x): dsxz/dx + dsyz/dy + dszz/dz
-        g = px(dx_half(sxz, t, z, y, x, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, c + 2, z, y, x)
-        g += py(dy_half(syz, t, z, y, x, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, c + 2, z, y, x)
-        g += pz(dz_int(szz, t, z, y, x, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, c + 2, z, y, x)
-        vz_new[t, z, y, x] = vz[t, z, y, x] + dt * bz[z, y, x] * g
+        gr = cpml(dx_half(sxz, f, 1, z, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, k[2] + 2 * g.sx)
+        gr += cpml(dy_half(syz, f, g.lx, z, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, k[1] + 2 * g.sy)
+        gr += cpml(dz_int(szz, f, g.lxy, z, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, k[0] + 2 * g.sz)
+        vz_new[f] = vz[f] + dt * bz[m] * gr
 
     return velocity
 
 
 def _stress(ns):
-    """The stress half step from the new velocities; on a free surface's row szz = 0 and sxx, syy from szz = 0."""
-    M, fs, dtype, arr3, arr4, Axis = ns.M, ns.fs, ns.dtype, ns.arr3, ns.arr4, ns.Axis
-    pz, py, px = ns.pz, ns.py, ns.px
-    dx_int, dx_half = make_derivative(ns, 2, False, M, False), make_derivative(ns, 2, True, M, False)
-    dy_int, dy_half = make_derivative(ns, 1, False, M, False), make_derivative(ns, 1, True, M, False)
-    dz_int, dz_half = make_reduced_dz(ns, False), make_reduced_dz(ns, True)  # vx, vy; vz
+    """The stress half step from the new velocities (flat arrays, a 1D launch); on a free surface's row szz = 0 and
+    sxx, syy from szz = 0."""
+    M, fs, dtype, arr1, Axis, cpml = ns.M, ns.fs, ns.dtype, ns.arr1, ns.Axis, ns.cpml
+    dx_int, dx_half = make_flat_derivative(ns, 2, False, M, False), make_flat_derivative(ns, 2, True, M, False)
+    dy_int, dy_half = make_flat_derivative(ns, 1, False, M, False), make_flat_derivative(ns, 1, True, M, False)
+    dz_int, dz_half = make_flat_reduced_dz(ns, False), make_flat_reduced_dz(ns, True)  # vx, vy; vz
 
-    @unique_kernel
+    @unique_kernel(grid_stride=False)
     def stress(
-        vx: arr4, vy: arr4, vz: arr4, sxx: arr4, syy: arr4, szz: arr4, sxy: arr4, sxz: arr4, syz: arr4, l2m: arr3, lam: arr3,
-        mxy: arr3, mxz: arr3, myz: arr3, o_z: arr4, o_y: arr4, o_x: arr4, n_z: arr4, n_y: arr4, n_x: arr4, sxx_new: arr4,
-        syy_new: arr4, szz_new: arr4, sxy_new: arr4, sxz_new: arr4, syz_new: arr4, az: Axis, ay: Axis, ax: Axis, dt: dtype,
-        inv_dx: dtype, top: int,
+        vx: arr1, vy: arr1, vz: arr1, sxx: arr1, syy: arr1, szz: arr1, sxy: arr1, sxz: arr1, syz: arr1, l2m: arr1, lam: arr1,
+        mxy: arr1, mxz: arr1, myz: arr1, o_z: arr1, o_y: arr1, o_x: arr1, n_z: arr1, n_y: arr1, n_x: arr1, sxx_new: arr1,
+        syy_new: arr1, szz_new: arr1, sxy_new: arr1, sxz_new: arr1, syz_new: arr1, az: Axis, ay: Axis, ax: Axis, dt: dtype,
+        inv_dx: dtype, top: int, g: Grid,
     ):  # fmt: skip
-        t, zi, yi, xi = wp.tid()
-        z = zi + wp.static(M)
-        y = yi + wp.static(M)
-        x = xi + wp.static(M)
+        p = flat_cell(wp.tid(), g, wp.static(M))
+        t = p[0]
+        z = p[1]
+        y = p[2]
+        x = p[3]
+        m = (z * g.ly + y) * g.lx + x  # model cell
+        f = t * g.shot + m  # field cell
         jz = az.store[z]
         jy = ay.store[y]
         jx = ax.store[x]
-        c = 3 * t
+        k = flat_strips(g, 3 * t, z, y, x, jz, jy, jx)  # component 0's; components 1, 2 one, two strips further
         # normal stresses at (z, y, x)
-        exx = px(dx_half(vx, t, z, y, x, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, c, z, y, x)
-        eyy = py(dy_half(vy, t, z, y, x, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, c + 1, z, y, x)
-        ezz = pz(dz_half(vz, t, z, y, x, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, c + 2, z, y, x)
+        exx = cpml(dx_half(vx, f, 1, z, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, k[2])
+        eyy = cpml(dy_half(vy, f, g.lx, z, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, k[1] + g.sy)
+        ezz = cpml(dz_half(vz, f, g.lxy, z, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, k[0] + 2 * g.sz)
         # shear: sxy at (z, y + 1/2, x + 1/2), sxz at (z + 1/2, y, x + 1/2), syz at (z + 1/2, y + 1/2, x)
-        exy = py(dy_int(vx, t, z, y, x, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, c, z, y, x)
-        exy += px(dx_int(vy, t, z, y, x, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, c + 1, z, y, x)
-        exz = pz(dz_int(vx, t, z, y, x, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, c, z, y, x)
-        exz += px(dx_int(vz, t, z, y, x, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, c + 2, z, y, x)
-        eyz = pz(dz_int(vy, t, z, y, x, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, c + 1, z, y, x)
-        eyz += py(dy_int(vz, t, z, y, x, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, c + 2, z, y, x)
-        p = l2m[z, y, x]
-        q = lam[z, y, x]
+        exy = cpml(dy_int(vx, f, g.lx, z, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, k[1])
+        exy += cpml(dx_int(vy, f, 1, z, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, k[2] + g.sx)
+        exz = cpml(dz_int(vx, f, g.lxy, z, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, k[0])
+        exz += cpml(dx_int(vz, f, 1, z, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, k[2] + 2 * g.sx)
+        eyz = cpml(dz_int(vy, f, g.lxy, z, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, k[0] + g.sz)
+        eyz += cpml(dy_int(vz, f, g.lx, z, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, k[1] + 2 * g.sy)
+        pm = l2m[m]
+        q = lam[m]
         surface = False
         if wp.static(fs):
             surface = z == top
         if surface:
-            r = q * q / p
-            sxx_new[t, z, y, x] = sxx[t, z, y, x] + dt * ((p - r) * exx + (q - r) * eyy)
-            syy_new[t, z, y, x] = syy[t, z, y, x] + dt * ((q - r) * exx + (p - r) * eyy)
-            szz_new[t, z, y, x] = dtype(0.0)
+            r = q * q / pm
+            sxx_new[f] = sxx[f] + dt * ((pm - r) * exx + (q - r) * eyy)
+            syy_new[f] = syy[f] + dt * ((q - r) * exx + (pm - r) * eyy)
+            szz_new[f] = dtype(0.0)
         else:
             div = exx + eyy + ezz
-            sxx_new[t, z, y, x] = sxx[t, z, y, x] + dt * (q * div + (p - q) * exx)
-            syy_new[t, z, y, x] = syy[t, z, y, x] + dt * (q * div + (p - q) * eyy)
-            szz_new[t, z, y, x] = szz[t, z, y, x] + dt * (q * div + (p - q) * ezz)
-        sxy_new[t, z, y, x] = sxy[t, z, y, x] + dt * mxy[z, y, x] * exy
-        sxz_new[t, z, y, x] = sxz[t, z, y, x] + dt * mxz[z, y, x] * exz
-        syz_new[t, z, y, x] = syz[t, z, y, x] + dt * myz[z, y, x] * eyz
+            sxx_new[f] = sxx[f] + dt * (q * div + (pm - q) * exx)
+            syy_new[f] = syy[f] + dt * (q * div + (pm - q) * eyy)
+            szz_new[f] = szz[f] + dt * (q * div + (pm - q) * ezz)
+        sxy_new[f] = sxy[f] + dt * mxy[m] * exy
+        sxz_new[f] = sxz[f] + dt * mxz[m] * exz
+        syz_new[f] = syz[f] + dt * myz[m] * eyz
 
     return stress
 
@@ -409,7 +520,7 @@ def build(order: int, dtype, free_surface: bool):
     ns = SimpleNamespace(M=M, HR=HICKS_RADIUS, W=2 * HICKS_RADIUS, fs=bool(free_surface), dtype=dtype, arr1=wp.array(dtype=dtype),
                          arr2=wp.array2d(dtype=dtype), arr3=wp.array3d(dtype=dtype), arr4=wp.array4d(dtype=dtype),
                          iarr1=wp.array(dtype=wp.int32), idx4=wp.array4d(dtype=wp.vec3i), Axis=Axis)  # fmt: skip
-    ns.pz, ns.py, ns.px = (make_cpml(ns, a) for a in range(3))
+    ns.cpml = make_flat_cpml(ns)
     return Kernels(Axis=Axis, velocity=_velocity(ns), stress=_stress(ns), **_points(ns), **_models(ns), halo=M,
                    operator_points=ns.W**3)  # fmt: skip
 
@@ -420,6 +531,7 @@ class State:
 
     def __init__(self, fields, psi):
         self.f, self.psi = dict(zip(FIELDS, fields)), psi
+        self._flat = None
 
     def __getattr__(self, name):
         if name in FIELDS:
@@ -428,6 +540,18 @@ class State:
 
     def arrays(self):
         return [*(self.f[k] for k in FIELDS), *(self.psi[k] for k in PSI)]
+
+    def flat(self) -> dict:
+        """name (FIELDS, PSI) -> the array's 1D view, sharing its data and .grad; made again only if a .grad changed."""
+        arrays = self.arrays()
+        if self._flat is None or any(a.grad is not g for a, g in zip(arrays, self._flat[0])):
+            self._flat = ([a.grad for a in arrays], dict(zip((*FIELDS, *PSI), flat_views(arrays))))
+        return self._flat[1]
+
+
+def flat_views(arrays) -> list:
+    """The 1D views (wp.array.flatten) of contiguous arrays: their data and .grad as they are now."""
+    return [a.flatten() for a in arrays]
 
 
 class Elastic3D:
@@ -453,6 +577,12 @@ class Elastic3D:
         self.axes, self.strip_width = cpml_axes(self.k.Axis, lo, nb, self.padded, R, dx, dt, vmax, pml_reflection, pml_frequency, dtype,
                                                 device)  # fmt: skip
         self.interior = (self.n_shots, *(n - 2 * R for n in self.padded))
+        largest = self.n_shots * max(math.prod(self.padded), *(3 * math.prod(self.psi_shape(k)[1:]) for k in PSI))
+        if largest >= 2**31:
+            raise ValueError(f"n_shots = {self.n_shots} on a padded grid {self.padded} needs arrays of {largest} cells, above the "
+                             f"2^31 - 1 of the kernels' int32 indices; use fewer shots per call or a smaller grid")
+        self.grid = flat_grid(self.interior[1:], self.padded, self.strip_width)
+        self._mat = (None, None)  # the materials last stepped with and their 1D views
         self.inv_dx = dtype(1.0 / dx)
         self.dt_device = dtype(dt)
         self.cuda = wp.get_device(device).is_cuda
@@ -495,19 +625,23 @@ class Elastic3D:
         out = st if out is None else out
         clock = self.clock if clock is None else clock
         bx, by, bz, l2m, lam, mxy, mxz, myz = mat
-        common = [*self.axes, self.dt_device, self.inv_dx, self.top]
-        old, new = [st.psi[k] for k in ("v_z", "v_y", "v_x")], [out.psi[k] for k in ("v_z", "v_y", "v_x")]
-        wp.launch(self.k.velocity, dim=self.interior, device=self.device,
-                  inputs=[*(st.f[k] for k in FIELDS), bx, by, bz, *old, *new, out.vx, out.vy, out.vz, *common])  # fmt: skip
+        if self._mat[0] is not mat:
+            self._mat = (mat, flat_views(mat))
+        fmat, fst, fout = self._mat[1], st.flat(), out.flat()
+        common = [*self.axes, self.dt_device, self.inv_dx, self.top, self.grid]
+        cells = math.prod(self.interior)
+        old, new = [fst[k] for k in ("v_z", "v_y", "v_x")], [fout[k] for k in ("v_z", "v_y", "v_x")]
+        wp.launch(self.k.velocity, dim=cells, device=self.device,
+                  inputs=[*(fst[k] for k in FIELDS), *fmat[:3], *old, *new, *(fout[k] for k in FIELDS[:3]), *common])  # fmt: skip
         if sources is not None and sources[0] == "force":
             _, amp, comp, (idx, w) = sources
             wp.launch(self.k.inject_force, dim=idx.shape[1:], device=self.device,
                       inputs=[out.vx, out.vy, out.vz, bx, by, bz, amp, comp, idx, w, n, clock,
                               self.dtype(self.dt / self.dx**3)])  # fmt: skip
-        old, new = [st.psi[k] for k in ("s_z", "s_y", "s_x")], [out.psi[k] for k in ("s_z", "s_y", "s_x")]
-        wp.launch(self.k.stress, dim=self.interior, device=self.device,
-                  inputs=[out.vx, out.vy, out.vz, *(st.f[k] for k in FIELDS[3:]), l2m, lam, mxy, mxz, myz, *old, *new,
-                          *(out.f[k] for k in FIELDS[3:]), *common])  # fmt: skip
+        old, new = [fst[k] for k in ("s_z", "s_y", "s_x")], [fout[k] for k in ("s_z", "s_y", "s_x")]
+        wp.launch(self.k.stress, dim=cells, device=self.device,
+                  inputs=[*(fout[k] for k in FIELDS[:3]), *(fst[k] for k in FIELDS[3:]), *fmat[3:], *old, *new,
+                          *(fout[k] for k in FIELDS[3:]), *common])  # fmt: skip
         if sources is not None and sources[0] == "moment":
             _, amp, comp, (idx, w) = sources
             wp.launch(self.k.inject_moment, dim=idx.shape[1:], device=self.device,
