@@ -231,6 +231,13 @@ def host_operator(kernel, loc: wp.array, args: list, shape: tuple, idx_type, dty
     return wp.clone(idx, device=device), wp.clone(w, device=device)
 
 
+def check_flat_cells(cells: int, what: str) -> None:
+    """Refuse (ValueError) an array of `cells` cells past the flat field kernels' int32 indices (2^31)."""
+    if cells >= 2**31:
+        raise ValueError(f"{what} needs an array of {cells} cells, above the 2^31 - 1 of the kernels' int32 flat indices; use fewer "
+                         f"shots per call or a smaller grid")
+
+
 def block_rows(n: int, i: int, parts: int):
     """Rows [r0, r1) of block i of n rows split into `parts` blocks."""
     return n * i // parts, n * (i + 1) // parts

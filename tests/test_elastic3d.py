@@ -158,5 +158,5 @@ def test_refusals():
     with pytest.raises(ValueError, match="outside the grid"):
         forward_elastic3d(vp, vs, rho, dx, dt, amp, src, rec + 100.0, **kw)
     # the kernels' flat int32 indices: 1302^3 padded cells (2.2e9 > 2^31) per shot and field are refused before any allocation
-    with pytest.raises(ValueError, match="int32 indices; use fewer shots"):
+    with pytest.raises(ValueError, match="int32 flat indices; use fewer shots"):
         Elastic3D((1290, 1290, 1290), dx, dt, 4, 1, 4, 1e-3, 15.0, VP)

@@ -29,9 +29,9 @@ order. Sources and receivers: the Kaiser-windowed sinc operator (kernels/common.
 position, folded across a free surface (odd for p, vx, vy; even for vz); weights computed once per run (`weights`).
 
 Kernels, plain per-cell Warp kernels that Warp differentiates (Tape): `velocity`, `pressure` (a half step each, in
-place or out of place), `inject`, `record`, `weights`, `materials` (vp, rho -> MATERIALS), `pad_model`. In 2D the
-field kernels take flat views (State.flat, Materials.flat) and a 1D launch with int32 flat offsets, as
-kernels/viscoacoustic's; the 3D ones 4D arrays and a 4D launch.
+place or out of place), `inject`, `record`, `weights`, `materials` (vp, rho -> MATERIALS), `pad_model`. The field
+kernels take flat views (State.flat, Materials.flat) and a 1D launch with int32 flat offsets (2D: kernels/viscoacoustic's
+Grid and stencils; 3D: kernels/elastic3d's flat stencils, Grid and strips).
 """
 
 import functools
@@ -40,11 +40,12 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, host_operator, unique_kernel
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, hicks_axis, host_operator, unique_kernel
 from adseismic.kernels.elastic.propagator import build as elastic_build
 from adseismic.kernels.elastic.propagator import cpml_axes
 from adseismic.kernels.elastic3d.propagator import build as elastic3d_build
-from adseismic.kernels.elastic3d.propagator import make_cpml, make_derivative, make_point
+from adseismic.kernels.elastic3d.propagator import Grid as Flat3
+from adseismic.kernels.elastic3d.propagator import flat_cell, flat_grid, flat_strips, make_flat_cpml, make_flat_derivative, make_point
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 from adseismic.kernels.viscoacoustic.propagator import Grid, Materials, _derivatives, _points, _velocity, field_grid
 
@@ -93,55 +94,64 @@ def _kernels_2d(ns):
 
 
 def _field_kernels_3d(ns):
-    """The 3D velocity and pressure half steps."""
-    M, fs, dtype, arr3, arr4, Axis = ns.M, ns.fs, ns.dtype, ns.arr3, ns.arr4, ns.Axis
-    cz, cy, cx = (make_cpml(ns, a) for a in range(3))
-    dp_dx, dp_dy = make_derivative(ns, 2, False, M, False), make_derivative(ns, 1, False, M, False)
-    dp_dz = make_derivative(ns, 0, False, M, True)  # p: odd image above a free surface
-    dvx_dx, dvy_dy = make_derivative(ns, 2, True, M, False), make_derivative(ns, 1, True, M, False)
-    dvz_dz = make_derivative(ns, 0, True, M, True, even=True)  # vz: even image
+    """The 3D velocity and pressure half steps on flat views (kernels/elastic3d's flat stencils, Grid and strips)."""
+    M, fs, dtype, arr1, Axis = ns.M, ns.fs, ns.dtype, ns.arr1, ns.Axis
+    cpml = make_flat_cpml(ns)
+    dp_dx, dp_dy = make_flat_derivative(ns, 2, False, M, False), make_flat_derivative(ns, 1, False, M, False)
+    dp_dz = make_flat_derivative(ns, 0, False, M, True)  # p: odd image above a free surface
+    dvx_dx, dvy_dy = make_flat_derivative(ns, 2, True, M, False), make_flat_derivative(ns, 1, True, M, False)
+    dvz_dz = make_flat_derivative(ns, 0, True, M, True, even=True)  # vz: even image
 
-    @unique_kernel
+    @unique_kernel(grid_stride=False)
     def velocity(
-        vx: arr4, vy: arr4, vz: arr4, p: arr4, bx: arr3, by: arr3, bz: arr3, o_x: arr4, o_y: arr4, o_z: arr4, n_x: arr4, n_y: arr4,
-        n_z: arr4, vx_new: arr4, vy_new: arr4, vz_new: arr4, az: Axis, ay: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        vx: arr1, vy: arr1, vz: arr1, p: arr1, bx: arr1, by: arr1, bz: arr1, o_x: arr1, o_y: arr1, o_z: arr1, n_x: arr1, n_y: arr1,
+        n_z: arr1, vx_new: arr1, vy_new: arr1, vz_new: arr1, az: Axis, ay: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        g: Flat3,
     ):  # fmt: skip
         # v_new = v - dt b grad p at every interior velocity node
-        t, zi, yi, xi = wp.tid()
-        z = zi + wp.static(M)
-        y = yi + wp.static(M)
-        x = xi + wp.static(M)
+        q = flat_cell(wp.tid(), g, wp.static(M))
+        t = q[0]
+        z = q[1]
+        y = q[2]
+        x = q[3]
+        m = (z * g.ly + y) * g.lx + x  # model cell
+        f = t * g.shot + m  # field cell
         jz = az.store[z]
         jy = ay.store[y]
         jx = ax.store[x]
-        gx = cx(dp_dx(p, t, z, y, x, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, t, z, y, x)
-        gy = cy(dp_dy(p, t, z, y, x, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, t, z, y, x)
-        gz = cz(dp_dz(p, t, z, y, x, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, t, z, y, x)
-        vx_new[t, z, y, x] = vx[t, z, y, x] - dt * bx[z, y, x] * gx
-        vy_new[t, z, y, x] = vy[t, z, y, x] - dt * by[z, y, x] * gy
-        vz_new[t, z, y, x] = vz[t, z, y, x] - dt * bz[z, y, x] * gz
+        k = flat_strips(g, t, z, y, x, jz, jy, jx)
+        gx = cpml(dp_dx(p, f, 1, z, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, k[2])
+        gy = cpml(dp_dy(p, f, g.lx, z, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, k[1])
+        gz = cpml(dp_dz(p, f, g.lxy, z, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, k[0])
+        vx_new[f] = vx[f] - dt * bx[m] * gx
+        vy_new[f] = vy[f] - dt * by[m] * gy
+        vz_new[f] = vz[f] - dt * bz[m] * gz
 
-    @unique_kernel
+    @unique_kernel(grid_stride=False)
     def pressure(
-        vx: arr4, vy: arr4, vz: arr4, p: arr4, k: arr3, o_x: arr4, o_y: arr4, o_z: arr4, n_x: arr4, n_y: arr4, n_z: arr4,
-        p_new: arr4, az: Axis, ay: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int,
+        vx: arr1, vy: arr1, vz: arr1, p: arr1, k: arr1, o_x: arr1, o_y: arr1, o_z: arr1, n_x: arr1, n_y: arr1, n_z: arr1,
+        p_new: arr1, az: Axis, ay: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, g: Flat3,
     ):  # fmt: skip
         # p_new = p - dt K div v; 0 on a free surface's row
-        t, zi, yi, xi = wp.tid()
-        z = zi + wp.static(M)
-        y = yi + wp.static(M)
-        x = xi + wp.static(M)
+        q = flat_cell(wp.tid(), g, wp.static(M))
+        t = q[0]
+        z = q[1]
+        y = q[2]
+        x = q[3]
+        m = (z * g.ly + y) * g.lx + x
+        f = t * g.shot + m
         jz = az.store[z]
         jy = ay.store[y]
         jx = ax.store[x]
-        d = cx(dvx_dx(vx, t, z, y, x, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, t, z, y, x)
-        d += cy(dvy_dy(vy, t, z, y, x, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, t, z, y, x)
-        d += cz(dvz_dz(vz, t, z, y, x, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, t, z, y, x)
+        c = flat_strips(g, t, z, y, x, jz, jy, jx)
+        d = cpml(dvx_dx(vx, f, 1, z, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, c[2])
+        d += cpml(dvy_dy(vy, f, g.lx, z, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, c[1])
+        d += cpml(dvz_dz(vz, f, g.lxy, z, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, c[0])
         keep = dtype(1.0)
         if wp.static(fs):
             if z == top:
                 keep = dtype(0.0)
-        p_new[t, z, y, x] = keep * (p[t, z, y, x] - dt * k[z, y, x] * d)
+        p_new[f] = keep * (p[f] - dt * k[m] * d)
 
     return velocity, pressure
 
@@ -283,7 +293,11 @@ class AcousticVD:
         self.axes, self.strip_width = cpml_axes(self.k.Axis, lo, nb, self.padded, R, dx, dt, vmax, pml_reflection, pml_frequency, dtype,
                                                 device)  # fmt: skip
         self.interior = (self.n_shots, *(n - 2 * R for n in self.padded))
-        self.grid = field_grid(self.padded, R, self.strip_width, self.n_shots * math.prod(self.padded)) if nd == 2 else None
+        if nd == 2:
+            self.grid = field_grid(self.padded, R, self.strip_width, self.n_shots * math.prod(self.padded))
+        else:
+            check_flat_cells(self.n_shots * math.prod(self.padded), f"n_shots = {self.n_shots} on a padded grid {self.padded}")
+            self.grid = flat_grid(self.interior[1:], self.padded, self.strip_width)
         self.inv_dx = dtype(1.0 / dx)
         self.dt_device = dtype(dt)
         self.cuda = wp.get_device(device).is_cuda
@@ -331,9 +345,7 @@ class AcousticVD:
         vpsi = [f"{v}_{v[1]}" for v in names]
         ppsi = [f"p_{v[1]}" for v in names]
         common = [*self.axes, self.dt_device, self.inv_dx, self.top]
-        f, o, m, dim = st, out, mat, self.interior
-        if self.ndim == 2:  # the 2D kernels: flat views, a 1D launch over the interior cells
-            f, o, m, common, dim = st.flat(), out.flat(), mat.flat, [*common, self.grid], math.prod(self.interior)
+        f, o, m, common, dim = st.flat(), out.flat(), mat.flat, [*common, self.grid], math.prod(self.interior)  # flat views, a 1D launch
         wp.launch(self.k.velocity, dim=dim, device=self.device,
                   inputs=[*f.v.values(), f.p, *m[:-1], *(f.psi[k] for k in vpsi), *(o.psi[k] for k in vpsi), *o.v.values(), *common])
         wp.launch(self.k.pressure, dim=dim, device=self.device,

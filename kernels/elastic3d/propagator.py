@@ -42,8 +42,7 @@ Kernels, plain per-cell Warp kernels that Warp differentiates (Tape): `velocity`
 or out of place: a cell reads only its own old value of a field it writes; a 1D launch over the interior cells of
 every shot, decomposed in int32 by flat_cell: less index arithmetic than 4D arrays and a 4D launch), `inject_force`,
 `inject_moment`, `record`, `weights`, `materials`, `pad_model`. The flat stencils (make_flat_derivative,
-make_flat_reduced_dz, make_flat_cpml, flat_strips) serve any staggered 3D field; make_derivative and make_cpml are
-their 4D-array forms (kernels/acoustic_vd's 3D kernels).
+make_flat_reduced_dz, make_flat_cpml, flat_strips) serve any staggered 3D field (kernels/acoustic_vd's 3D kernels too).
 """
 
 import functools
@@ -52,7 +51,7 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, host_operator, unique_kernel
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, hicks_axis, host_operator, unique_kernel
 from adseismic.kernels.elastic.propagator import cpml_axes
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 
@@ -62,55 +61,6 @@ FIELDS = ("vx", "vy", "vz", "sxx", "syy", "szz", "sxy", "sxz", "syz")
 # the operators of weights: (z, y, x) offset of the field's index, odd image across a free surface; 3 serves sxx, syy
 POINTS = ((0.0, 0.0, 0.5, False), (0.0, 0.5, 0.0, False), (0.5, 0.0, 0.0, False), (0.0, 0.0, 0.0, False), (0.0, 0.0, 0.0, True),
           (0.0, 0.5, 0.5, False), (0.5, 0.0, 0.5, True), (0.5, 0.5, 0.0, True))  # fmt: skip
-
-
-def make_derivative(ns, axis: int, half_in: bool, mr: int, image: bool, even: bool = False):
-    """d/d(axis) times dx with mr staggered weights of a field on half (half_in) or integer nodes of that axis, at the
-    other kind of node; image: the odd (even: the even) image above row `top` (z only, with a free surface)."""
-    dtype, arr4, fs = ns.dtype, ns.arr4, ns.fs
-    c = STAGGERED_DERIVATIVE[2 * mr]
-    h = 1 if half_in else 0
-    ez, ey, ex = int(axis == 0), int(axis == 1), int(axis == 2)
-    mirrored = bool(image and fs and axis == 0)
-    sign = 1.0 if even else -1.0
-
-    @wp.func
-    def read(f: arr4, s: int, z: int, y: int, x: int, top: int) -> dtype:
-        if wp.static(mirrored):
-            if z < top:
-                return dtype(wp.static(sign)) * f[s, 2 * top - wp.static(h) - z, y, x]
-        return f[s, z, y, x]
-
-    @wp.func
-    def d(f: arr4, s: int, z: int, y: int, x: int, top: int) -> dtype:
-        acc = dtype(0.0)
-        for m in range(wp.static(mr)):
-            lo = -m - wp.static(h)
-            hi = m + wp.static(1 - h)
-            up = read(f, s, z + hi * wp.static(ez), y + hi * wp.static(ey), x + hi * wp.static(ex), top)
-            down = read(f, s, z + lo * wp.static(ez), y + lo * wp.static(ey), x + lo * wp.static(ex), top)
-            acc += dtype(wp.static(c[m])) * (up - down)
-        return acc
-
-    return d
-
-
-def make_cpml(ns, axis: int):
-    """d + psi, psi = b psi_old + a d written at strip cell j of the axis (j >= 0; d alone outside the strips);
-    c = 3 s + component, i: the profile index; (z, y, x): the cell, whose index along the axis j replaces."""
-    dtype, arr1, arr4 = ns.dtype, ns.arr1, ns.arr4
-
-    @wp.func
-    def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr4, new: arr4, c: int, z: int, y: int, x: int) -> dtype:
-        if j < 0:
-            return d
-        p = wp.vec3i(z, y, x)
-        p[wp.static(axis)] = j
-        psi = b[i] * old[c, p[0], p[1], p[2]] + a[i] * d
-        new[c, p[0], p[1], p[2]] = psi
-        return d + psi
-
-    return cpml
 
 
 @wp.struct
@@ -165,7 +115,9 @@ def flat_strips(g: Grid, k: int, z: int, y: int, x: int, jz: int, jy: int, jx: i
 
 
 def make_flat_derivative(ns, axis: int, half_in: bool, mr: int, image: bool, even: bool = False):
-    """make_derivative on a flat field: d(f, c, step, z, top), f 1D, c the flat cell, step its stride along the axis
+    """d/d(axis) times dx with mr staggered weights of a field on half (half_in) or integer nodes of that axis, at the
+    other kind of node; image: the odd (even: the even) image above row `top` (z only, with a free surface). On a flat
+    field: d(f, c, step, z, top), f 1D, c the flat cell, step its stride along the axis
     (1, Lx or Lx Ly), z the cell's padded row, top the surface row (read only by a z derivative's image)."""
     dtype, arr1, fs = ns.dtype, ns.arr1, ns.fs
     c = STAGGERED_DERIVATIVE[2 * mr]
@@ -222,7 +174,7 @@ def make_flat_reduced_dz(ns, half_in: bool):
 
 
 def make_flat_cpml(ns):
-    """make_cpml on flat strips: cpml(d, j, i, a, b, old, new, p) = d + psi, psi = b[i] old[p] + a[i] d written to
+    """The CPML update on flat strips: cpml(d, j, i, a, b, old, new, p) = d + psi, psi = b[i] old[p] + a[i] d written to
     new[p] where j >= 0 (d alone outside the strips); old, new 1D, p the strip cell (flat_strips)."""
     dtype, arr1 = ns.dtype, ns.arr1
 
@@ -578,9 +530,7 @@ class Elastic3D:
                                                 device)  # fmt: skip
         self.interior = (self.n_shots, *(n - 2 * R for n in self.padded))
         largest = self.n_shots * max(math.prod(self.padded), *(3 * math.prod(self.psi_shape(k)[1:]) for k in PSI))
-        if largest >= 2**31:
-            raise ValueError(f"n_shots = {self.n_shots} on a padded grid {self.padded} needs arrays of {largest} cells, above the "
-                             f"2^31 - 1 of the kernels' int32 indices; use fewer shots per call or a smaller grid")
+        check_flat_cells(largest, f"n_shots = {self.n_shots} on a padded grid {self.padded}")
         self.grid = flat_grid(self.interior[1:], self.padded, self.strip_width)
         self._mat = (None, None)  # the materials last stepped with and their 1D views
         self.inv_dx = dtype(1.0 / dx)

@@ -52,7 +52,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, hicks_axis, host_operator, unique_kernel
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, hicks_axis, host_operator, unique_kernel
 from adseismic.kernels.elastic.propagator import build as elastic_build
 from adseismic.kernels.elastic.propagator import cpml_axes, make_point
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
@@ -365,9 +365,7 @@ class Materials(tuple):
 
 def field_grid(padded: tuple, halo: int, strip_width: tuple, size: int) -> Grid:
     """The Grid of a 2D launch helper; ValueError if an array of `size` cells (its largest) is past int32 flat indices."""
-    if size >= 2**31:
-        raise ValueError(f"{size} cells in one array (n_shots x padded grid (x mechanisms)) exceed the kernels' int32 flat indices "
-                         f"(2^31); use fewer shots per call or a smaller grid")  # fmt: skip
+    check_flat_cells(size, f"n_shots x padded grid {tuple(padded)} (x mechanisms)")
     grid = Grid()
     grid.nz, grid.nx = padded[0] - 2 * halo, padded[1] - 2 * halo
     grid.lz, grid.lx = padded
