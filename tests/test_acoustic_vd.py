@@ -350,3 +350,25 @@ def test_3d_fwi_runs(tmp_path):
     assert result.bands[0]["misfit"] < 0.99
     with h5py.File(tmp_path / "run" / "model.h5") as f:
         assert f["rho"].shape == (14, 12, 16) and np.ptp(f["rho"][...]) > 0
+
+
+def test_a_fixed_operator_is_computed_once_per_geometry():
+    # kernels.common.host_operator keeps its result for the next call with the same kernel, locations and grid (an
+    # FWI's evaluations), as copies (a kept loop refills its own operator arrays); other locations get their own
+    import warp as wp
+
+    from adseismic.kernels.acoustic_vd import AcousticVD
+
+    prop = AcousticVD((30, 40), 10.0, 1e-3, 4, 1, 8, 1e-3, 10.0, 2000.0)
+    loc = wp.array(np.array([[[55.0, 123.0], [80.0, 201.0]]]), dtype=wp.float32)
+    from adseismic.kernels import common
+
+    a = prop.operator(loc)
+    kept = len(common._OPERATORS)
+    b = AcousticVD((30, 40), 10.0, 1e-3, 4, 1, 8, 1e-3, 10.0, 2000.0).operator(wp.clone(loc))  # another call's setup
+    assert len(common._OPERATORS) == kept and b[1] is not a[1]
+    np.testing.assert_array_equal(b[1].numpy(), a[1].numpy())
+    np.testing.assert_array_equal(b[0].numpy(), a[0].numpy())
+    c = prop.operator(wp.array(np.array([[[55.0, 124.0], [80.0, 201.0]]]), dtype=wp.float32))
+    assert c[1] is not a[1] and not np.array_equal(c[1].numpy()[:, 0, 0], a[1].numpy()[:, 0, 0])
+    np.testing.assert_array_equal(c[1].numpy()[:, 0, 1], a[1].numpy()[:, 0, 1])  # the shared receiver's weights
