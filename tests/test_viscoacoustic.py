@@ -14,7 +14,7 @@ from scipy.special import hankel2
 from adseismic.kernels.viscoacoustic import Viscoacoustic, fit_mechanisms
 from adseismic.solve import viscoacoustic
 from adseismic.solve.elastic import forward_elastic
-from adseismic.solve.viscoacoustic import COMPONENTS
+from adseismic.solve.viscoacoustic import COMPONENTS, unrelaxed_velocity
 from adseismic.wavelets import make_wavelet
 
 from .conftest import DEVICE
@@ -236,3 +236,18 @@ def test_too_many_cells_for_int32_indices_is_refused():
     # padded cells (2.2e9 >= 2^31) must fail before any field is allocated, naming the fix
     with pytest.raises(ValueError, match="int32 flat indices.*fewer shots"):
         Viscoacoustic((19000, 19000), 10.0, 1e-3, 4, 2, fit_mechanisms(*BAND, 3), F_PEAK, 10, 1e-3, F_PEAK, 2500.0)
+
+
+def test_unrelaxed_velocity_is_the_mechanisms_high_frequency_limit():
+    # unrelaxed_velocity folds the mechanisms into polynomials in 1/q (Horner); it must equal the direct sum over the
+    # mechanisms' weights y_l (module formula) to rounding, and vp where q = inf (lossless)
+    mech = fit_mechanisms(3.0, 25.0, 3)
+    q = np.array([5.0, 20.0, 100.0, 1000.0, np.inf])
+    vp = np.array([1500.0, 2000.0, 2500.0, 3000.0, 3500.0])
+    y = mech.y(q)
+    wt = 2 * np.pi * 10.0 * mech.tau
+    m_ref = 1.0 + (y * (1j * wt) / (1.0 + 1j * wt)).sum(axis=-1)
+    direct = vp * np.real(m_ref**-0.5) * np.sqrt(1.0 + y.sum(axis=-1))
+    np.testing.assert_allclose(unrelaxed_velocity(vp, q, mech, 10.0), direct, rtol=1e-14)
+    assert unrelaxed_velocity(vp, q, mech, 10.0)[-1] == vp[-1]
+    assert np.all(np.diff(unrelaxed_velocity(np.full(4, 2000.0), q[:4], mech, 10.0)) < 0)  # more loss, faster at high f

@@ -77,11 +77,17 @@ def check_model_values(vp, q, rho):
 def unrelaxed_velocity(vp, q, mechanisms, f_ref: float) -> np.ndarray:
     """sqrt(M_U / rho) (m/s): the speed at w -> infinity of a medium of phase velocity vp (m/s) at f_ref (Hz) and
     quality factor q (arrays of one shape), the fastest the scheme carries (its CFL speed)."""
-    q = np.asarray(q, dtype=float)
-    y = mechanisms.y(q)
+    iq = 1.0 / np.asarray(q, dtype=float)
     wt = 2.0 * math.pi * f_ref * mechanisms.tau
-    m_ref = 1.0 + (y * (1j * wt) / (1.0 + 1j * wt)).sum(axis=-1)
-    return np.asarray(vp, dtype=float) * np.real(m_ref**-0.5) * np.sqrt(1.0 + y.sum(axis=-1))
+    c = (1j * wt) / (1.0 + 1j * wt)
+    # sum_l y_l c_l and sum_l y_l are polynomials in 1/q (y_l = sum_k series[k, l] q^-(k+1)): Horner on the cells,
+    # the mechanisms folded into the coefficients (one pass a term where y (cells x L) took several)
+    coef = mechanisms.series @ np.stack([c.real, c.imag, np.ones_like(wt)], axis=1)  # (SERIES_TERMS, 3)
+    re, im, ysum = (np.zeros_like(iq) for _ in range(3))
+    for k in reversed(range(coef.shape[0])):
+        re, im, ysum = (re + coef[k, 0]) * iq, (im + coef[k, 1]) * iq, (ysum + coef[k, 2]) * iq
+    m_ref = (1.0 + re) + 1j * im
+    return np.asarray(vp, dtype=float) * np.real(m_ref**-0.5) * np.sqrt(1.0 + ysum)
 
 
 @dataclass
