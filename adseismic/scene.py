@@ -209,7 +209,8 @@ def forward_memory_bytes(padded: int, n_shots: int, n_receivers: int, nt: int, i
         # each) counted as whole padded grids, 3 + 8 padded material grids, four components' data on device and host
         return int(itemsize * (54 * padded * n_shots + 11 * padded) + 8 * itemsize * n_shots * n_receivers * nt)
     if physics == "acoustic_vd":
-        return int(itemsize * ((4 * ndim + 3) * padded * n_shots + (ndim + 3) * padded) + 2 * (ndim + 1) * itemsize * n_shots * n_receivers * nt)
+        fields = (4 * ndim + 3) * padded * n_shots + (ndim + 3) * padded
+        return int(itemsize * fields + 2 * (ndim + 1) * itemsize * n_shots * n_receivers * nt)
     return int(itemsize * (3 * padded * n_shots + padded) + 2 * itemsize * n_shots * n_receivers * nt)
 
 
@@ -547,9 +548,7 @@ def plan_scene(config, velocity_range=None, f_max=None, force=None, check_memory
     nt = int(math.ceil(t_record / dt)) + 1
     refl = DEFAULT_PML_REFLECTION[order] if sim.pml_reflection is None else float(sim.pml_reflection)
     padded = math.prod(int(n) + 2 * pml + order for n in shape)  # Python ints: no int64 overflow for absurd grids
-    kind = "elastic3d" if elastic and ndim == 3 else "elastic" if staggered else "acoustic"
-    if fluid:  # acoustic_vd's own kernels
-        kind = "acoustic_vd"
+    kind = "acoustic_vd" if fluid else "elastic3d" if elastic and ndim == 3 else "elastic" if staggered else "acoustic"
     memory, seconds = _forward_cost(kind, ndim, padded, nt, len(src), len(rec), sim)
     if seconds * len(src) > LONG_RUN_SECONDS:
         warnings.append(f"long run: an estimated {seconds * len(src) / 3600:.3g} h on {sim.device} for {len(src)} shot(s) "

@@ -369,13 +369,13 @@ class ShotPool:
         futures = [self.client.submit(fn, model, d, params, key=f"adseismic-eval-{tag}-{k}") for k, d in enumerate(self.futures)]
         results = {}
 
-        def completions():  # each result fetched as its batch ends, beside the batches still running
-            for fut, result in distributed.as_completed(futures, with_results=True, loop=self.client.loop):
+        def completions(pending):  # each result fetched as its batch ends, beside the batches still running
+            for fut, result in distributed.as_completed(pending, with_results=True, loop=self.client.loop):
                 results[fut.key] = result
                 yield
 
         try:
-            count_batches(completions(), len(futures), desc or f"evaluation {self.evaluations}", len(self.devices), self.progress)
+            count_batches(completions(futures), len(futures), desc or f"evaluation {self.evaluations}", len(self.devices), self.progress)
             return [results[f.key] for f in futures]
         finally:
             del futures, model
