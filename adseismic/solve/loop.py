@@ -35,19 +35,22 @@ from adseismic.runs import progress_bar
 from adseismic.solve.common import padded_samples
 
 
-def run_levels(su, st, model, data, steps: range, sources=None, next_state=None, callback=None):
+def run_levels(su, st, model, data, steps: range, sources=None, next_state=None, callback=None, clock=None):
     """Record level n into sample n - steps.start of data and advance one step, for n in steps; returns the state at
     steps.stop (or at nt - 1, which is only recorded). sources: su.sources_of(...) (default: su.amplitudes through the
     located operator); next_state: callable giving the next level's arrays (each level needs its own under a tape),
-    None steps in place; callback(state, n) runs at level n before it is recorded and stepped from."""
+    None steps in place; callback(state, n) runs at level n before it is recorded and stepped from; clock: a device
+    clock holding steps.start, which the launches add to the index they are given (sample and level n - steps.start;
+    one captured segment then serves every start)."""
     src = su.sources_of(su.amplitudes, fixed=False) if sources is None else sources
     for n in steps:
         if callback is not None:
             callback(st, n)
+        k = n - steps.start
         if n == su.nt - 1:
-            su.record(st, data, n - steps.start, None)
+            su.record(st, data, k, clock)
             break
-        st = su.advance(st, model, src, data, n - steps.start, n, next_state() if next_state is not None else None, None)
+        st = su.advance(st, model, src, data, k, n if clock is None else k, next_state() if next_state is not None else None, clock)
     return st
 
 

@@ -47,71 +47,107 @@ def choose_segment(nt: int, step: int, total, memory_budget: float | None, segme
 
 
 def taped_sweep(su, seg: int, n_seg: int, loss, bar, on_level=None):
-    """Warp's generated adjoints: a forward sweep without a tape up to the last segment, keeping the state at the
-    start of every segment; then each segment, last first, re-run under a fresh tape with its own arrays per level
-    (su.new_level(), reused from segment to segment; the last segment's run is the forward sweep's end) and
-    back-propagated with the data residual and the adjoint state carried from the later segment. The gradients
-    accumulate in the .grad of the arrays su's model and sources were made with.
+    """Warp's generated adjoints: a forward sweep up to the last segment, keeping the state at the start of every
+    segment; then each segment, last first, re-run under a tape with its own arrays per level (su.new_level()) and
+    back-propagated with the data residual and the adjoint state carried from the later segment (_TapedSegments:
+    on a GPU each full segment's two directions are captured once as CUDA graphs and replayed). The model and the
+    sources are made once, on a tape of their own that is back-propagated at the end, so the gradients accumulate in
+    the .grad of the arrays su's model and sources were made with.
 
     loss(synthetic) -> (J, adjoints): synthetic, a tuple of NumPy arrays (S, n_rec, nt) in su.new_data's order;
     adjoints, dJ/dsynthetic in the same order (None for a component without). on_level(state, n): called once at
-    every level of the forward sweep (untaped). Returns (synthetic, J)."""
+    every level of the forward sweep (untaped; the forward sweep is then run launch by launch). Returns
+    (synthetic, J)."""
     prop, nt = su.prop, su.nt
-    levels = [su.new_level() for _ in range(seg)]
-    starts = [prop.new_state(requires_grad=True) for _ in range(2)]
-
-    def taped(k, st0, callback=None):
-        """Segment k (levels n0 .. n1) from st0 under a fresh tape: (tape, state at n1, data)."""
-        n0, n1 = k * seg, min((k + 1) * seg, nt)
-        for lvl in levels:
-            for a in lvl.arrays():
-                a.grad.zero_()
-        data_seg = su.new_data(n1 - n0, requires_grad=True)
-        pool = iter(levels)
-        tape = wp.Tape()
-        with tape:
-            st = run_levels(su, st0, su.model(on_tape=True), data_seg, range(n0, n1), next_state=lambda: next(pool), callback=callback)
-        return tape, st, data_seg
-
+    setup_tape = wp.Tape()
+    with setup_tape:
+        model, src = su.model(on_tape=True), su.sources_of(su.amplitudes, fixed=False)
+    data = su.new_data(nt, requires_grad=True)
+    ts = _TapedSegments(su, seg, model, src, data)
     last = (n_seg - 1) * seg
-    data = su.new_data(last)
-    checkpoints = []
+    checkpoints, segments = [], None  # the checkpoints have no .grad: wp.copy would copy it over start's carried adjoint
+    fns = (ts.forward_segment, ts.adjoint_segment)
+    if on_level is None:
+        for k in range(n_seg - 1):
+            checkpoints.append([wp.clone(a, requires_grad=False) for a in ts.start.arrays()])
+            if k == 0:  # launch by launch: loads the modules (forward and adjoint) that the captures need
+                ts.clock.zero_()
+                ts.forward_segment()
+                segments = graphs.Segments(prop.device, ts.clock, [], fns)
+            else:
+                segments.run(0, k * seg)
+    else:
 
-    def keep(st, n):
-        if n % seg == 0:
-            checkpoints.append([wp.clone(a) for a in st.arrays()])
-        if on_level is not None:
+        def keep(st, n):
+            if n % seg == 0:
+                checkpoints.append([wp.clone(a, requires_grad=False) for a in st.arrays()])
             on_level(st, n)
 
-    st = run_levels(su, prop.new_state(), su.model(), data, range(last), callback=keep)
-    for dst, a in zip(starts[0].arrays(), st.arrays()):
-        wp.copy(dst, a)
-    pending = taped(n_seg - 1, starts[0], on_level)
+        st = run_levels(su, prop.new_state(), model, data, range(last), src, callback=keep)
+        _copy(ts.start.arrays(), st.arrays())
+        segments = graphs.Segments(prop.device, ts.clock, [], fns) if n_seg > 1 else None
+    ts.clock.fill_(last)
+    tape, _ = ts.taped(range(last, nt), on_level)
     bar.update(n_seg)
-    synthetic = tuple(np.concatenate([a.numpy(), b.numpy()], axis=2) for a, b in zip(data, pending[2]))
+    synthetic = tuple(np.array(d.numpy()) for d in data)  # (a copy: the re-runs record into data again)
     J, adjoints = loss(synthetic)
-    carry = None
-    for i, k in enumerate(reversed(range(n_seg))):
-        n0, n1 = k * seg, min((k + 1) * seg, nt)
-        st0 = starts[i % 2]
-        if i:
-            for dst, src in zip(st0.arrays(), checkpoints[k]):
-                wp.copy(dst, src)
-            checkpoints[k] = None
-            pending = taped(k, st0)
-        for a in st0.arrays():
-            a.grad.zero_()
-        tape, st, data_seg = pending
-        pending = None
-        seeds = {d: wp.array(np.ascontiguousarray(a[:, :, n0:n1]), dtype=prop.dtype, device=prop.device)
-                 for d, a in zip(data_seg, adjoints) if a is not None}  # fmt: skip
-        if carry is not None:
-            seeds.update(zip(st.arrays(), carry))
-        tape.backward(grads=seeds)
-        carry = [a.grad for a in st0.arrays()]
-        del tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
+    for d, a in zip(data, adjoints):
+        if a is not None:
+            d.grad.assign(wp.array(np.ascontiguousarray(a), dtype=prop.dtype, device=prop.device))
+    for a in ts.start.arrays():
+        a.grad.zero_()
+    tape.backward()
+    del tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
+    bar.update()
+    for k in reversed(range(n_seg - 1)):
+        _copy(ts.start.arrays(), checkpoints[k])
+        checkpoints[k] = None
+        segments.run(1, k * seg)
         bar.update()
+    setup_tape.backward()
     return synthetic, J
+
+
+class _TapedSegments:
+    """taped_sweep's arrays and its two directions of a full segment (seg levels from `start`, the time indices read
+    from `clock`; graphs.Segments): forward_segment, untaped, leaves the end state in start; adjoint_segment re-runs
+    the levels from start under a tape and back-propagates them, seeded with the adjoint state that start's .grad
+    carries from the later segment, leaving the earlier one there."""
+
+    def __init__(self, su, seg, model, src, data):
+        self.su, self.seg, self.model, self.src, self.data = su, seg, model, src, data
+        self.levels = [su.new_level() for _ in range(seg)]
+        self.start = su.prop.new_state(requires_grad=True)
+        self.carry = [wp.empty_like(a) for a in self.start.arrays()]
+        self.clock = wp.zeros(1, dtype=wp.int32, device=su.prop.device)
+        self.tape = None
+
+    def _levels(self, steps, callback=None):
+        pool = iter(self.levels)
+        return run_levels(self.su, self.start, self.model, self.data, steps, self.src, lambda: next(pool), callback, self.clock)
+
+    def forward_segment(self):
+        _copy(self.start.arrays(), self._levels(range(self.seg)).arrays())
+
+    def taped(self, steps, callback=None):
+        """The levels of `steps` from start under a fresh tape (clock[0] holding steps.start): (tape, end state)."""
+        for lvl in self.levels:
+            for a in lvl.arrays():
+                a.grad.zero_()
+        tape = wp.Tape()
+        with tape:
+            end = self._levels(steps, callback)
+        return tape, end
+
+    def adjoint_segment(self):
+        tape, end = self.taped(range(self.seg))
+        _copy(self.carry, [a.grad for a in self.start.arrays()])
+        for a in self.start.arrays():
+            a.grad.zero_()
+        for a, c in zip(end.arrays(), self.carry):
+            wp.copy(a.grad, c)
+        tape.backward()
+        self.tape = tape  # a captured graph's launches read the arrays the tape holds
 
 
 class Sweep:
