@@ -37,6 +37,8 @@ import adseismic.solve.elastic as E
 import adseismic.solve.elastic3d as E3
 import adseismic.solve.viscoacoustic as Q
 import adseismic.solve.vti as V
+from adseismic.accel import graphs
+from adseismic.solve import sweep
 from adseismic.solve.misfits import MISFITS
 from adseismic.solve.misfits import misfit as named_misfit
 from adseismic.wavelets import ricker
@@ -458,3 +460,28 @@ def test_named_misfit_loss_is_the_host_misfit_of_the_synthetics(physics, misfit)
     g = c.gradient(misfit, c.kinds[:1])
     expected = c.host_misfit(misfit, g.synthetic)
     assert expected > 0 and abs(g.loss - expected) <= 1e-13 * expected
+
+
+@pytest.mark.parametrize("physics", ["viscoacoustic-2d", "elastic3d-force"])
+def test_a_kept_taped_sweep_serves_the_next_call_as_a_new_one(physics, monkeypatch):
+    # A GPU keeps a taped sweep (its graphs and arrays) for the next call with the same key; that call's model, wavelet
+    # and misfit are loaded into the kept arrays and its gradients handed back. Kept here on the CPU too: the gradients
+    # equal a new sweep's bit for bit (the same launches on the same values), and one sweep serves the first two calls.
+    c = case(physics)
+    calls = [(c.kinds, {}), (c.kinds, {"vp": c.params["vp"] * 1.01, "source_amplitudes": c.params["source_amplitudes"] * 2.0}),
+             (c.kinds[:1], {}), (c.kinds, {})]  # the third without the wavelet's adjoint: a sweep of its own
+    new = [c.gradient(c.l2, wrt, segment_length=40, **ch) for wrt, ch in calls]
+    made = []
+    init = sweep._TapedSegments.__init__
+    monkeypatch.setattr(sweep, "_keeps", lambda prop: True)
+    monkeypatch.setattr(sweep._TapedSegments, "__init__", lambda self, *a: made.append(init(self, *a)))
+    try:
+        kept = [c.gradient(c.l2, wrt, segment_length=40, **ch) for wrt, ch in calls]
+    finally:
+        graphs.release()
+    assert len(made) == 3
+    for a, b, (wrt, _) in zip(new, kept, calls):
+        assert a.loss == b.loss
+        for k in wrt:
+            assert np.abs(getattr(a, k)).max() > 0 and np.array_equal(getattr(a, k), getattr(b, k)), k
+    assert not np.array_equal(new[0].vp, new[1].vp)

@@ -8,7 +8,8 @@ the cost is one extra forward run (none when every step fits in one segment).
 
 Two ways through a segment:
 - taped_sweep: Warp's generated adjoints of every kernel, recorded on a wp.Tape with the arrays of every level
-  (the reference), for any setup that run_levels drives (solve/loop.py);
+  (the reference), for any setup that run_levels drives (solve/loop.py); on a GPU its full segments are captured
+  as CUDA graphs too (the tape's launches each way) and kept with their arrays for the next call with the same key;
 - Sweep: the physics' hand-written adjoint time loop (a physics' "levels" object: its arrays and its two segment
   functions, solve/<name>.py), on a GPU captured once per direction as CUDA graphs (accel.graphs.Segments) and
   kept with its arrays for the next call with the same key.
@@ -50,32 +51,30 @@ def taped_sweep(su, seg: int, n_seg: int, loss, bar, on_level=None):
     """Warp's generated adjoints: a forward sweep up to the last segment, keeping the state at the start of every
     segment; then each segment, last first, re-run under a tape with its own arrays per level (su.new_level()) and
     back-propagated with the data residual and the adjoint state carried from the later segment (_TapedSegments:
-    on a GPU each full segment's two directions are captured once as CUDA graphs and replayed). The model and the
-    sources are made once, on a tape of their own that is back-propagated at the end, so the gradients accumulate in
-    the .grad of the arrays su's model and sources were made with.
+    on a GPU each full segment's two directions are captured once as CUDA graphs and replayed, and kept with their
+    arrays for the next call with the same key). The model and the sources are made once, on a tape of their own that
+    is back-propagated at the end, so the gradients accumulate in the .grad of the arrays su's model and sources were
+    made with.
 
     loss(synthetic) -> (J, adjoints): synthetic, a tuple of NumPy arrays (S, n_rec, nt) in su.new_data's order;
     adjoints, dJ/dsynthetic in the same order (None for a component without). on_level(state, n): called once at
-    every level of the forward sweep (untaped; the forward sweep is then run launch by launch). Returns
+    every level of the forward sweep (untaped; the forward sweep is then run launch by launch, nothing kept). Returns
     (synthetic, J)."""
     prop, nt = su.prop, su.nt
     setup_tape = wp.Tape()
     with setup_tape:
         model, src = su.model(on_tape=True), su.sources_of(su.amplitudes, fixed=False)
-    data = su.new_data(nt, requires_grad=True)
-    ts = _TapedSegments(su, seg, model, src, data)
-    last = (n_seg - 1) * seg
-    checkpoints, segments = [], None  # the checkpoints have no .grad: wp.copy would copy it over start's carried adjoint
-    fns = (ts.forward_segment, ts.adjoint_segment)
+    if on_level is None and _keeps(prop):
+        ts = graphs.kept(_taped_key(su, seg, src)) or graphs.keep(_TapedSegments(su, seg, model, src))
+    else:
+        ts = _TapedSegments(su, seg, model, src)
+    ts.load(su, model, src)
+    data, last = ts.data, (n_seg - 1) * seg
+    checkpoints = []  # without .grad: wp.copy would copy it over start's carried adjoint
     if on_level is None:
         for k in range(n_seg - 1):
             checkpoints.append([wp.clone(a, requires_grad=False) for a in ts.start.arrays()])
-            if k == 0:  # launch by launch: loads the modules (forward and adjoint) that the captures need
-                ts.clock.zero_()
-                ts.forward_segment()
-                segments = graphs.Segments(prop.device, ts.clock, [], fns)
-            else:
-                segments.run(0, k * seg)
+            ts.run(0, k * seg)
     else:
 
         def keep(st, n):
@@ -83,9 +82,8 @@ def taped_sweep(su, seg: int, n_seg: int, loss, bar, on_level=None):
                 checkpoints.append([wp.clone(a, requires_grad=False) for a in st.arrays()])
             on_level(st, n)
 
-        st = run_levels(su, prop.new_state(), model, data, range(last), src, callback=keep)
+        st = run_levels(ts.su, prop.new_state(), ts.model, data, range(last), ts.src, callback=keep)
         _copy(ts.start.arrays(), st.arrays())
-        segments = graphs.Segments(prop.device, ts.clock, [], fns) if n_seg > 1 else None
     ts.clock.fill_(last)
     tape, _ = ts.taped(range(last, nt), on_level)
     bar.update(n_seg)
@@ -102,25 +100,58 @@ def taped_sweep(su, seg: int, n_seg: int, loss, bar, on_level=None):
     for k in reversed(range(n_seg - 1)):
         _copy(ts.start.arrays(), checkpoints[k])
         checkpoints[k] = None
-        segments.run(1, k * seg)
+        ts.run(1, k * seg)
         bar.update()
+    ts.unload(su, model, src)
     setup_tape.backward()
     return synthetic, J
 
 
 class _TapedSegments:
     """taped_sweep's arrays and its two directions of a full segment (seg levels from `start`, the time indices read
-    from `clock`; graphs.Segments): forward_segment, untaped, leaves the end state in start; adjoint_segment re-runs
-    the levels from start under a tape and back-propagates them, seeded with the adjoint state that start's .grad
-    carries from the later segment, leaving the earlier one there."""
+    from `clock`; graphs.Segments, made at the first run, which loads the kernels launch by launch): forward_segment,
+    untaped, leaves the end state in start; adjoint_segment re-runs the levels from start under a tape and
+    back-propagates them, seeded with the adjoint state that start's .grad carries from the later segment, leaving the
+    earlier one there. A kept one serves a later Setup with the same key: load copies that call's inputs (model,
+    sources, operators, CPML) into the arrays the graphs read, unload its gradients back."""
 
-    def __init__(self, su, seg, model, src, data):
-        self.su, self.seg, self.model, self.src, self.data = su, seg, model, src, data
+    def __init__(self, su, seg, model, src):
+        self.key = _taped_key(su, seg, src)
+        self.su, self.seg, self.model, self.src = su, seg, model, src
+        self.data = su.new_data(su.nt, requires_grad=True)
         self.levels = [su.new_level() for _ in range(seg)]
         self.start = su.prop.new_state(requires_grad=True)
         self.carry = [wp.empty_like(a) for a in self.start.arrays()]
         self.clock = wp.zeros(1, dtype=wp.int32, device=su.prop.device)
-        self.tape = None
+        self.segments = self.tape = None
+
+    def _inputs(self, su, model, src):
+        return [*_warp_arrays(model), *_warp_arrays(src), *su.inputs(src)]
+
+    def load(self, su, model, src):
+        """Take su's inputs (a kept sweep's first use: its own; wp.copy copies their zero .grad too, clearing what the last
+        call accumulated) and clear the state and data."""
+        for a, b in zip(self._inputs(self.su, self.model, self.src), self._inputs(su, model, src)):
+            if a.ptr != b.ptr:
+                wp.copy(a, b)
+        for a in (*self.start.arrays(), *self.data):
+            a.zero_()
+            a.grad.zero_()
+
+    def unload(self, su, model, src):
+        """Hand the gradients accumulated in the kept arrays to su's model and sources (as they were made: load)."""
+        for a, b in zip(self._inputs(self.su, self.model, self.src), self._inputs(su, model, src)):
+            if a.ptr != b.ptr and a.grad is not None and b.grad is not None:
+                wp.copy(b.grad, a.grad)
+
+    def run(self, which: int, n0: int):
+        """One full segment from level n0 (which: 0 forward, 1 adjoint)."""
+        if self.segments is None:
+            self.clock.fill_(n0)
+            (self.forward_segment, self.adjoint_segment)[which]()
+            self.segments = graphs.Segments(self.su.prop.device, self.clock, [], (self.forward_segment, self.adjoint_segment))
+        else:
+            self.segments.run(which, n0)
 
     def _levels(self, steps, callback=None):
         pool = iter(self.levels)
@@ -148,6 +179,26 @@ class _TapedSegments:
             wp.copy(a.grad, c)
         tape.backward()
         self.tape = tape  # a captured graph's launches read the arrays the tape holds
+
+
+def _keeps(prop) -> bool:
+    """Whether a taped sweep is kept for the next call (on a GPU: its graphs and arrays)."""
+    return prop.cuda
+
+
+def _taped_key(su, seg: int, src) -> tuple:
+    """A kept taped sweep's key: the Setup's (its first entry, the kind, renamed: graphs keeps one a kind), seg, and
+    which of the sources' arrays are differentiated (a graph without their adjoints cannot give them)."""
+    return ("taped " + str(su.key()[0]), *su.key()[1:], seg, tuple(a.grad is not None for a in _warp_arrays(src)))
+
+
+def _warp_arrays(x) -> list:
+    """The Warp arrays in x (an array, or nested tuples and lists of them and other values), in order."""
+    if isinstance(x, wp.array):
+        return [x]
+    if isinstance(x, (tuple, list)):
+        return [a for item in x for a in _warp_arrays(item)]
+    return []
 
 
 class Sweep:
