@@ -466,13 +466,15 @@ def test_named_misfit_loss_is_the_host_misfit_of_the_synthetics(physics, misfit)
 def test_a_kept_taped_sweep_serves_the_next_call_as_a_new_one(physics, monkeypatch):
     # A GPU keeps a taped sweep (its graphs and arrays) for the next call with the same key; that call's model, wavelet
     # and misfit are loaded into the kept arrays and its gradients handed back. Kept here on the CPU too: the gradients
-    # equal a new sweep's bit for bit (the same launches on the same values), and one sweep serves the first two calls.
+    # equal a new sweep's (bit for bit on a CPU: the same launches on the same values), one sweep serving the first two.
     c = case(physics)
     calls = [(c.kinds, {}), (c.kinds, {"vp": c.params["vp"] * 1.01, "source_amplitudes": c.params["source_amplitudes"] * 2.0}),
              (c.kinds[:1], {}), (c.kinds, {})]  # the third without the wavelet's adjoint: a sweep of its own
+    monkeypatch.setattr(sweep, "_keeps", lambda prop: False)
     new = [c.gradient(c.l2, wrt, segment_length=40, **ch) for wrt, ch in calls]
     made = []
     init = sweep._TapedSegments.__init__
+    graphs.release()
     monkeypatch.setattr(sweep, "_keeps", lambda prop: True)
     monkeypatch.setattr(sweep._TapedSegments, "__init__", lambda self, *a: made.append(init(self, *a)))
     try:
@@ -480,8 +482,10 @@ def test_a_kept_taped_sweep_serves_the_next_call_as_a_new_one(physics, monkeypat
     finally:
         graphs.release()
     assert len(made) == 3
+    tol = 0.0 if DEVICE == "cpu" else 1e-12  # a GPU's atomic adds sum in no fixed order (as test_checkpointed_equals_...)
     for a, b, (wrt, _) in zip(new, kept, calls):
-        assert a.loss == b.loss
+        assert abs(a.loss - b.loss) <= tol * a.loss
         for k in wrt:
-            assert np.abs(getattr(a, k)).max() > 0 and np.array_equal(getattr(a, k), getattr(b, k)), k
+            x, y = getattr(a, k), getattr(b, k)
+            assert np.abs(x).max() > 0 and np.abs(x - y).max() <= tol * np.abs(x).max(), k
     assert not np.array_equal(new[0].vp, new[1].vp)

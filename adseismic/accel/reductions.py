@@ -21,8 +21,8 @@ def reduction_kernels(dtype):
     values; thread 0 also reads the rest), thread t reading v4[t + k stride] for k < iters (coalesced; a vector
     load keeps 4 values in flight per thread), MONITOR_BLOCK threads per block reducing to one atomic each.
     monitor: stats[0] = max(stats[0], max |v| of the finite values), stats[1] += count of non-finite ones.
-    extrema: stats = [min, max] of the finite values (stats starts at [+max, -max, 0]), stats[2] += count
-    of non-finite ones."""
+    extrema: float64 stats = [min, max] of the finite values (stats starts at [+max, -max, 0]), stats[2] += count
+    of non-finite ones (float64 stats, so arrays of either dtype share one stats array)."""
     big = float(np.finfo(wp.dtype_to_numpy(dtype)).max)
     vec4 = wp.types.vector(length=4, dtype=dtype)
 
@@ -59,15 +59,15 @@ def reduction_kernels(dtype):
             wp.atomic_add(stats, 1, block_bad[0])
 
     @wp.kernel(module="unique")
-    def extrema(v4: wp.array(dtype=vec4), v: wp.array(dtype=dtype), stats: wp.array(dtype=dtype), stride: int, iters: int):
+    def extrema(v4: wp.array(dtype=vec4), v: wp.array(dtype=dtype), stats: wp.array(dtype=wp.float64), stride: int, iters: int):
         lo, hi, top, bad = scan(v4, v, wp.tid(), stride, iters)
         block_lo = wp.tile_min(wp.tile(lo))
         block_hi = wp.tile_max(wp.tile(hi))
         block_bad = wp.tile_sum(wp.tile(bad))
         if wp.tid() % wp.static(MONITOR_BLOCK) == 0:
-            wp.atomic_min(stats, 0, block_lo[0])
-            wp.atomic_max(stats, 1, block_hi[0])
-            wp.atomic_add(stats, 2, block_bad[0])
+            wp.atomic_min(stats, 0, wp.float64(block_lo[0]))
+            wp.atomic_max(stats, 1, wp.float64(block_hi[0]))
+            wp.atomic_add(stats, 2, wp.float64(block_bad[0]))
 
     return monitor, extrema
 
@@ -100,18 +100,28 @@ def field_stats(fields, stats: wp.array):
 
 
 def value_ranges(arrays) -> list:
-    """[(min, max, number of non-finite values)] of float32/float64 Warp arrays of one dtype on a GPU, read back
-    together (one copy to the host for all)."""
+    """[(min, max, number of non-finite values)] of float32/float64 Warp arrays (either dtype) on one device, min and
+    max over the finite values (+max, -max of the first array's dtype where none is): on a GPU by block reductions
+    into one float64 stats array read back once (one synchronisation for all), on the CPU by NumPy on zero-copy
+    views."""
     v0 = arrays[0]
     big = float(np.finfo(wp.dtype_to_numpy(v0.dtype)).max)
-    stats = wp.array([[big, -big, 0.0]] * len(arrays), dtype=v0.dtype, device=v0.device)
+    if not v0.device.is_cuda:
+        out = []
+        for v in arrays:
+            a = v.numpy()
+            ok = np.isfinite(a)
+            fin = a if ok.all() else a[ok]
+            out.append((float(fin.min(initial=big)), float(fin.max(initial=-big)), int(a.size - np.count_nonzero(ok))))
+        return out
+    stats = wp.array([[big, -big, 0.0]] * len(arrays), dtype=wp.float64, device=v0.device)
     for k, v in enumerate(arrays):
         _reduce(reduction_kernels(v.dtype)[1], v, stats[k])
     return [(float(lo), float(hi), int(bad)) for lo, hi, bad in stats.numpy()]
 
 
 def value_range(v: wp.array):
-    """(min, max, number of non-finite values) of a float32/float64 Warp array on a GPU."""
+    """(min, max, number of non-finite values) of a float32/float64 Warp array (value_ranges)."""
     return value_ranges([v])[0]
 
 

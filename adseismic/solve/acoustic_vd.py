@@ -29,6 +29,12 @@ from adseismic.solve.staggered import StaggeredSetup, taped_gradient
 
 MODELS = ("vp", "rho")
 WRT = (*MODELS, "source_amplitudes")
+# vp, rho finite and > 0 (elastic's check with vs = 0); CFL speed vp; on a GPU clear where their ranges show it
+MODEL_CHECKS = common.ModelChecks(
+    lambda vp, rho: check_model_values(vp, np.zeros_like(vp), rho),
+    lambda vp, rho: vp,
+    lambda ranges, exact: all(bad == 0 and lo > 0 for lo, _, bad in ranges),
+)
 
 
 @dataclass
@@ -92,23 +98,22 @@ def setup_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, rece
     check_order(order)
     dtype = common.precision_dtype(precision)
     device = common.resolve_device(device)
-    models = [np.asarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float) for a in (vp, rho)]
-    if models[0].ndim not in DESCRIPTION.ndims or models[1].shape != models[0].shape:
-        raise ValueError(f"vp, rho must be (nz, nx) or (nz, ny, nx) arrays of one shape; got {[m.shape for m in models]}")
-    check_model_values(models[0], np.zeros_like(models[0]), models[1])
-    ndim = models[0].ndim
+    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, rho)]
+    if len(shapes[0]) not in DESCRIPTION.ndims or shapes[1] != shapes[0]:
+        raise ValueError(f"vp, rho must be (nz, nx) or (nz, ny, nx) arrays of one shape; got {shapes}")
+    models, vmax = common.checked_models(dict(zip(MODELS, (vp, rho))), MODEL_CHECKS, dtype, device, requires_grad)
+    ndim = len(shapes[0])
     amp = np.asarray(source_amplitudes, dtype=float)
-    common.check_geometry(models[0].shape, dx, amp, source_locations, receiver_locations, "z, x" if ndim == 2 else "z, y, x")
-    vmax = float(models[0].max())
+    common.check_geometry(shapes[0], dx, amp, source_locations, receiver_locations, "z, x" if ndim == 2 else "z, y, x")
     common.check_courant(DESCRIPTION, order, ndim, vmax, dx, dt)
     pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
-    prop = AcousticVD(models[0].shape, dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
+    prop = AcousticVD(shapes[0], dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
 
     def put(x, name):
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)
 
     receivers = put(receiver_locations, "")
-    return AcousticVDSetup(prop, amp.shape[2], tuple(put(m, n) for m, n in zip(models, MODELS)), put(amp, "source_amplitudes"), receivers,
+    return AcousticVDSetup(prop, amp.shape[2], models, put(amp, "source_amplitudes"), receivers,
                            prop.operator(put(source_locations, "")), prop.operator(receivers), (*VELOCITIES[ndim], "pressure"))  # fmt: skip
 
 

@@ -1,13 +1,16 @@
-"""What every physics' driver shares: devices and precisions, the input checks (geometry, the CFL
-limit), the PML defaults and the blow-up guard. A physics is handed in as its launch helper and its
-DESCRIPTION (adseismic.kernels.<name>)."""
+"""What every physics' driver shares: devices and precisions, the models' upload and value checks (on a GPU on the
+device, checked_models), the input checks (geometry, the CFL limit), the PML defaults and the blow-up guard. A
+physics is handed in as its launch helper and its DESCRIPTION (adseismic.kernels.<name>)."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
-from adseismic.accel.reductions import field_stats
+from adseismic.accel.reductions import field_stats, value_ranges
 from adseismic.kernels.common import HICKS_RADIUS, Description
 
 DTYPES = {"float32": wp.float32, "float64": wp.float64}
@@ -40,6 +43,75 @@ def precision_dtype(precision: str):
     if precision not in DTYPES:
         raise ValueError(f"precision {precision!r} is not one of {sorted(DTYPES)}")
     return DTYPES[precision]
+
+
+def upload_models(models: dict, dtype, device: str, requires_grad=()):
+    """models {name: NumPy or Warp array (one shape)} as new Warp arrays of dtype on device, requires_grad for the
+    names in requires_grad. A Warp array of dtype is copied device to device (a model on the GPU never visits the
+    host); anything else is read once into a float64 host copy and uploaded. Returns (arrays, host, exact): host[k]
+    the float64 copy, None where none was made; exact: no value was rounded on its way to dtype (every input of dtype
+    or of a type dtype holds exactly)."""
+    arrays, host, exact = [], [], True
+    for name, a in models.items():
+        grad = name in requires_grad
+        if isinstance(a, wp.array) and a.dtype == dtype:
+            arrays.append(wp.empty(a.shape, dtype=dtype, device=device, requires_grad=grad))
+            wp.copy(arrays[-1], a)
+            host.append(None)
+        else:
+            given = a.numpy() if isinstance(a, wp.array) else np.asarray(a)
+            exact = exact and np.can_cast(given.dtype, wp.dtype_to_numpy(dtype), "safe")
+            host.append(np.ascontiguousarray(given, dtype=float))
+            arrays.append(wp.array(host[-1], dtype=dtype, device=device, requires_grad=grad))
+    return tuple(arrays), host, exact
+
+
+def elementwise(kernel, arrays, *params, dtype=wp.float64) -> wp.array:
+    """A flat array (size of arrays[0]) of dtype derived cell by cell on the arrays' device: kernel(flat arrays...,
+    out, *params) launched a thread a cell."""
+    out = wp.empty(arrays[0].size, dtype=dtype, device=arrays[0].device)
+    wp.launch(kernel, dim=out.size, inputs=[*(a.flatten() for a in arrays), out, *params], device=arrays[0].device)
+    return out
+
+
+@dataclass(frozen=True)
+class ModelChecks:
+    """A physics' checks of its model values and its CFL speed, over its models in MODELS order.
+
+    exact(*host): the NumPy check of float64 arrays, raising ValueError (naming the model, the index, the fix) at the
+    first bad value; speed(*host): the CFL speed (m/s) per cell; derive(arrays): flat Warp arrays derived on the
+    device from the models (elementwise); clear(ranges, exact): True only where the (min, max, non-finite count) of
+    the models then of the derived arrays (value_ranges) show every value valid beyond doubt, exact telling whether
+    the device arrays hold the values the NumPy check would see (no rounding to dtype on upload); speed_range: the
+    index in ranges whose max is max(speed)."""
+
+    exact: Callable
+    speed: Callable
+    clear: Callable
+    derive: Callable = lambda arrays: []
+    speed_range: int = 0
+
+
+def fast_check(arrays, checks: ModelChecks, exact: bool):
+    """The device check of the models (Warp arrays of one device, MODELS order): value_ranges of them and of
+    checks.derive's arrays, read back at once. Returns vmax (m/s, the max speed in float64 of the device's values)
+    where checks.clear passes them, else None (a bad value, or not clearly valid: the NumPy check decides)."""
+    ranges = value_ranges([*arrays, *checks.derive(arrays)])
+    return ranges[checks.speed_range][1] if checks.clear(ranges, exact) else None
+
+
+def checked_models(models: dict, checks: ModelChecks, dtype, device: str, requires_grad=()):
+    """Upload the models {name: NumPy or Warp array} (upload_models) and check them: on a GPU by fast_check, and only
+    where it does not clear them (or on the CPU) by checks.exact on float64 host copies, which raises its message or
+    passes (vmax then the host's max speed, bit-equal to the checks before the device ones). Returns (arrays, vmax
+    m/s)."""
+    arrays, host, exact = upload_models(models, dtype, device, requires_grad)
+    vmax = fast_check(arrays, checks, exact) if wp.get_device(device).is_cuda else None
+    if vmax is not None:
+        return arrays, vmax
+    host = [a.numpy().astype(float) if h is None else h for a, h in zip(arrays, host)]
+    checks.exact(*host)
+    return arrays, float(checks.speed(*host).max())
 
 
 def dominant_frequency(source_amplitudes: np.ndarray, dt: float) -> float:

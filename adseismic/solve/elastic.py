@@ -100,20 +100,11 @@ def upload_models(vp, vs, rho, dtype, device: str, requires_grad=()):
     shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, vs, rho)]
     if len(shapes[0]) != 2 or shapes[1] != shapes[0] or shapes[2] != shapes[0]:
         raise ValueError(f"vp, vs, rho must be (nz, nx) arrays of one shape; got {shapes[0]}, {shapes[1]}, {shapes[2]}")
-    arrays, host = [], []
-    for name, a in zip(("vp", "vs", "rho"), (vp, vs, rho)):
-        grad = name in requires_grad
-        if isinstance(a, wp.array) and a.dtype == dtype:
-            arrays.append(wp.empty(a.shape, dtype=dtype, device=device, requires_grad=grad))
-            wp.copy(arrays[-1], a)
-            host.append(None)
-        else:
-            host.append(np.ascontiguousarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float))
-            arrays.append(wp.array(host[-1], dtype=dtype, device=device, requires_grad=grad))
+    arrays, host, _ = common.upload_models({"vp": vp, "vs": vs, "rho": rho}, dtype, device, requires_grad)
     if not wp.get_device(device).is_cuda:
         host = [a.numpy().astype(float) if h is None else h for a, h in zip(arrays, host)]
         check_model_values(*host)
-        return tuple(arrays), float(host[0].max())
+        return arrays, float(host[0].max())
     ratio = wp.empty(arrays[0].size, dtype=dtype, device=device)
     wp.launch(shear_ratio(dtype), dim=ratio.size, inputs=[arrays[0].flatten(), arrays[1].flatten(), ratio], device=device)
     (vp_min, vp_max, vp_bad), (vs_min, _, vs_bad), (rho_min, _, rho_bad), (_, ratio_max, _) = value_ranges([*arrays, ratio])

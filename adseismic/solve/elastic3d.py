@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from adseismic.kernels.elastic import shear_ratio
 from adseismic.kernels.elastic3d import DESCRIPTION, FIELDS, PSI, Elastic3D
 from adseismic.kernels.numerics import check_order
 from adseismic.solve import common, loop
@@ -35,6 +36,24 @@ MODELS = ("vp", "vs", "rho")
 WRT = (*MODELS, "source_amplitudes")
 COMPONENTS = ("vx", "vy", "vz", "pressure")
 SOURCE_TYPES = {"force": 3, "moment": 6, "explosive": 6}
+RATIO_MARGIN = 8.0 * float(np.finfo(np.float32).eps)  # vs / vp's rounding in float32 and the models' on upload
+
+
+def _clear(ranges, exact):
+    """vp, vs, rho finite, vp, rho > 0, vs >= 0 (> 0 where the upload rounded: a tiny negative vs may round to -0)
+    and vs / vp (in dtype, shear_ratio) below 1 / sqrt(2) by RATIO_MARGIN."""
+    (vp_lo, _, vp_bad), (vs_lo, _, vs_bad), (rho_lo, _, rho_bad), (_, ratio_hi, _) = ranges
+    positive = vp_lo > 0 and rho_lo > 0 and (vs_lo >= 0 if exact else vs_lo > 0)
+    return not (vp_bad or vs_bad or rho_bad) and positive and ratio_hi <= (1.0 - RATIO_MARGIN) / math.sqrt(2.0)
+
+
+# check_model_values' checks of (vp, vs, rho), the CFL speed vp; on a GPU the ratio vs / vp (shear_ratio)
+MODEL_CHECKS = common.ModelChecks(
+    check_model_values,
+    lambda vp, vs, rho: vp,
+    _clear,
+    lambda arrays: [common.elementwise(shear_ratio(arrays[0].dtype), arrays[:2], dtype=arrays[0].dtype)],
+)
 
 
 @dataclass
@@ -128,24 +147,23 @@ def setup_elastic3d(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
     check_order(order)
     dtype = common.precision_dtype(precision)
     device = common.resolve_device(device)
-    models = [np.asarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float) for a in (vp, vs, rho)]
-    if models[0].ndim != 3 or any(m.shape != models[0].shape for m in models):
-        raise ValueError(f"vp, vs, rho must be (nz, ny, nx) arrays of one shape; got {[m.shape for m in models]}")
-    check_model_values(*models)
+    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, vs, rho)]
+    if len(shapes[0]) != 3 or any(s != shapes[0] for s in shapes):
+        raise ValueError(f"vp, vs, rho must be (nz, ny, nx) arrays of one shape; got {shapes}")
+    models, vmax = common.checked_models(dict(zip(MODELS, (vp, vs, rho))), MODEL_CHECKS, dtype, device, requires_grad)
     amp = np.asarray(source_amplitudes, dtype=float)
-    common.check_geometry(models[0].shape, dx, amp, source_locations, receiver_locations, "z, y, x")
+    common.check_geometry(shapes[0], dx, amp, source_locations, receiver_locations, "z, y, x")
     comp = source_components_of(source_type, source_components, amp.shape[:2])
-    vmax = float(models[0].max())
     common.check_courant(DESCRIPTION, order, 3, vmax, dx, dt)
     pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
-    prop = Elastic3D(models[0].shape, dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
+    prop = Elastic3D(shapes[0], dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
 
     def put(x, name):
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)
 
     receivers = put(receiver_locations, "")
     return Elastic3DSetup(prop, amp.shape[2], "force" if source_type == "force" else "moment",
-                          tuple(put(m, n) for m, n in zip(models, MODELS)), put(amp, "source_amplitudes"), put(comp, ""), receivers,
+                          models, put(amp, "source_amplitudes"), put(comp, ""), receivers,
                           prop.operator(put(source_locations, "")), prop.operator(receivers))  # fmt: skip
 
 

@@ -15,14 +15,14 @@ The time loop is solve/loop.py's and the gradient solve/sweep.py's taped sweep (
 kernels, checkpointed segments); this module maps the kernels onto them (ViscoacousticSetup).
 """
 
-from __future__ import annotations
-
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
+from adseismic.kernels.common import unique_kernel
 from adseismic.kernels.numerics import check_order
 from adseismic.kernels.viscoacoustic import DESCRIPTION, PSI, Viscoacoustic, fit_mechanisms
 from adseismic.solve import common, loop
@@ -74,20 +74,69 @@ def check_model_values(vp, q, rho):
                              f"vp, rho must be finite and > 0, q > 0 (q = inf: lossless)")  # fmt: skip
 
 
+def unrelaxed_coefficients(mechanisms, f_ref: float) -> np.ndarray:
+    """(SERIES_TERMS, 3) float64: the coefficients of 1/q's powers in Re and Im of sum_l y_l c_l and in sum_l y_l,
+    c_l = i w tau_l / (1 + i w tau_l) at w = 2 pi f_ref (Hz) (y_l = sum_k series[k, l] q^-(k+1): the mechanisms
+    folded into the coefficients, one Horner pass a term where y (cells x L) took several)."""
+    wt = 2.0 * math.pi * f_ref * mechanisms.tau
+    c = (1j * wt) / (1.0 + 1j * wt)
+    return mechanisms.series @ np.stack([c.real, c.imag, np.ones_like(wt)], axis=1)
+
+
 def unrelaxed_velocity(vp, q, mechanisms, f_ref: float) -> np.ndarray:
     """sqrt(M_U / rho) (m/s): the speed at w -> infinity of a medium of phase velocity vp (m/s) at f_ref (Hz) and
     quality factor q (arrays of one shape), the fastest the scheme carries (its CFL speed)."""
     iq = 1.0 / np.asarray(q, dtype=float)
-    wt = 2.0 * math.pi * f_ref * mechanisms.tau
-    c = (1j * wt) / (1.0 + 1j * wt)
-    # sum_l y_l c_l and sum_l y_l are polynomials in 1/q (y_l = sum_k series[k, l] q^-(k+1)): Horner on the cells,
-    # the mechanisms folded into the coefficients (one pass a term where y (cells x L) took several)
-    coef = mechanisms.series @ np.stack([c.real, c.imag, np.ones_like(wt)], axis=1)  # (SERIES_TERMS, 3)
+    coef = unrelaxed_coefficients(mechanisms, f_ref)
     re, im, ysum = (np.zeros_like(iq) for _ in range(3))
     for k in reversed(range(coef.shape[0])):
         re, im, ysum = (re + coef[k, 0]) * iq, (im + coef[k, 1]) * iq, (ysum + coef[k, 2]) * iq
     m_ref = (1.0 + re) + 1j * im
     return np.asarray(vp, dtype=float) * np.real(m_ref**-0.5) * np.sqrt(1.0 + ysum)
+
+
+@functools.lru_cache(maxsize=None)
+def unrelaxed_velocity_kernel(dtype):
+    """Kernel u[i] = unrelaxed_velocity(vp[i], q[i]) in float64 on flat arrays (vp, q of dtype; coef:
+    unrelaxed_coefficients), NaN where q is not > 0 (q = inf: lossless, u = vp); Re(m^-1/2) = |m|^-1/2 cos(arg(m) / 2).
+    (This module has no `from __future__ import annotations`: Warp evaluates the kernel's annotations, dtype's too.)"""
+
+    @unique_kernel(enable_backward=False)
+    def unrelaxed(vp: wp.array(dtype=dtype), q: wp.array(dtype=dtype), u: wp.array(dtype=wp.float64), coef: wp.array2d(dtype=wp.float64)):
+        i = wp.tid()
+        qi = wp.float64(q[i])
+        iq = wp.float64(1.0) / qi
+        re = wp.float64(0.0)
+        im = wp.float64(0.0)
+        ysum = wp.float64(0.0)
+        for j in range(coef.shape[0]):
+            k = coef.shape[0] - 1 - j
+            re = (re + coef[k, 0]) * iq
+            im = (im + coef[k, 1]) * iq
+            ysum = (ysum + coef[k, 2]) * iq
+        mr = wp.float64(1.0) + re
+        scale = wp.pow(mr * mr + im * im, wp.float64(-0.25)) * wp.cos(wp.float64(0.5) * wp.atan2(im, mr))
+        u[i] = wp.float64(vp[i]) * scale * wp.sqrt(wp.float64(1.0) + ysum)
+        if not (qi > wp.float64(0.0)):
+            u[i] = wp.float64(wp.nan)
+
+    return unrelaxed
+
+
+def model_checks(mechanisms, f_ref: float) -> common.ModelChecks:
+    """The checks of (vp, q, rho) (check_model_values) and their CFL speed, unrelaxed_velocity at f_ref (Hz); on a
+    GPU the unrelaxed velocity u (unrelaxed_velocity_kernel, NaN where q is not > 0) clears q: clear where vp, rho are
+    finite and > 0 and u is finite and > 0 (q = inf: u = vp, lossless, clear)."""
+
+    def derive(arrays):
+        coef = wp.array(unrelaxed_coefficients(mechanisms, f_ref), dtype=wp.float64, device=arrays[0].device)
+        return [common.elementwise(unrelaxed_velocity_kernel(arrays[0].dtype), arrays[:2], coef)]
+
+    def clear(ranges, exact):
+        (vp_lo, _, vp_bad), _, (rho_lo, _, rho_bad), (u_lo, _, u_bad) = ranges
+        return not (vp_bad or rho_bad or u_bad) and vp_lo > 0 and rho_lo > 0 and u_lo > 0
+
+    return common.ModelChecks(check_model_values, lambda vp, q, rho: unrelaxed_velocity(vp, q, mechanisms, f_ref), clear, derive, 3)
 
 
 @dataclass
@@ -128,12 +177,11 @@ def setup_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations,
     check_order(order)
     dtype = common.precision_dtype(precision)
     device = common.resolve_device(device)
-    models = [np.asarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float) for a in (vp, q, rho)]
-    if models[0].ndim != 2 or any(m.shape != models[0].shape for m in models):
-        raise ValueError(f"vp, q, rho must be (nz, nx) arrays of one shape; got {[m.shape for m in models]}")
-    check_model_values(*models)
+    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, q, rho)]
+    if len(shapes[0]) != 2 or any(s != shapes[0] for s in shapes):
+        raise ValueError(f"vp, q, rho must be (nz, nx) arrays of one shape; got {shapes}")
     amp = np.asarray(source_amplitudes, dtype=float)
-    common.check_geometry(models[0].shape, dx, amp, source_locations, receiver_locations, "z, x")
+    common.check_geometry(shapes[0], dx, amp, source_locations, receiver_locations, "z, x")
     f_dom = common.dominant_frequency(amp, dt)
     band = (f_dom / 3.0, 2.5 * f_dom) if q_band is None else tuple(float(f) for f in np.atleast_1d(q_band))
     if len(band) != 2:
@@ -142,17 +190,17 @@ def setup_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations,
     f_ref = f_dom if f_ref is None else float(f_ref)
     if not f_ref > 0:
         raise ValueError(f"f_ref = {f_ref} Hz must be > 0 (the frequency at which vp is the phase velocity)")
-    vmax = float(unrelaxed_velocity(models[0], models[1], mech, f_ref).max())
+    models, vmax = common.checked_models(dict(zip(MODELS, (vp, q, rho))), model_checks(mech, f_ref), dtype, device, requires_grad)
     common.check_courant(DESCRIPTION, order, 2, vmax, dx, dt)
     pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
-    prop = Viscoacoustic(models[0].shape, dx, dt, order, amp.shape[0], mech, f_ref, *pml, free_surface=free_surface, dtype=dtype,
+    prop = Viscoacoustic(shapes[0], dx, dt, order, amp.shape[0], mech, f_ref, *pml, free_surface=free_surface, dtype=dtype,
                          device=device)  # fmt: skip
 
     def put(x, name):
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)
 
     receivers = put(receiver_locations, "")
-    return ViscoacousticSetup(prop, amp.shape[2], tuple(put(m, n) for m, n in zip(models, MODELS)), put(amp, "source_amplitudes"),
+    return ViscoacousticSetup(prop, amp.shape[2], models, put(amp, "source_amplitudes"),
                               receivers, prop.operator(put(source_locations, "")), prop.operator(receivers), vmax)  # fmt: skip
 
 

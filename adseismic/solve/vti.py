@@ -14,14 +14,14 @@ The time loop is solve/loop.py's (VTISetup maps the kernels onto it) and the gra
 every kernel under wp.Tape in checkpointed segments (solve/sweep.py's taped_sweep).
 """
 
-from __future__ import annotations
-
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
+from adseismic.kernels.common import unique_kernel
 from adseismic.kernels.numerics import check_order
 from adseismic.kernels.vti import DESCRIPTION, PSI, VTI, thomsen_check
 from adseismic.solve import common, loop
@@ -76,6 +76,50 @@ def horizontal_speed(vp, epsilon):
     return vp * np.sqrt(1.0 + 2.0 * epsilon)
 
 
+@functools.lru_cache(maxsize=None)
+def horizontal_speed_kernel(dtype):
+    """Kernel h[i] = horizontal_speed(vp[i], epsilon[i]) in float64 on flat arrays (vp, epsilon of dtype). (This
+    module has no `from __future__ import annotations`: Warp evaluates the kernel's annotations, dtype's too.)"""
+
+    @unique_kernel(enable_backward=False)
+    def speed(vp: wp.array(dtype=dtype), epsilon: wp.array(dtype=dtype), h: wp.array(dtype=wp.float64)):
+        i = wp.tid()
+        h[i] = wp.float64(vp[i]) * wp.sqrt(wp.float64(1.0) + wp.float64(2.0) * wp.float64(epsilon[i]))
+
+    return speed
+
+
+@functools.lru_cache(maxsize=None)
+def anellipticity_kernel(dtype):
+    """Kernel d[i] = epsilon[i] - delta[i] in float64 on flat arrays of dtype (thomsen_check's epsilon >= delta)."""
+
+    @unique_kernel(enable_backward=False)
+    def difference(epsilon: wp.array(dtype=dtype), delta: wp.array(dtype=dtype), d: wp.array(dtype=wp.float64)):
+        i = wp.tid()
+        d[i] = wp.float64(epsilon[i]) - wp.float64(delta[i])
+
+    return difference
+
+
+def _clear(ranges, exact):
+    """Finite models, vp, rho > 0, delta > -1/2 and epsilon >= delta (> where the upload rounded: rounding keeps
+    order but may make two values equal); ranges of (vp, epsilon, delta, rho, horizontal speed, epsilon - delta)."""
+    (vp_lo, _, vp_bad), (_, _, eps_bad), (delta_lo, _, delta_bad), (rho_lo, _, rho_bad), (_, _, h_bad), (d_lo, _, _) = ranges
+    finite = not (vp_bad or eps_bad or delta_bad or rho_bad or h_bad)
+    return finite and vp_lo > 0 and rho_lo > 0 and delta_lo > -0.5 and (d_lo >= 0 if exact else d_lo > 0)
+
+
+# check_model_values' checks of (vp, epsilon, delta, rho) and the CFL speed horizontal_speed
+MODEL_CHECKS = common.ModelChecks(
+    check_model_values,
+    lambda vp, epsilon, delta, rho: horizontal_speed(vp, epsilon),
+    _clear,
+    lambda arrays: [common.elementwise(horizontal_speed_kernel(arrays[0].dtype), arrays[:2]),
+                    common.elementwise(anellipticity_kernel(arrays[0].dtype), arrays[1:3])],  # fmt: skip
+    speed_range=4,
+)
+
+
 @dataclass
 class VTISetup(StaggeredSetup):
     """Device-side inputs of one VTI simulation (see :func:`setup_vti`) and the verbs of the shared solver
@@ -110,17 +154,15 @@ def setup_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locatio
     """Validate the inputs (model values, geometry, the CFL limit with the horizontal P speed) and move them to the
     device; requires_grad names the arrays (WRT) to differentiate."""
     check_order(order)
-    models = [np.ascontiguousarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float) for a in (vp, epsilon, delta, rho)]
-    shapes = [m.shape for m in models]
+    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, epsilon, delta, rho)]
     if len(shapes[0]) != 2 or any(s != shapes[0] for s in shapes):
         raise ValueError(f"vp, epsilon, delta, rho must be (nz, nx) arrays of one shape; got {', '.join(map(str, shapes))}")
-    check_model_values(*models)
-    amp = np.asarray(source_amplitudes, dtype=float)
-    common.check_geometry(shapes[0], dx, amp, source_locations, receiver_locations, "z, x")
-    vmax = float(horizontal_speed(models[0], models[1]).max())
-    common.check_courant(DESCRIPTION, order, 2, vmax, dx, dt)
     dtype = common.precision_dtype(precision)
     device = common.resolve_device(device)
+    models, vmax = common.checked_models(dict(zip(MODELS, (vp, epsilon, delta, rho))), MODEL_CHECKS, dtype, device, requires_grad)
+    amp = np.asarray(source_amplitudes, dtype=float)
+    common.check_geometry(shapes[0], dx, amp, source_locations, receiver_locations, "z, x")
+    common.check_courant(DESCRIPTION, order, 2, vmax, dx, dt)
     pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
     prop = VTI(shapes[0], dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
 
@@ -128,7 +170,7 @@ def setup_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locatio
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=device, requires_grad=grad)
 
     receivers = put(receiver_locations)
-    return VTISetup(prop, amp.shape[2], tuple(put(m, n in requires_grad) for m, n in zip(models, MODELS)),
+    return VTISetup(prop, amp.shape[2], models,
                     put(amp, "source_amplitudes" in requires_grad), receivers, prop.operator(receivers),
                     prop.operator(put(source_locations)))
 
