@@ -98,16 +98,15 @@ def setup_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, rece
     check_order(order)
     dtype = common.precision_dtype(precision)
     device = common.resolve_device(device)
-    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, rho)]
-    if len(shapes[0]) not in DESCRIPTION.ndims or shapes[1] != shapes[0]:
-        raise ValueError(f"vp, rho must be (nz, nx) or (nz, ny, nx) arrays of one shape; got {shapes}")
-    models, vmax = common.checked_models(dict(zip(MODELS, (vp, rho))), MODEL_CHECKS, dtype, device, requires_grad)
-    ndim = len(shapes[0])
+    given = dict(zip(MODELS, (vp, rho)))
+    shape = common.model_shape(given, DESCRIPTION.ndims)
+    models, vmax = common.checked_models(given, MODEL_CHECKS, dtype, device, requires_grad)
+    ndim = len(shape)
     amp = np.asarray(source_amplitudes, dtype=float)
-    common.check_geometry(shapes[0], dx, amp, source_locations, receiver_locations, "z, x" if ndim == 2 else "z, y, x")
+    common.check_geometry(shape, dx, amp, source_locations, receiver_locations, "z, x" if ndim == 2 else "z, y, x")
     common.check_courant(DESCRIPTION, order, ndim, vmax, dx, dt)
     pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
-    prop = AcousticVD(shapes[0], dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
+    prop = AcousticVD(shape, dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
 
     def put(x, name):
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)

@@ -45,6 +45,16 @@ def precision_dtype(precision: str):
     return DTYPES[precision]
 
 
+def model_shape(models: dict, ndims=(2,)) -> tuple:
+    """The one shape of the models {name: NumPy or Warp array}, each with one of ndims dimensions; ValueError naming
+    them and their shapes otherwise."""
+    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in models.values()]
+    if len(shapes[0]) not in ndims or any(s != shapes[0] for s in shapes):
+        axes = " or ".join({2: "(nz, nx)", 3: "(nz, ny, nx)"}[n] for n in ndims)
+        raise ValueError(f"{', '.join(models)} must be {axes} arrays of one shape; got {', '.join(map(str, shapes))}")
+    return shapes[0]
+
+
 def upload_models(models: dict, dtype, device: str, requires_grad=()):
     """models {name: NumPy or Warp array (one shape)} as new Warp arrays of dtype on device, requires_grad for the
     names in requires_grad. A Warp array of dtype is copied device to device (a model on the GPU never visits the

@@ -97,10 +97,9 @@ def upload_models(vp, vs, rho, dtype, device: str, requires_grad=()):
     visits the host: on a GPU the checks run there (Warp reductions, in dtype, vs / vp with a tolerance of 4 dtype
     epsilons) and the host only locates a bad value; on the CPU they run in float64. requires_grad: the names
     (of "vp", "vs", "rho") to differentiate. Returns ((vp, vs, rho), max(vp))."""
-    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, vs, rho)]
-    if len(shapes[0]) != 2 or shapes[1] != shapes[0] or shapes[2] != shapes[0]:
-        raise ValueError(f"vp, vs, rho must be (nz, nx) arrays of one shape; got {shapes[0]}, {shapes[1]}, {shapes[2]}")
-    arrays, host, _ = common.upload_models({"vp": vp, "vs": vs, "rho": rho}, dtype, device, requires_grad)
+    given = {"vp": vp, "vs": vs, "rho": rho}
+    common.model_shape(given)
+    arrays, host, _ = common.upload_models(given, dtype, device, requires_grad)
     if not wp.get_device(device).is_cuda:
         host = [a.numpy().astype(float) if h is None else h for a, h in zip(arrays, host)]
         check_model_values(*host)

@@ -147,16 +147,15 @@ def setup_elastic3d(vp, vs, rho, dx, dt, source_amplitudes, source_locations, re
     check_order(order)
     dtype = common.precision_dtype(precision)
     device = common.resolve_device(device)
-    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, vs, rho)]
-    if len(shapes[0]) != 3 or any(s != shapes[0] for s in shapes):
-        raise ValueError(f"vp, vs, rho must be (nz, ny, nx) arrays of one shape; got {shapes}")
-    models, vmax = common.checked_models(dict(zip(MODELS, (vp, vs, rho))), MODEL_CHECKS, dtype, device, requires_grad)
+    given = dict(zip(MODELS, (vp, vs, rho)))
+    shape = common.model_shape(given, (3,))
+    models, vmax = common.checked_models(given, MODEL_CHECKS, dtype, device, requires_grad)
     amp = np.asarray(source_amplitudes, dtype=float)
-    common.check_geometry(shapes[0], dx, amp, source_locations, receiver_locations, "z, y, x")
+    common.check_geometry(shape, dx, amp, source_locations, receiver_locations, "z, y, x")
     comp = source_components_of(source_type, source_components, amp.shape[:2])
     common.check_courant(DESCRIPTION, order, 3, vmax, dx, dt)
     pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
-    prop = Elastic3D(shapes[0], dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
+    prop = Elastic3D(shape, dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
 
     def put(x, name):
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)

@@ -177,11 +177,10 @@ def setup_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations,
     check_order(order)
     dtype = common.precision_dtype(precision)
     device = common.resolve_device(device)
-    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, q, rho)]
-    if len(shapes[0]) != 2 or any(s != shapes[0] for s in shapes):
-        raise ValueError(f"vp, q, rho must be (nz, nx) arrays of one shape; got {shapes}")
+    given = dict(zip(MODELS, (vp, q, rho)))
+    shape = common.model_shape(given)
     amp = np.asarray(source_amplitudes, dtype=float)
-    common.check_geometry(shapes[0], dx, amp, source_locations, receiver_locations, "z, x")
+    common.check_geometry(shape, dx, amp, source_locations, receiver_locations, "z, x")
     f_dom = common.dominant_frequency(amp, dt)
     band = (f_dom / 3.0, 2.5 * f_dom) if q_band is None else tuple(float(f) for f in np.atleast_1d(q_band))
     if len(band) != 2:
@@ -190,10 +189,10 @@ def setup_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_locations,
     f_ref = f_dom if f_ref is None else float(f_ref)
     if not f_ref > 0:
         raise ValueError(f"f_ref = {f_ref} Hz must be > 0 (the frequency at which vp is the phase velocity)")
-    models, vmax = common.checked_models(dict(zip(MODELS, (vp, q, rho))), model_checks(mech, f_ref), dtype, device, requires_grad)
+    models, vmax = common.checked_models(given, model_checks(mech, f_ref), dtype, device, requires_grad)
     common.check_courant(DESCRIPTION, order, 2, vmax, dx, dt)
     pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
-    prop = Viscoacoustic(shapes[0], dx, dt, order, amp.shape[0], mech, f_ref, *pml, free_surface=free_surface, dtype=dtype,
+    prop = Viscoacoustic(shape, dx, dt, order, amp.shape[0], mech, f_ref, *pml, free_surface=free_surface, dtype=dtype,
                          device=device)  # fmt: skip
 
     def put(x, name):

@@ -154,17 +154,16 @@ def setup_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locatio
     """Validate the inputs (model values, geometry, the CFL limit with the horizontal P speed) and move them to the
     device; requires_grad names the arrays (WRT) to differentiate."""
     check_order(order)
-    shapes = [tuple(a.shape) if isinstance(a, wp.array) else np.shape(a) for a in (vp, epsilon, delta, rho)]
-    if len(shapes[0]) != 2 or any(s != shapes[0] for s in shapes):
-        raise ValueError(f"vp, epsilon, delta, rho must be (nz, nx) arrays of one shape; got {', '.join(map(str, shapes))}")
+    given = dict(zip(MODELS, (vp, epsilon, delta, rho)))
+    shape = common.model_shape(given)
     dtype = common.precision_dtype(precision)
     device = common.resolve_device(device)
-    models, vmax = common.checked_models(dict(zip(MODELS, (vp, epsilon, delta, rho))), MODEL_CHECKS, dtype, device, requires_grad)
+    models, vmax = common.checked_models(given, MODEL_CHECKS, dtype, device, requires_grad)
     amp = np.asarray(source_amplitudes, dtype=float)
-    common.check_geometry(shapes[0], dx, amp, source_locations, receiver_locations, "z, x")
+    common.check_geometry(shape, dx, amp, source_locations, receiver_locations, "z, x")
     common.check_courant(DESCRIPTION, order, 2, vmax, dx, dt)
     pml = common.pml_settings(order, pml_width, pml_reflection, pml_frequency, pml_velocity, amp, dt, vmax)
-    prop = VTI(shapes[0], dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
+    prop = VTI(shape, dx, dt, order, amp.shape[0], *pml, free_surface=free_surface, dtype=dtype, device=device)
 
     def put(x, grad=False):
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=device, requires_grad=grad)
