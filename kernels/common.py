@@ -253,6 +253,28 @@ def host_operator(kernel, loc: wp.array, args: list, shape: tuple, idx_type, dty
     return tuple(wp.clone(a) for a in _OPERATORS[key][1])
 
 
+@functools.lru_cache(maxsize=None)
+def flat_cpml(dtype):
+    """The CPML memory update of the flat staggered kernels, split so that a kernel does all its loads before its
+    first store (Warp's arrays may alias, so the compiler holds every load after a store until the store is done):
+    psi = cpml_psi(d, j, i, a, b, old, k) = b[i] old[k] + a[i] d at flat strip cell k (profile index i; 0 outside
+    the strips, j < 0), the damped derivative is then d + psi, and store_psi(j, new, k, psi) writes psi to new[k]."""
+    arr1 = wp.array(dtype=dtype)
+
+    @wp.func
+    def cpml_psi(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr1, k: int) -> dtype:
+        if j < 0:
+            return dtype(0.0)
+        return b[i] * old[k] + a[i] * d
+
+    @wp.func
+    def store_psi(j: int, new: arr1, k: int, psi: dtype):
+        if j >= 0:
+            new[k] = psi
+
+    return cpml_psi, store_psi
+
+
 def check_flat_cells(cells: int, what: str) -> None:
     """Refuse (ValueError) an array of `cells` cells past the flat field kernels' int32 indices (2^31)."""
     if cells >= 2**31:

@@ -40,12 +40,12 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, hicks_axis, host_operator, unique_kernel
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, flat_cpml, hicks_axis, host_operator, unique_kernel
 from adseismic.kernels.elastic.propagator import build as elastic_build
 from adseismic.kernels.elastic.propagator import cpml_axes
 from adseismic.kernels.elastic3d.propagator import build as elastic3d_build
 from adseismic.kernels.elastic3d.propagator import Grid as Flat3
-from adseismic.kernels.elastic3d.propagator import flat_cell, flat_grid, flat_strips, make_flat_cpml, make_flat_derivative, make_point
+from adseismic.kernels.elastic3d.propagator import flat_cell, flat_grid, flat_strips, make_flat_derivative, make_point
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 from adseismic.kernels.viscoacoustic.propagator import Grid, Materials, _derivatives, _points, _velocity, field_grid
 
@@ -59,7 +59,8 @@ MATERIALS = {2: ("bx", "bz", "k"), 3: ("bx", "by", "bz", "k")}
 def _kernels_2d(ns):
     """The 2D velocity (kernels/viscoacoustic's), pressure, materials and point kernels."""
     M, fs, dtype, arr1, arr2, Axis = ns.M, ns.fs, ns.dtype, ns.arr1, ns.arr2, ns.Axis
-    cpml, velocity, cell = _velocity(ns)
+    velocity, cell = _velocity(ns)
+    cpml_psi, store_psi = flat_cpml(dtype)
     dvx_dx, dvz_dz = _derivatives(ns)[2:]
 
     @unique_kernel(grid_stride=False)
@@ -69,13 +70,21 @@ def _kernels_2d(ns):
         s, z, x, m, c = cell(grid, wp.tid())
         jz = az.store[z]
         jx = ax.store[x]
-        d = cpml(dvx_dx(vx, c) * inv_dx, jx, x, ax.a, ax.b, o_p_x, n_p_x, (s * grid.lz + z) * grid.wx + jx)
-        d = d + cpml(dvz_dz(vz, c, z, grid.lx, top) * inv_dx, jz, z, az.a, az.b, o_p_z, n_p_z, (s * grid.wz + jz) * grid.lx + x)
+        kx = (s * grid.lz + z) * grid.wx + jx
+        kz = (s * grid.wz + jz) * grid.lx + x
+        ex = dvx_dx(vx, c) * inv_dx
+        ez = dvz_dz(vz, c, z, grid.lx, top) * inv_dx
+        qx = cpml_psi(ex, jx, x, ax.a, ax.b, o_p_x, kx)
+        qz = cpml_psi(ez, jz, z, az.a, az.b, o_p_z, kz)
         keep = dtype(1.0)
         if wp.static(fs):
             if z == top:
                 keep = dtype(0.0)
-        p_new[c] = keep * (p[c] - dt * k[m] * d)
+        pc = p[c]
+        km = k[m]
+        store_psi(jx, n_p_x, kx, qx)
+        store_psi(jz, n_p_z, kz, qz)
+        p_new[c] = keep * (pc - dt * km * ((ex + qx) + (ez + qz)))
 
     @unique_kernel
     def materials(vp: arr2, rho: arr2, bx: arr2, bz: arr2, k: arr2):
@@ -96,7 +105,7 @@ def _kernels_2d(ns):
 def _field_kernels_3d(ns):
     """The 3D velocity and pressure half steps on flat views (kernels/elastic3d's flat stencils, Grid and strips)."""
     M, fs, dtype, arr1, Axis = ns.M, ns.fs, ns.dtype, ns.arr1, ns.Axis
-    cpml = make_flat_cpml(ns)
+    cpml_psi, store_psi = flat_cpml(dtype)
     dp_dx, dp_dy = make_flat_derivative(ns, 2, False, M, False), make_flat_derivative(ns, 1, False, M, False)
     dp_dz = make_flat_derivative(ns, 0, False, M, True)  # p: odd image above a free surface
     dvx_dx, dvy_dy = make_flat_derivative(ns, 2, True, M, False), make_flat_derivative(ns, 1, True, M, False)
@@ -120,12 +129,24 @@ def _field_kernels_3d(ns):
         jy = ay.store[y]
         jx = ax.store[x]
         k = flat_strips(g, t, z, y, x, jz, jy, jx)
-        gx = cpml(dp_dx(p, f, 1, z, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, k[2])
-        gy = cpml(dp_dy(p, f, g.lx, z, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, k[1])
-        gz = cpml(dp_dz(p, f, g.lxy, z, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, k[0])
-        vx_new[f] = vx[f] - dt * bx[m] * gx
-        vy_new[f] = vy[f] - dt * by[m] * gy
-        vz_new[f] = vz[f] - dt * bz[m] * gz
+        gx = dp_dx(p, f, 1, z, top) * inv_dx
+        gy = dp_dy(p, f, g.lx, z, top) * inv_dx
+        gz = dp_dz(p, f, g.lxy, z, top) * inv_dx
+        qx = cpml_psi(gx, jx, x, ax.ah, ax.bh, o_x, k[2])
+        qy = cpml_psi(gy, jy, y, ay.ah, ay.bh, o_y, k[1])
+        qz = cpml_psi(gz, jz, z, az.ah, az.bh, o_z, k[0])
+        ux = vx[f]
+        uy = vy[f]
+        uz = vz[f]
+        bxm = bx[m]
+        bym = by[m]
+        bzm = bz[m]
+        store_psi(jx, n_x, k[2], qx)
+        store_psi(jy, n_y, k[1], qy)
+        store_psi(jz, n_z, k[0], qz)
+        vx_new[f] = ux - dt * bxm * (gx + qx)
+        vy_new[f] = uy - dt * bym * (gy + qy)
+        vz_new[f] = uz - dt * bzm * (gz + qz)
 
     @unique_kernel(grid_stride=False)
     def pressure(
@@ -144,14 +165,22 @@ def _field_kernels_3d(ns):
         jy = ay.store[y]
         jx = ax.store[x]
         c = flat_strips(g, t, z, y, x, jz, jy, jx)
-        d = cpml(dvx_dx(vx, f, 1, z, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, c[2])
-        d += cpml(dvy_dy(vy, f, g.lx, z, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, c[1])
-        d += cpml(dvz_dz(vz, f, g.lxy, z, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, c[0])
+        ex = dvx_dx(vx, f, 1, z, top) * inv_dx
+        ey = dvy_dy(vy, f, g.lx, z, top) * inv_dx
+        ez = dvz_dz(vz, f, g.lxy, z, top) * inv_dx
+        qx = cpml_psi(ex, jx, x, ax.a, ax.b, o_x, c[2])
+        qy = cpml_psi(ey, jy, y, ay.a, ay.b, o_y, c[1])
+        qz = cpml_psi(ez, jz, z, az.a, az.b, o_z, c[0])
         keep = dtype(1.0)
         if wp.static(fs):
             if z == top:
                 keep = dtype(0.0)
-        p_new[f] = keep * (p[f] - dt * k[m] * d)
+        pf = p[f]
+        km = k[m]
+        store_psi(jx, n_x, c[2], qx)
+        store_psi(jy, n_y, c[1], qy)
+        store_psi(jz, n_z, c[0], qz)
+        p_new[f] = keep * (pf - dt * km * ((ex + qx) + (ey + qy) + (ez + qz)))
 
     return velocity, pressure
 

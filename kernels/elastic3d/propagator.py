@@ -42,7 +42,9 @@ Kernels, plain per-cell Warp kernels that Warp differentiates (Tape): `velocity`
 or out of place: a cell reads only its own old value of a field it writes; a 1D launch over the interior cells of
 every shot, decomposed in int32 by flat_cell: less index arithmetic than 4D arrays and a 4D launch), `inject_force`,
 `inject_moment`, `record`, `weights`, `materials`, `pad_model`. The flat stencils (make_flat_derivative,
-make_flat_reduced_dz, make_flat_cpml, flat_strips) serve any staggered 3D field (kernels/acoustic_vd's 3D kernels too).
+make_flat_reduced_dz, flat_strips) serve any staggered 3D field (kernels/acoustic_vd's 3D kernels too). The field
+kernels load everything before their first store (the CPML pair kernels/common.flat_cpml): Warp's arrays may alias,
+so the compiler holds each load after a store until that store is done.
 """
 
 import functools
@@ -51,13 +53,16 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, hicks_axis, host_operator, unique_kernel
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, flat_cpml, hicks_axis, host_operator, unique_kernel
 from adseismic.kernels.elastic.propagator import cpml_axes
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
 
 PSI = {"v_z": 0, "v_y": 1, "v_x": 2, "s_z": 0, "s_y": 1, "s_x": 2}  # name -> axis of its derivatives (and strips)
 MATERIALS = ("bx", "by", "bz", "l2m", "lam", "mxy", "mxz", "myz")  # buoyancies, lambda + 2 mu, lambda, shear moduli
 FIELDS = ("vx", "vy", "vz", "sxx", "syy", "szz", "sxy", "sxz", "syz")
+# threads a block of the velocity and stress launches and of Warp's adjoints of them (recorded with the launch): 128
+# beat Warp's 256 by ~6% forward and gradient on an H200 (docs/benchmarks.md, 2026-11-28)
+FIELD_THREADS = 128
 # the operators of weights: (z, y, x) offset of the field's index, odd image across a free surface; 3 serves sxx, syy
 POINTS = ((0.0, 0.0, 0.5, False), (0.0, 0.5, 0.0, False), (0.5, 0.0, 0.0, False), (0.0, 0.0, 0.0, False), (0.0, 0.0, 0.0, True),
           (0.0, 0.5, 0.5, False), (0.5, 0.0, 0.5, True), (0.5, 0.5, 0.0, True))  # fmt: skip
@@ -173,25 +178,10 @@ def make_flat_reduced_dz(ns, half_in: bool):
     return dz
 
 
-def make_flat_cpml(ns):
-    """The CPML update on flat strips: cpml(d, j, i, a, b, old, new, p) = d + psi, psi = b[i] old[p] + a[i] d written to
-    new[p] where j >= 0 (d alone outside the strips); old, new 1D, p the strip cell (flat_strips)."""
-    dtype, arr1 = ns.dtype, ns.arr1
-
-    @wp.func
-    def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr1, new: arr1, p: int) -> dtype:
-        if j < 0:
-            return d
-        psi = b[i] * old[p] + a[i] * d
-        new[p] = psi
-        return d + psi
-
-    return cpml
-
-
 def _velocity(ns):
     """The velocity half step: v_new = v + dt b div s at every interior velocity node (flat arrays, a 1D launch)."""
-    M, dtype, arr1, Axis, cpml = ns.M, ns.dtype, ns.arr1, ns.Axis, ns.cpml
+    M, dtype, arr1, Axis = ns.M, ns.dtype, ns.arr1, ns.Axis
+    cpml_psi, store_psi = flat_cpml(dtype)
     dx_int, dx_half = make_flat_derivative(ns, 2, False, M, False), make_flat_derivative(ns, 2, True, M, False)
     dy_int, dy_half = make_flat_derivative(ns, 1, False, M, False), make_flat_derivative(ns, 1, True, M, False)
     dz_int, dz_half = make_flat_derivative(ns, 0, False, M, True), make_flat_derivative(ns, 0, True, M, True)  # szz; sxz, syz
@@ -213,21 +203,44 @@ def _velocity(ns):
         jy = ay.store[y]
         jx = ax.store[x]
         k = flat_strips(g, 3 * t, z, y, x, jz, jy, jx)  # component vx's; vy, vz one strip (g.sz, g.sy, g.sx) further
-        # vx at (z, y, x + 1/2): dsxx/dx + dsxy/dy + dsxz/dz
-        gr = cpml(dx_int(sxx, f, 1, z, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, k[2])
-        gr += cpml(dy_half(sxy, f, g.lx, z, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, k[1])
-        gr += cpml(dz_half(sxz, f, g.lxy, z, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, k[0])
-        vx_new[f] = vx[f] + dt * bx[m] * gr
-        # vy at (z, y + 1/2, x): dsxy/dx + dsyy/dy + dsyz/dz
-        gr = cpml(dx_half(sxy, f, 1, z, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, k[2] + g.sx)
-        gr += cpml(dy_int(syy, f, g.lx, z, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, k[1] + g.sy)
-        gr += cpml(dz_half(syz, f, g.lxy, z, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, k[0] + g.sz)
-        vy_new[f] = vy[f] + dt * by[m] * gr
-        # vz at (z + 1/2, y, x): dsxz/dx + dsyz/dy + dszz/dz
-        gr = cpml(dx_half(sxz, f, 1, z, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, k[2] + 2 * g.sx)
-        gr += cpml(dy_half(syz, f, g.lx, z, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, k[1] + 2 * g.sy)
-        gr += cpml(dz_int(szz, f, g.lxy, z, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, k[0] + 2 * g.sz)
-        vz_new[f] = vz[f] + dt * bz[m] * gr
+        # vx at (z, y, x + 1/2): dsxx/dx + dsxy/dy + dsxz/dz; vy at (z, y + 1/2, x): dsxy/dx + dsyy/dy + dsyz/dz; vz at
+        # (z + 1/2, y, x): dsxz/dx + dsyz/dy + dszz/dz. Every load before the first store.
+        d1 = dx_int(sxx, f, 1, z, top) * inv_dx
+        d2 = dy_half(sxy, f, g.lx, z, top) * inv_dx
+        d3 = dz_half(sxz, f, g.lxy, z, top) * inv_dx
+        d4 = dx_half(sxy, f, 1, z, top) * inv_dx
+        d5 = dy_int(syy, f, g.lx, z, top) * inv_dx
+        d6 = dz_half(syz, f, g.lxy, z, top) * inv_dx
+        d7 = dx_half(sxz, f, 1, z, top) * inv_dx
+        d8 = dy_half(syz, f, g.lx, z, top) * inv_dx
+        d9 = dz_int(szz, f, g.lxy, z, top) * inv_dx
+        q1 = cpml_psi(d1, jx, x, ax.ah, ax.bh, o_x, k[2])
+        q2 = cpml_psi(d2, jy, y, ay.a, ay.b, o_y, k[1])
+        q3 = cpml_psi(d3, jz, z, az.a, az.b, o_z, k[0])
+        q4 = cpml_psi(d4, jx, x, ax.a, ax.b, o_x, k[2] + g.sx)
+        q5 = cpml_psi(d5, jy, y, ay.ah, ay.bh, o_y, k[1] + g.sy)
+        q6 = cpml_psi(d6, jz, z, az.a, az.b, o_z, k[0] + g.sz)
+        q7 = cpml_psi(d7, jx, x, ax.a, ax.b, o_x, k[2] + 2 * g.sx)
+        q8 = cpml_psi(d8, jy, y, ay.a, ay.b, o_y, k[1] + 2 * g.sy)
+        q9 = cpml_psi(d9, jz, z, az.ah, az.bh, o_z, k[0] + 2 * g.sz)
+        ux = vx[f]
+        uy = vy[f]
+        uz = vz[f]
+        bxm = bx[m]
+        bym = by[m]
+        bzm = bz[m]
+        store_psi(jx, n_x, k[2], q1)
+        store_psi(jy, n_y, k[1], q2)
+        store_psi(jz, n_z, k[0], q3)
+        store_psi(jx, n_x, k[2] + g.sx, q4)
+        store_psi(jy, n_y, k[1] + g.sy, q5)
+        store_psi(jz, n_z, k[0] + g.sz, q6)
+        store_psi(jx, n_x, k[2] + 2 * g.sx, q7)
+        store_psi(jy, n_y, k[1] + 2 * g.sy, q8)
+        store_psi(jz, n_z, k[0] + 2 * g.sz, q9)
+        vx_new[f] = ux + dt * bxm * ((d1 + q1) + (d2 + q2) + (d3 + q3))
+        vy_new[f] = uy + dt * bym * ((d4 + q4) + (d5 + q5) + (d6 + q6))
+        vz_new[f] = uz + dt * bzm * ((d7 + q7) + (d8 + q8) + (d9 + q9))
 
     return velocity
 
@@ -235,7 +248,8 @@ def _velocity(ns):
 def _stress(ns):
     """The stress half step from the new velocities (flat arrays, a 1D launch); on a free surface's row szz = 0 and
     sxx, syy from szz = 0."""
-    M, fs, dtype, arr1, Axis, cpml = ns.M, ns.fs, ns.dtype, ns.arr1, ns.Axis, ns.cpml
+    M, fs, dtype, arr1, Axis = ns.M, ns.fs, ns.dtype, ns.arr1, ns.Axis
+    cpml_psi, store_psi = flat_cpml(dtype)
     dx_int, dx_half = make_flat_derivative(ns, 2, False, M, False), make_flat_derivative(ns, 2, True, M, False)
     dy_int, dy_half = make_flat_derivative(ns, 1, False, M, False), make_flat_derivative(ns, 1, True, M, False)
     dz_int, dz_half = make_flat_reduced_dz(ns, False), make_flat_reduced_dz(ns, True)  # vx, vy; vz
@@ -258,35 +272,68 @@ def _stress(ns):
         jy = ay.store[y]
         jx = ax.store[x]
         k = flat_strips(g, 3 * t, z, y, x, jz, jy, jx)  # component 0's; components 1, 2 one, two strips further
-        # normal stresses at (z, y, x)
-        exx = cpml(dx_half(vx, f, 1, z, top) * inv_dx, jx, x, ax.a, ax.b, o_x, n_x, k[2])
-        eyy = cpml(dy_half(vy, f, g.lx, z, top) * inv_dx, jy, y, ay.a, ay.b, o_y, n_y, k[1] + g.sy)
-        ezz = cpml(dz_half(vz, f, g.lxy, z, top) * inv_dx, jz, z, az.a, az.b, o_z, n_z, k[0] + 2 * g.sz)
-        # shear: sxy at (z, y + 1/2, x + 1/2), sxz at (z + 1/2, y, x + 1/2), syz at (z + 1/2, y + 1/2, x)
-        exy = cpml(dy_int(vx, f, g.lx, z, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, k[1])
-        exy += cpml(dx_int(vy, f, 1, z, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, k[2] + g.sx)
-        exz = cpml(dz_int(vx, f, g.lxy, z, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, k[0])
-        exz += cpml(dx_int(vz, f, 1, z, top) * inv_dx, jx, x, ax.ah, ax.bh, o_x, n_x, k[2] + 2 * g.sx)
-        eyz = cpml(dz_int(vy, f, g.lxy, z, top) * inv_dx, jz, z, az.ah, az.bh, o_z, n_z, k[0] + g.sz)
-        eyz += cpml(dy_int(vz, f, g.lx, z, top) * inv_dx, jy, y, ay.ah, ay.bh, o_y, n_y, k[1] + 2 * g.sy)
+        # normal stresses at (z, y, x); shear: sxy at (z, y + 1/2, x + 1/2), sxz at (z + 1/2, y, x + 1/2), syz at
+        # (z + 1/2, y + 1/2, x). Every load before the first store.
+        d1 = dx_half(vx, f, 1, z, top) * inv_dx
+        d2 = dy_half(vy, f, g.lx, z, top) * inv_dx
+        d3 = dz_half(vz, f, g.lxy, z, top) * inv_dx
+        d4 = dy_int(vx, f, g.lx, z, top) * inv_dx
+        d5 = dx_int(vy, f, 1, z, top) * inv_dx
+        d6 = dz_int(vx, f, g.lxy, z, top) * inv_dx
+        d7 = dx_int(vz, f, 1, z, top) * inv_dx
+        d8 = dz_int(vy, f, g.lxy, z, top) * inv_dx
+        d9 = dy_int(vz, f, g.lx, z, top) * inv_dx
+        q1 = cpml_psi(d1, jx, x, ax.a, ax.b, o_x, k[2])
+        q2 = cpml_psi(d2, jy, y, ay.a, ay.b, o_y, k[1] + g.sy)
+        q3 = cpml_psi(d3, jz, z, az.a, az.b, o_z, k[0] + 2 * g.sz)
+        q4 = cpml_psi(d4, jy, y, ay.ah, ay.bh, o_y, k[1])
+        q5 = cpml_psi(d5, jx, x, ax.ah, ax.bh, o_x, k[2] + g.sx)
+        q6 = cpml_psi(d6, jz, z, az.ah, az.bh, o_z, k[0])
+        q7 = cpml_psi(d7, jx, x, ax.ah, ax.bh, o_x, k[2] + 2 * g.sx)
+        q8 = cpml_psi(d8, jz, z, az.ah, az.bh, o_z, k[0] + g.sz)
+        q9 = cpml_psi(d9, jy, y, ay.ah, ay.bh, o_y, k[1] + 2 * g.sy)
+        exx = d1 + q1
+        eyy = d2 + q2
+        ezz = d3 + q3
+        exy = (d4 + q4) + (d5 + q5)
+        exz = (d6 + q6) + (d7 + q7)
+        eyz = (d8 + q8) + (d9 + q9)
         pm = l2m[m]
         q = lam[m]
+        cxy = mxy[m]
+        cxz = mxz[m]
+        cyz = myz[m]
+        fxx = sxx[f]
+        fyy = syy[f]
+        fzz = szz[f]
+        fxy = sxy[f]
+        fxz = sxz[f]
+        fyz = syz[f]
+        store_psi(jx, n_x, k[2], q1)
+        store_psi(jy, n_y, k[1] + g.sy, q2)
+        store_psi(jz, n_z, k[0] + 2 * g.sz, q3)
+        store_psi(jy, n_y, k[1], q4)
+        store_psi(jx, n_x, k[2] + g.sx, q5)
+        store_psi(jz, n_z, k[0], q6)
+        store_psi(jx, n_x, k[2] + 2 * g.sx, q7)
+        store_psi(jz, n_z, k[0] + g.sz, q8)
+        store_psi(jy, n_y, k[1] + 2 * g.sy, q9)
         surface = False
         if wp.static(fs):
             surface = z == top
         if surface:
             r = q * q / pm
-            sxx_new[f] = sxx[f] + dt * ((pm - r) * exx + (q - r) * eyy)
-            syy_new[f] = syy[f] + dt * ((q - r) * exx + (pm - r) * eyy)
+            sxx_new[f] = fxx + dt * ((pm - r) * exx + (q - r) * eyy)
+            syy_new[f] = fyy + dt * ((q - r) * exx + (pm - r) * eyy)
             szz_new[f] = dtype(0.0)
         else:
             div = exx + eyy + ezz
-            sxx_new[f] = sxx[f] + dt * (q * div + (pm - q) * exx)
-            syy_new[f] = syy[f] + dt * (q * div + (pm - q) * eyy)
-            szz_new[f] = szz[f] + dt * (q * div + (pm - q) * ezz)
-        sxy_new[f] = sxy[f] + dt * mxy[m] * exy
-        sxz_new[f] = sxz[f] + dt * mxz[m] * exz
-        syz_new[f] = syz[f] + dt * myz[m] * eyz
+            sxx_new[f] = fxx + dt * (q * div + (pm - q) * exx)
+            syy_new[f] = fyy + dt * (q * div + (pm - q) * eyy)
+            szz_new[f] = fzz + dt * (q * div + (pm - q) * ezz)
+        sxy_new[f] = fxy + dt * cxy * exy
+        sxz_new[f] = fxz + dt * cxz * exz
+        syz_new[f] = fyz + dt * cyz * eyz
 
     return stress
 
@@ -472,7 +519,6 @@ def build(order: int, dtype, free_surface: bool):
     ns = SimpleNamespace(M=M, HR=HICKS_RADIUS, W=2 * HICKS_RADIUS, fs=bool(free_surface), dtype=dtype, arr1=wp.array(dtype=dtype),
                          arr2=wp.array2d(dtype=dtype), arr3=wp.array3d(dtype=dtype), arr4=wp.array4d(dtype=dtype),
                          iarr1=wp.array(dtype=wp.int32), idx4=wp.array4d(dtype=wp.vec3i), Axis=Axis)  # fmt: skip
-    ns.cpml = make_flat_cpml(ns)
     return Kernels(Axis=Axis, velocity=_velocity(ns), stress=_stress(ns), **_points(ns), **_models(ns), halo=M,
                    operator_points=ns.W**3)  # fmt: skip
 
@@ -581,7 +627,7 @@ class Elastic3D:
         common = [*self.axes, self.dt_device, self.inv_dx, self.top, self.grid]
         cells = math.prod(self.interior)
         old, new = [fst[k] for k in ("v_z", "v_y", "v_x")], [fout[k] for k in ("v_z", "v_y", "v_x")]
-        wp.launch(self.k.velocity, dim=cells, device=self.device,
+        wp.launch(self.k.velocity, dim=cells, block_dim=FIELD_THREADS, device=self.device,
                   inputs=[*(fst[k] for k in FIELDS), *fmat[:3], *old, *new, *(fout[k] for k in FIELDS[:3]), *common])  # fmt: skip
         if sources is not None and sources[0] == "force":
             _, amp, comp, (idx, w) = sources
@@ -589,7 +635,7 @@ class Elastic3D:
                       inputs=[out.vx, out.vy, out.vz, bx, by, bz, amp, comp, idx, w, n, clock,
                               self.dtype(self.dt / self.dx**3)])  # fmt: skip
         old, new = [fst[k] for k in ("s_z", "s_y", "s_x")], [fout[k] for k in ("s_z", "s_y", "s_x")]
-        wp.launch(self.k.stress, dim=cells, device=self.device,
+        wp.launch(self.k.stress, dim=cells, block_dim=FIELD_THREADS, device=self.device,
                   inputs=[*(fout[k] for k in FIELDS[:3]), *(fst[k] for k in FIELDS[3:]), *fmat[3:], *old, *new,
                           *(fout[k] for k in FIELDS[3:]), *common])  # fmt: skip
         if sources is not None and sources[0] == "moment":

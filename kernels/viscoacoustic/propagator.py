@@ -52,7 +52,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, hicks_axis, host_operator, unique_kernel
+from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, flat_cpml, hicks_axis, host_operator, unique_kernel
 from adseismic.kernels.elastic.propagator import build as elastic_build
 from adseismic.kernels.elastic.propagator import cpml_axes, make_point
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
@@ -151,20 +151,12 @@ def _derivatives(ns):
 
 
 def _velocity(ns):
-    """The 2D CPML memory update (cpml: d + psi written at a flat strip cell) and the lossless velocity half step v_new
-    = v - dt b grad p (velocity, flat arrays, a 1D launch over the interior cells), shared with kernels/acoustic_vd."""
+    """The lossless velocity half step v_new = v - dt b grad p (velocity, flat arrays, a 1D launch over the interior
+    cells; every load before the first store), shared with kernels/acoustic_vd, and its cell decoder."""
     dtype, arr1, Axis = ns.dtype, ns.arr1, ns.Axis
     dp_dx, dp_dz = _derivatives(ns)[:2]
     cell = _cell(ns)
-
-    @wp.func
-    def cpml(d: dtype, j: int, i: int, a: arr1, b: arr1, old: arr1, new: arr1, k: int) -> dtype:
-        # d + psi, psi = b psi_old + a d stored at flat strip cell k (profile index i); d outside the strips (j < 0)
-        if j < 0:
-            return d
-        psi = b[i] * old[k] + a[i] * d
-        new[k] = psi
-        return d + psi
+    cpml_psi, store_psi = flat_cpml(dtype)
 
     @unique_kernel(grid_stride=False)
     def velocity(
@@ -175,12 +167,22 @@ def _velocity(ns):
         s, z, x, m, c = cell(grid, wp.tid())
         jz = az.store[z]
         jx = ax.store[x]
-        gx = cpml(dp_dx(p, c) * inv_dx, jx, x, ax.ah, ax.bh, o_vx_x, n_vx_x, (s * grid.lz + z) * grid.wx + jx)
-        gz = cpml(dp_dz(p, c, z, grid.lx, top) * inv_dx, jz, z, az.ah, az.bh, o_vz_z, n_vz_z, (s * grid.wz + jz) * grid.lx + x)
-        vx_new[c] = vx[c] - dt * bx[m] * gx
-        vz_new[c] = vz[c] - dt * bz[m] * gz
+        kx = (s * grid.lz + z) * grid.wx + jx
+        kz = (s * grid.wz + jz) * grid.lx + x
+        gx = dp_dx(p, c) * inv_dx
+        gz = dp_dz(p, c, z, grid.lx, top) * inv_dx
+        qx = cpml_psi(gx, jx, x, ax.ah, ax.bh, o_vx_x, kx)
+        qz = cpml_psi(gz, jz, z, az.ah, az.bh, o_vz_z, kz)
+        ux = vx[c]
+        uz = vz[c]
+        bxm = bx[m]
+        bzm = bz[m]
+        store_psi(jx, n_vx_x, kx, qx)
+        store_psi(jz, n_vz_z, kz, qz)
+        vx_new[c] = ux - dt * bxm * (gx + qx)
+        vz_new[c] = uz - dt * bzm * (gz + qz)
 
-    return cpml, velocity, cell
+    return velocity, cell
 
 
 def _points(ns):
@@ -263,7 +265,8 @@ def build(order: int, dtype, free_surface: bool, mechanisms: int):
 
     ns.Axis, ns.arr1, ns.arr2 = Axis, arr1, arr2
     dvx_dx, dvz_dz = _derivatives(ns)[2:]
-    cpml, velocity, cell = _velocity(ns)
+    velocity, cell = _velocity(ns)
+    cpml_psi, store_psi = flat_cpml(dtype)
 
     @unique_kernel(grid_stride=False)
     def pressure(
@@ -274,21 +277,30 @@ def build(order: int, dtype, free_surface: bool, mechanisms: int):
         s, z, x, m, c = cell(grid, wp.tid())
         jz = az.store[z]
         jx = ax.store[x]
-        d = cpml(dvx_dx(vx, c) * inv_dx, jx, x, ax.a, ax.b, o_p_x, n_p_x, (s * grid.lz + z) * grid.wx + jx)
-        d = d + cpml(dvz_dz(vz, c, z, grid.lx, top) * inv_dx, jz, z, az.a, az.b, o_p_z, n_p_z, (s * grid.wz + jz) * grid.lx + x)
+        kx = (s * grid.lz + z) * grid.wx + jx
+        kz = (s * grid.wz + jz) * grid.lx + x
+        ex = dvx_dx(vx, c) * inv_dx
+        ez = dvz_dz(vz, c, z, grid.lx, top) * inv_dx
+        qx = cpml_psi(ex, jx, x, ax.a, ax.b, o_p_x, kx)
+        qz = cpml_psi(ez, jz, z, az.a, az.b, o_p_z, kz)
+        d = (ex + qx) + (ez + qz)
         keep = dtype(1.0)
         if wp.static(fs):
             if z == top:
                 keep = dtype(0.0)
+        pc = p[c]
+        mum = mu[m]
         area = grid.lz * grid.lx
         rsum = dtype(0.0)
-        for l in range(wp.static(L)):
+        for l in range(wp.static(L)):  # r's loads wait for the previous mechanism's store (a vector of L would not)
             k = (s * wp.static(L) + l) * area + m  # r[s, l, z, x]
             old = r[k]
             new = keep * (c1[l] * old - c2[l] * g[l * area + m] * d)
             r_new[k] = new
             rsum += old + new
-        p_new[c] = keep * (p[c] - dt * (mu[m] * d + dtype(0.5) * rsum))
+        store_psi(jx, n_p_x, kx, qx)
+        store_psi(jz, n_p_z, kz, qz)
+        p_new[c] = keep * (pc - dt * (mum * d + dtype(0.5) * rsum))
 
     @wp.func
     def weight(series: arr2, l: int, iq: dtype) -> dtype:
