@@ -4,7 +4,8 @@ acoustic gradient's Sweep also uses).
 Without a tape a time step launches the same few kernels every step, so on a GPU K steps are captured
 once as a CUDA graph and replayed to cover the nt levels; the source and receiver kernels read the
 time index from a device clock that each replay advances. A blow-up guard's statistics (max |u| and
-the count of non-finite values, every `every` levels) are read after each replay. The last captured
+the count of non-finite values, every `every` levels) are copied to pinned host memory after each replay and
+checked while the next replay runs (a blow-up is then reported one replay late; the GPU never waits on the host). The last captured
 loop of each kind (key[0]: acoustic or elastic forward, gradient) is kept, with the arrays its launches
 read, for the next call with the same key (grid, time step, steps, shots, sources, receivers, device), which
 copies its inputs into those arrays and replays: no capture, no allocation. One per kind and device, so that an
@@ -41,7 +42,8 @@ def graph_plan(cuda: bool, nt: int, every: int, period: int = 2) -> tuple[int, i
 class Loop:
     """A captured time loop: the graph of K steps, replayed `graphs` times (the last time `tail`, the
     graph of the remaining steps, where there is one), the guard's statistics (K // every, 2), the device
-    clock, and `kept`: the arrays its launches read (physics-specific)."""
+    clock, and `kept`: the arrays its launches read (physics-specific); `host` (2, K // every, 2), pinned, and two
+    events: where replay reads the statistics of alternate replays."""
 
     key: tuple
     graph: object
@@ -52,6 +54,8 @@ class Loop:
     clock: wp.array
     kept: object
     tail: object = None
+    host: wp.array = None
+    events: tuple = ()
 
 
 def capture(key, device, dtype, K: int, graphs: int, every: int, step, kernels, kept, nt: int | None = None) -> Loop:
@@ -72,20 +76,31 @@ def capture(key, device, dtype, K: int, graphs: int, every: int, step, kernels, 
         return cap.graph
 
     last = K if nt is None else nt - (graphs - 1) * K
-    return Loop(key, graph(K), K, graphs, every, stats, clock, kept, graph(last) if last < K else None)
+    host = wp.empty((2, *stats.shape), dtype=dtype, device="cpu", pinned=wp.get_device(device).is_cuda)
+    events = tuple(wp.Event(device) for _ in range(2)) if wp.get_device(device).is_cuda else ()
+    return Loop(key, graph(K), K, graphs, every, stats, clock, kept, graph(last) if last < K else None, host, events)
 
 
 def replay(loop: Loop, nt: int, guard, progress=None):
-    """Run the levels up to K * graphs >= nt; guard.check(n, max, nonfinite) for each checked level n < nt
-    after each replay (the levels past nt - 1 are padding)."""
+    """Run the levels up to K * graphs >= nt; guard.check(n, max, nonfinite) for each checked level n < nt,
+    replay g's levels checked after replay g + 1 is queued (the levels past nt - 1 are padding)."""
     K, every = loop.K, loop.every
-    for g in range(loop.graphs):
-        wp.capture_launch(loop.tail if g == loop.graphs - 1 and loop.tail is not None else loop.graph)
-        for j, (amax, nonfinite) in enumerate(loop.stats.numpy()):
+
+    def check(g):
+        wp.synchronize_event(loop.events[g % 2])
+        for j, (amax, nonfinite) in enumerate(loop.host.numpy()[g % 2]):
             if g * K + j * every < nt:
                 guard.check(g * K + j * every, float(amax), float(nonfinite))
         if progress is not None:
             progress.update(min(K, nt - g * K))
+
+    for g in range(loop.graphs):
+        wp.capture_launch(loop.tail if g == loop.graphs - 1 and loop.tail is not None else loop.graph)
+        wp.copy(loop.host[g % 2], loop.stats)
+        wp.record_event(loop.events[g % 2])
+        if g > 0:
+            check(g - 1)
+    check(loop.graphs - 1)
 
 
 _KEPT: dict = {}  # (kind, device) -> the last captured loop of that kind on that device (a full set of wavefields)

@@ -1872,13 +1872,17 @@ def cpml_axes(Axis, lo, n_hi: int, padded, halo: int, dx: float, dt: float, vmax
               dtype, device):  # fmt: skip
     """The CPML of each axis of a staggered grid: ([Axis() with store, a, b, ah, bh as Warp arrays per axis], [strip
     width per axis]) from cpml_axis; lo: the layer's cells at each axis's low end, n_hi: at its high end."""
+    host = [cpml_axis(lo[a], n_hi, padded[a], halo, dx, dt, vmax, reflection, frequency) for a in range(len(padded))]
+    # two uploads (a host-to-device copy each waits for the device), every axis's arrays views of them
+    stores = wp.array(np.concatenate([h[0] for h in host]), dtype=wp.int32, device=device)
+    profiles = wp.array(np.concatenate([p for h in host for p in h[2:]]), dtype=dtype, device=device)
     axes, widths = [], []
-    for a in range(len(padded)):
-        store, width, *profiles = cpml_axis(lo[a], n_hi, padded[a], halo, dx, dt, vmax, reflection, frequency)
+    for a, (_, width, *_) in enumerate(host):
+        n, first = padded[a], sum(padded[:a])
         axis = Axis()
-        axis.store = wp.array(store, dtype=wp.int32, device=device)
-        for name, val in zip(("a", "b", "ah", "bh"), profiles):
-            setattr(axis, name, wp.array(val, dtype=dtype, device=device))
+        axis.store = stores[first : first + n]
+        for i, name in enumerate(("a", "b", "ah", "bh")):
+            setattr(axis, name, profiles[4 * first + i * n : 4 * first + (i + 1) * n])
         axes.append(axis)
         widths.append(width)
     return axes, widths
