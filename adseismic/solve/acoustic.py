@@ -150,7 +150,8 @@ class Setup:
     def sources_of(self, amplitudes, fixed=True):
         return amplitudes, self.source_op
 
-    def advance(self, st, vpad, src, data, k, n, out, clock):
+    def advance(self, st, vpad, src, data, k, n, out, clock, side=None):
+        # the record is part of the step's own launch here, so there is nothing to run beside it (side unused)
         nxt = self.prop.step(st, vpad, out, record=(data[0], self.receiver_op, k, clock))
         self.prop.inject(nxt.u, vpad, src[0], src[1], n, clock)
         return nxt

@@ -7,7 +7,8 @@ A physics hands the solver a setup (solve/<name>.py) that maps its propagator on
     su.physics        DESCRIPTION (kernels/<name>)
     su.model()        the padded model the steps read (on_tape=True: recorded on the active tape)
     su.sources_of(amp, fixed)  the steps' source arguments for samples amp (fixed: through the fixed operator)
-    su.advance(st, model, src, data, k, n, out, clock)   record level n into sample k of data, step to n + 1
+    su.advance(st, model, src, data, k, n, out, clock, side=None)   record level n into sample k of data, step to
+                      n + 1; side (a graphs.SideStream, in a captured loop): the record may run beside the step
     su.record(st, data, k, clock)                        record the last level
     su.new_data(n)    zero receiver data, a tuple of (S, n_rec, n) arrays
     su.fields(st)     the arrays the blow-up guard watches
@@ -66,16 +67,17 @@ def capture(su, st, model, data, every: int) -> graphs.Loop:
     src = su.sources_of(amplitudes, fixed=True)
     spare = su.spare(st)
     ring = [st, spare]
+    side = graphs.SideStream(prop.device)
 
     def step(k, clock, stats):
         cur, free = ring
         if stats is not None:
             field_stats(su.fields(cur), stats)
-        nxt = su.advance(cur, model, src, data, k, k, su.out_state(cur, free), clock)
+        nxt = su.advance(cur, model, src, data, k, k, su.out_state(cur, free), clock, side)
         ring[:] = [nxt, su.freed(cur)]
 
     kernels = [reduction_kernels(prop.dtype)[0], *su.loop_kernels()]
-    kept = SimpleNamespace(su=su, st=st, spare=spare, model=model, data=data, amplitudes=amplitudes, sources=src)
+    kept = SimpleNamespace(su=su, st=st, spare=spare, model=model, data=data, amplitudes=amplitudes, sources=src, side=side)
     return graphs.capture((*su.key(), every), prop.device, prop.dtype, K, n_graphs, every, step, kernels, kept, su.nt)
 
 

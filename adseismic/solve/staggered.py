@@ -48,9 +48,15 @@ class StaggeredSetup:
         for a, b in zip(mat, self.model()):
             wp.copy(a, b)
 
-    def advance(self, st, mat, src, data, k, n, out, clock):
-        self.prop.record(st, data, self.receiver_op, k, clock)
-        return self.prop.step(st, mat, src, n, out, clock)
+    def advance(self, st, mat, src, data, k, n, out, clock, side=None):
+        if side is None:
+            self.prop.record(st, data, self.receiver_op, k, clock)
+            return self.prop.step(st, mat, src, n, out, clock)
+        with side():  # beside the step, which writes only `out`; joined before the next step may overwrite st
+            self.prop.record(st, data, self.receiver_op, k, clock)
+        out = self.prop.step(st, mat, src, n, out, clock)
+        side.join()
+        return out
 
     def record(self, st, data, k, clock):
         self.prop.record(st, data, self.receiver_op, k, clock)
