@@ -6,7 +6,8 @@ Dask (solve.distributed.ShotPool, a LocalCluster worker process per device; skip
 best of REPEATS warm evaluations (a first one builds the kernels and captures the graphs); every path's gradient is
 compared with the plain one. Prints the efficiency of N devices against the plain path, T1 / (N x TN), the
 overhead of each pool on one device against it, and the seconds spent inside solve.acoustic.gradient per device
-(the rest of an evaluation is the path's own: dispatch, transfers, reduction).
+(the rest of an evaluation is the path's own: dispatch, transfers, reduction). The plain path runs again last, so a
+drift of the device's speed over the run shows beside the pools' overheads.
 
     python benchmarks/parallel_devices.py                       # every GPU of this host (32 shots, < 3 min on H100s)
     python benchmarks/parallel_devices.py --device cpu --cpus 2 --shots 4 --n 150 --nt 800   # CPU threads
@@ -126,6 +127,9 @@ def main():
     for nd in sorted({1, len(devices)}) if dask else ():
         pooled(f"Dask, {nd} worker(s)", distributed.ShotPool(ParallelConfig(devices=devices[:nd]), devices[0], S), nd)
 
+    t1_again, _ = best(plain)  # the same path after the pools: how far one device's speed drifted over the run
+    rows.append(("one process, one device (plain, again)", 1, t1_again, 0.0, inside["plain"]))
+
     if dask and args.fault:
         with distributed.ShotPool(ParallelConfig(devices=devices, workers=max(2, len(devices))), devices[0], S) as pool:
             pool.keep(batches)
@@ -136,6 +140,7 @@ def main():
     for name, nd, tn, err, spent in rows:
         print(f"| {name} | {nd} | {tn:.3f} | {t1 / (nd * tn):.0%} | {err:.1e} | {spent:.3f} |")
     one = {name.split(",")[0]: tn for name, nd, tn, *_ in rows if nd == 1 and "plain" not in name}
+    print(f"the plain path again after the pools: {t1_again:.3f} s ({t1_again / t1 - 1:+.1%} against its first measurement)")
     print("overhead on one device against the plain path: "
           + ", ".join(f"{k} {v / t1 - 1:+.1%}" for k, v in one.items()) + f"; load average {os.getloadavg()[0]:.2f}")
 
