@@ -41,8 +41,10 @@ def main():
     amp = np.broadcast_to(ricker(12.0, nt, dt), (S, 1, nt)).copy()
     kw = dict(order=4, pml_width=20, device=dev, precision="float32", pml_frequency=6.0, pml_velocity=2400.0)
     obs = forward(v1, dx, dt, amp, src, rec, **kw).receiver_amplitudes.astype(float)
-    resident = [(wp.array(obs[i : i + 1], dtype=wp.float64, device=dev), wp.array(np.ones_like(obs[i : i + 1]), dtype=wp.float64, device=dev))
-                for i in range(S)]  # fmt: skip
+    def on_device(a):
+        return wp.array(a, dtype=wp.float64, device=dev)
+
+    resident = [(on_device(obs[i : i + 1]), on_device(np.ones_like(obs[i : i + 1]))) for i in range(S)]
 
     def shots():
         t = time.perf_counter()
