@@ -245,6 +245,31 @@ def test_gpu_step_kernels_equal_reference_kernels(free_surface, lanes):
     assert np.abs(data.numpy() - ref).max() <= SAME_KERNELS * np.abs(ref).max()
 
 
+@pytest.mark.parametrize("free_surface", [False, True])
+@pytest.mark.parametrize("lanes, rows", [(1, 3), (4, 8)])
+def test_gpu_step_kernels_equal_reference_kernels_3d(free_surface, lanes, rows):
+    # the 3D GPU step (psi along each axis, and step_core: core tiles of `lanes` columns x `rows` rows read as
+    # vectors, with their y neighbours; frame cells by frame_cell3) run on DEVICE, also on the CPU, so that CI
+    # checks its indexing (x: 24 cells + PML 6 + halo 2 on each side = 40, a multiple of 4; 21 core rows, which
+    # neither 3 nor 8 divides)
+    import warp as wp
+
+    rng = np.random.default_rng(3)
+    v = 2000 + 300 * rng.random((21, 19, 24))
+    s = ricker(F, 120, 1e-3)[None, None].repeat(2, axis=0)
+    src = np.array([[[55.3, 91.7, 101.7]], [[150.2, 40.9, 120.3]]])
+    rec = np.array([[[20.0, y, x] for x, y in zip(np.linspace(10.0, 220.0, 7), np.linspace(5.0, 170.0, 7))]] * 2)
+    su = propagate.setup(v, 10.0, 1e-3, s, src, rec, device=DEVICE, free_surface=free_surface, precision="float32", pml_width=6)
+    prop = su.prop
+    assert prop.lanes == 4 and prop.ndim == 3
+    prop.core_frame, prop.core_cols, prop.core_rows = True, lanes, rows
+    data = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
+    run_levels(su, prop.new_state(), su.model(), (data,), range(su.nt))
+    ref = reference_traces(su)
+    assert np.abs(ref).max() > 0
+    assert np.abs(data.numpy() - ref).max() <= SAME_KERNELS * np.abs(ref).max()
+
+
 def test_kept_time_loop_is_refilled():
     # forward keeps its captured time loop (GPU) for the next call with the same geometry: a call with another
     # model, wavelet, sources and receivers must give what a fresh capture gives; a Warp array as the model too

@@ -51,9 +51,10 @@ from adseismic.kernels.common import (
 )
 from adseismic.kernels.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 
-# 2D GPU core steps: rows (along z) x adjacent columns per thread (one vector), threads per block
+# GPU core steps: rows (along z) x adjacent columns per thread (one vector), 2D and 3D, threads per block
 # (docs/benchmarks.md, "Layout timings")
 GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS = 4, 2, 128
+GPU_CORE3_ROWS, GPU_CORE3_COLS = 4, 2
 CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over row blocks of a CPU step
 FRAME_CELL_COST = 2.0  # a CPU adjoint step: the time of a frame cell (the per-cell gather, CPML) over a tile's cell
 
@@ -286,45 +287,50 @@ def _cpml(ns):
 
     psi = [make_psi(a) for a in range(3)]
 
+    pair = wp.types.vector(length=2, dtype=dtype)
+
     def make_stretch(axis: int):
-        # CPML term of the second derivative along `axis`, from t = d2u/dx2 at (s, z, y, x): in the strip
-        # d(psi)/dx + zeta_new (zeta_new stored), else 0
+        # CPML term of the second derivative along `axis`, from t = d2u/dx2 at (s, z, y, x) and the cell's strip
+        # index j = ca.store[p] (p: its index along `axis`): stretch gives (d(psi)/dx + zeta_new, zeta_new) in the
+        # strip, else (0, 0), loading only; keep stores zeta_new there (a kernel's stores come after its loads:
+        # Warp's arrays may alias, so a load after a store waits for it)
         dpsi = d1[axis]
 
         @wp.func
-        def stretch(t: dtype, s: int, z: int, y: int, x: int, psi: arr4, zeta: arr4, zeta_new: arr4, ca: Axis, inv_dx: dtype) -> dtype:
-            p = z
-            if wp.static(axis == 1):
-                p = y
-            elif wp.static(axis == 2):
-                p = x
-            j = ca.store[p]
+        def at_strip(j: int, z: int, y: int, x: int) -> wp.vec3i:
+            if wp.static(axis == 0):
+                return wp.vec3i(j, y, x)
+            elif wp.static(axis == 1):
+                return wp.vec3i(z, j, x)
+            return wp.vec3i(z, y, j)
+
+        @wp.func
+        def stretch(t: dtype, j: int, p: int, s: int, z: int, y: int, x: int, psi: arr4, zeta: arr4, ca: Axis, inv_dx: dtype) -> pair:
             if j >= 0:
-                iz = z
-                iy = y
-                ix = x
-                if wp.static(axis == 0):
-                    iz = j
-                elif wp.static(axis == 1):
-                    iy = j
-                else:
-                    ix = j
-                d = dpsi(psi, s, iz, iy, ix) * inv_dx
-                zn = ca.b[p] * zeta[s, iz, iy, ix] + ca.a[p] * (t + d)
-                zeta_new[s, iz, iy, ix] = zn
-                return d + zn
-            return dtype(0.0)
+                c = at_strip(j, z, y, x)
+                d = dpsi(psi, s, c[0], c[1], c[2]) * inv_dx
+                zn = ca.b[p] * zeta[s, c[0], c[1], c[2]] + ca.a[p] * (t + d)
+                return pair(d + zn, zn)
+            return pair(dtype(0.0), dtype(0.0))
 
-        return stretch
+        @wp.func
+        def keep(zn: dtype, j: int, s: int, z: int, y: int, x: int, zeta_new: arr4):
+            if j >= 0:
+                c = at_strip(j, z, y, x)
+                zeta_new[s, c[0], c[1], c[2]] = zn
 
-    stretch_z, stretch_y, stretch_x = make_stretch(0), make_stretch(1), make_stretch(2)
-    return dict(psi_cell_z=psi_cell_z, psi_cell_x=psi_cell_x, psi=psi, stretch_z=stretch_z, stretch_y=stretch_y, stretch_x=stretch_x)
+        return stretch, keep
+
+    (stretch_z, keep_z), (stretch_y, keep_y), (stretch_x, keep_x) = make_stretch(0), make_stretch(1), make_stretch(2)
+    return dict(psi_cell_z=psi_cell_z, psi_cell_x=psi_cell_x, psi=psi, stretch_z=stretch_z, stretch_y=stretch_y, stretch_x=stretch_x,
+                keep_z=keep_z, keep_y=keep_y, keep_x=keep_x)
 
 
 def _reference_step(ns):
     """The per-cell update and the reference step (one thread per interior cell)."""
     dtype, R, fs, three, arr3, arr4, Axis, d2z = ns.dtype, ns.R, ns.fs, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.d2z
     d2y, d2x, stretch_z, stretch_y, stretch_x = ns.d2y, ns.d2x, ns.stretch_z, ns.stretch_y, ns.stretch_x
+    keep_z, keep_y, keep_x = ns.keep_z, ns.keep_y, ns.keep_x
 
     @wp.func
     def advance(uc: dtype, up: dtype, vv: dtype, dt2: dtype, lap: dtype) -> dtype:
@@ -342,17 +348,29 @@ def _reference_step(ns):
     ):  # fmt: skip
         # u_next at one cell from uc = u there and its d2u along z and x (times dx^2). The plain Laplacian
         # comes first and the CPML terms (0 outside the strips) are added to it, so that outside the
-        # strips it rounds as in step_core, whatever multiply-adds the compiler fuses.
+        # strips it rounds as in step_core, whatever multiply-adds the compiler fuses. Every load comes before
+        # the first store.
         inv_dx2 = inv_dx * inv_dx
+        jz = az.store[z]
+        jx = ax.store[x]
         if wp.static(three):
+            jy = ay.store[y]
             dyy = d2y(u, s, z, y, x, top)
             lap = (dzz + dxx + dyy) * inv_dx2
-            lap = lap + stretch_y(dyy * inv_dx2, s, z, y, x, psi_y, zeta_y, zeta_y_new, ay, inv_dx)
+            ty = stretch_y(dyy * inv_dx2, jy, y, s, z, y, x, psi_y, zeta_y, ay, inv_dx)
+            lap = lap + ty[0]
         else:
             lap = (dzz + dxx) * inv_dx2
-        lap = lap + stretch_z(dzz * inv_dx2, s, z, y, x, psi_z, zeta_z, zeta_z_new, az, inv_dx)
-        lap = lap + stretch_x(dxx * inv_dx2, s, z, y, x, psi_x, zeta_x, zeta_x_new, ax, inv_dx)
-        u_next[s, z, y, x] = advance(uc, u_prev[s, z, y, x], v[z, y, x], dt2, lap)
+        tz = stretch_z(dzz * inv_dx2, jz, z, s, z, y, x, psi_z, zeta_z, az, inv_dx)
+        lap = lap + tz[0]
+        tx = stretch_x(dxx * inv_dx2, jx, x, s, z, y, x, psi_x, zeta_x, ax, inv_dx)
+        lap = lap + tx[0]
+        un = advance(uc, u_prev[s, z, y, x], v[z, y, x], dt2, lap)
+        if wp.static(three):
+            keep_y(ty[1], jy, s, z, y, x, zeta_y_new)
+        keep_z(tz[1], jz, s, z, y, x, zeta_z_new)
+        keep_x(tx[1], jx, s, z, y, x, zeta_x_new)
+        u_next[s, z, y, x] = un
 
     @wp.func
     def cell(
@@ -489,7 +507,7 @@ def _cpu_rows(ns):
 
 
 def _gpu_step(ns):
-    """The 2D GPU step's cell maps (frame_cell, strip_cell) and pre_step; its core is _step_core."""
+    """The GPU step's cell maps (frame_cell, frame_cell3, strip_cell) and the 2D pre_step; its core is _step_core."""
     dtype, R, arr3, arr4, iarr1, Axis, psi_cell_z = ns.dtype, ns.R, ns.arr3, ns.arr4, ns.iarr1, ns.Axis, ns.psi_cell_z
     psi_cell_x, record_point = ns.psi_cell_x, ns.record_point
 
@@ -511,6 +529,27 @@ def _gpu_step(ns):
         if x >= box[2]:
             x = x - box[2] + box[3]
         return wp.vec2i(box[0] + g // sides, x)
+
+    @wp.func
+    def frame_cell3(f: int, lz: int, ly: int, lx: int, box: wp.vec4i, ybox: wp.vec2i) -> wp.vec3i:
+        # (z, y, x) of the f-th interior cell outside the rows [box[0], box[1]) x ys [ybox[0], ybox[1]) x columns
+        # [box[2], box[3]) of a 3D grid (lz, ly, lx): first every column of the (z, y) rows outside the box's
+        # (frame_cell of the (z, y) plane), then the left and right parts of the box's (z, y) rows
+        nx = lx - wp.static(2 * R)
+        ny = ybox[1] - ybox[0]
+        outer = ((lz - wp.static(2 * R)) * (ly - wp.static(2 * R)) - (box[1] - box[0]) * ny) * nx
+        if f < outer:
+            q = f // nx
+            zy = frame_cell(q, lz, ly, wp.vec4i(box[0], box[1], ybox[0], ybox[1]))
+            return wp.vec3i(zy[0], zy[1], wp.static(R) + f - q * nx)
+        g = f - outer
+        sides = box[2] - wp.static(R) + lx - wp.static(R) - box[3]
+        q = g // sides
+        x = wp.static(R) + g - q * sides
+        if x >= box[2]:
+            x = x - box[2] + box[3]
+        zq = q // ny
+        return wp.vec3i(box[0] + zq, ybox[0] + q - zq * ny, x)
 
     @wp.func
     def strip_cell(t: int, a: arr4) -> wp.vec3i:
@@ -542,20 +581,30 @@ def _gpu_step(ns):
             rec = (q - s * per) // idx.shape[2]
             record_point(u, data, idx, w, n, clock, s, rec, q - s * per - rec * idx.shape[2])
 
-    return dict(frame_cell=frame_cell, strip_cell=strip_cell, pre_step=pre_step)
+    return dict(frame_cell=frame_cell, frame_cell3=frame_cell3, strip_cell=strip_cell, pre_step=pre_step)
 
 
-def _tile(rows: int, cols: int):
+def _tile(rows: int, cols: int, three: bool):
     """The tile of each thread of a core-layout launch (_core_tile, _adjoint_core), `rows` x `cols` cells."""
     @wp.func
-    def tile(t: int, box: wp.vec4i, lz: int, lx: int) -> wp.vec4i:
+    def tile(t: int, box: wp.vec4i, ybox: wp.vec2i, lz: int, ly: int, lx: int) -> wp.vec4i:
         # thread t's tile of `rows` rows x `cols` columns of the box rows [box[0], box[1]) x columns
-        # [box[2], box[3]) of every shot (a 2D grid (lz, lx)): first row z, its number of columns, and the
-        # flat indices of its first cell in a model (z lx + x) and in the fields (shot s)
+        # [box[2], box[3]) (3D: of each y in [ybox[0], ybox[1]); 2D: ybox and ly unused) of every shot (a grid
+        # (lz, [ly,] lx)): first row z, its number of columns, and the flat indices of its first cell in a
+        # model (2D: z lx + x, 3D: (z ly + y) lx + x) and in the fields (shot s). Threads run along x, then y
+        # (3D), then z.
         nxc = (box[3] - box[2] + wp.static(cols - 1)) // wp.static(cols)
         blocks = (box[1] - box[0] + wp.static(rows - 1)) // wp.static(rows)
         q = t // nxc
         x = box[2] + (t - q * nxc) * wp.static(cols)
+        if wp.static(three):
+            ny = ybox[1] - ybox[0]
+            r = q // ny
+            y = ybox[0] + q - r * ny
+            s = r // blocks
+            z = box[0] + (r - s * blocks) * wp.static(rows)
+            c = (z * ly + y) * lx + x
+            return wp.vec4i(z, wp.min(wp.static(cols), box[3] - x), c, s * lz * ly * lx + c)
         s = q // blocks
         z = box[0] + (q - s * blocks) * wp.static(rows)
         c = z * lx + x
@@ -608,22 +657,28 @@ def _lanes(ns, V: int):
 
 @functools.lru_cache(maxsize=None)
 def _core_tile(ns, rows: int, V: int):
-    # 2D GPU step of one tile of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (padded
-    # indices), where there is neither CPML nor a free surface, on the flat arrays viewed as V-vectors
-    # (_lanes; u: S * Lz * Lx / V, v: Lz * Lx / V). Thread t updates `rows` consecutive rows of V adjacent
-    # columns, with the stencil's values along z in sliding windows and one load per vector of a row along
-    # x; the loop over rows is unrolled.
-    dtype, R, A, advance, d2w = ns.dtype, ns.R, ns.A, ns.advance, ns.d2w
+    # GPU step of one tile of the core: rows [core[0], core[1]) x columns [core[2], core[3]) (3D: x ys
+    # [ycore[0], ycore[1])) (padded indices), where there is neither CPML nor a free surface, on the flat arrays
+    # viewed as V-vectors (_lanes; u: S * Lz * [Ly *] Lx / V, v: Lz * [Ly *] Lx / V). Thread t updates `rows`
+    # consecutive rows of V adjacent columns, with the stencil's values along z in sliding windows, one load per
+    # vector of a row along x and (3D) per neighbour along y; the loop over rows is unrolled.
+    dtype, R, A, three, advance, d2w = ns.dtype, ns.R, ns.A, ns.three, ns.advance, ns.d2w
     vec, arrv, win, line, sides, row, load, put = _lanes(ns, V)
-    tile = _tile(rows, V)
+    tile = _tile(rows, V, three)
 
     @wp.func
-    def core_tile(t: int, u: arrv, u_prev: arrv, u_next: arrv, v: arrv, lz: int, lx: int, core: wp.vec4i, dt2: dtype, inv_dx: dtype):
-        tl = tile(t, core, lz, lx)
+    def core_tile(
+        t: int, u: arrv, u_prev: arrv, u_next: arrv, v: arrv, lz: int, ly: int, lx: int, core: wp.vec4i, ycore: wp.vec2i, dt2: dtype,
+        inv_dx: dtype,
+    ):  # fmt: skip
+        tl = tile(t, core, ycore, lz, ly, lx)
         z = tl[0]
         c = tl[2] // wp.static(V)
         i = tl[3] // wp.static(V)
-        n = lx // wp.static(V)
+        ny = lx // wp.static(V)  # y's stride (3D)
+        n = ny
+        if wp.static(three):
+            n = ly * ny
         w = win()
         for m in range(wp.static(2 * R + 1)):
             a = load(u, i + (m - wp.static(R)) * n)
@@ -636,11 +691,24 @@ def _core_tile(ns, rows: int, V: int):
                 up = load(u_prev, i)
                 vv = load(v, c)
                 out = vec()
+                if wp.static(three):
+                    # d2y as d2y does it, neighbour pair by pair
+                    dyy = vec()
+                    for j in range(wp.static(V)):
+                        dyy[j] = dtype(wp.static(A[0])) * w[j, wp.static(R)]
+                    for m in range(wp.static(R)):
+                        hi = load(u, i + wp.static(m + 1) * ny)
+                        lo = load(u, i - wp.static(m + 1) * ny)
+                        for j in range(wp.static(V)):
+                            dyy[j] += dtype(wp.static(A[m + 1])) * (hi[j] + lo[j])
                 for j in range(wp.static(V)):
                     dxx = dtype(wp.static(A[0])) * w[j, wp.static(R)]
                     for m in range(wp.static(R)):
                         dxx += dtype(wp.static(A[m + 1])) * (r[j + wp.static(R + 1) + m] + r[j + wp.static(R - 1) - m])
-                    out[j] = advance(w[j, wp.static(R)], up[j], vv[j], dt2, (d2w(w[j]) + dxx) * inv_dx2)
+                    if wp.static(three):
+                        out[j] = advance(w[j, wp.static(R)], up[j], vv[j], dt2, (d2w(w[j]) + dxx + dyy[j]) * inv_dx2)
+                    else:
+                        out[j] = advance(w[j, wp.static(R)], up[j], vv[j], dt2, (d2w(w[j]) + dxx) * inv_dx2)
                 put(u_next, i, out)
                 if wp.static(k + 1 < rows):
                     a = load(u, i + wp.static(R + 1) * n)
@@ -655,12 +723,13 @@ def _core_tile(ns, rows: int, V: int):
 
 
 def _step_core(ns, rows: int, V: int):
-    # The 2D GPU step in one 1D launch (unravelling a multi-dimensional thread index costs 64-bit
+    # The GPU step but psi in one 1D launch (unravelling a multi-dimensional thread index costs 64-bit
     # divisions): thread t + offset below `tiles` does a core tile (_core_tile; uf..vf: the flat arrays
     # as V-vectors), from `frame` (a block boundary, so that no warp mixes the two) one interior cell outside
-    # the core as the reference step does it (frame_cell: the CPML strips and the free-surface rows), `cells`
-    # per shot.
-    dtype, arr3, arr4, Axis, frame_cell, cell = ns.dtype, ns.arr3, ns.arr4, ns.Axis, ns.frame_cell, ns.cell
+    # the core as the reference step does it (frame_cell, frame_cell3: the CPML strips and the free-surface
+    # rows), `cells` per shot.
+    dtype, three, arr3, arr4, Axis, cell = ns.dtype, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.cell
+    frame_cell, frame_cell3 = ns.frame_cell, ns.frame_cell3
     core_tile, arrv = _core_tile(ns, rows, V)
 
     @unique_kernel(grid_stride=False, enable_backward=False)
@@ -670,17 +739,23 @@ def _step_core(ns, rows: int, V: int):
         zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
         zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
         az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
-        core: wp.vec4i, cells: int, uf: arrv, uf_prev: arrv, uf_next: arrv, vf: arrv, tiles: int, frame: int, offset: int,
+        core: wp.vec4i, ycore: wp.vec2i, cells: int, uf: arrv, uf_prev: arrv, uf_next: arrv, vf: arrv, tiles: int, frame: int, offset: int,
     ):  # fmt: skip
         t = wp.tid() + offset
         if t < frame:
             if t < tiles:
-                core_tile(t, uf, uf_prev, uf_next, vf, u.shape[1], u.shape[3], core, dt2, inv_dx)
+                core_tile(t, uf, uf_prev, uf_next, vf, u.shape[1], u.shape[2], u.shape[3], core, ycore, dt2, inv_dx)
         else:
             s = (t - frame) // cells
-            zx = frame_cell(t - frame - s * cells, u.shape[1], u.shape[3], core)
-            cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
-                 az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
+            f = t - frame - s * cells
+            if wp.static(three):
+                c = frame_cell3(f, u.shape[1], u.shape[2], u.shape[3], core, ycore)
+                cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                     az, ay, ax, dt2, inv_dx, top, s, c[0], c[1], c[2])  # fmt: skip
+            else:
+                zx = frame_cell(f, u.shape[1], u.shape[3], core)
+                cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                     az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
 
     return step_core
 
@@ -940,11 +1015,11 @@ def _adjoint_core(ns, rows: int, V: int):
     dtype, R, A, arr3, arr4, Axis, d2w = ns.dtype, ns.R, ns.A, ns.arr3, ns.arr4, ns.Axis, ns.d2w
     frame_cell, adjoint_cell = ns.frame_cell, ns.adjoint_cell
     vec, arrv, win, line, sides, row, load, put = _lanes(ns, V)
-    tile = _tile(rows, V)
+    tile = _tile(rows, V, False)
 
     @wp.func
     def adjoint_tile(t: int, u: arrv, lam: arrv, adj: arrv, g: arrv, adj_out: arrv, g_out: arrv, w: arrv, lz: int, lx: int, box: wp.vec4i, inv_dx: dtype):
-        tl = tile(t, box, lz, lx)
+        tl = tile(t, box, wp.vec2i(0, 1), lz, 1, lx)
         z = tl[0]
         c = tl[2] // wp.static(V)
         i = tl[3] // wp.static(V)
@@ -1285,30 +1360,33 @@ class Acoustic:
             axis.pos = wp.array(pos, dtype=wp.int32, device=device)
             self.axes.append(axis)
             self.strip_width.append(len(pos) if lo[a] + hi[a] > 0 else 0)
-        # 2D GPU step: the core (padded rows core[0]:core[1], columns core[2]:core[3]) needs neither CPML
-        # nor the free surface's image; the frame of interior cells around it does
-        band = [[R + n if n else 0 for n in (lo[a], hi[a])] for a in (0, 2)]
+        # GPU step: the core (padded rows core[0]:core[1], columns core[2]:core[3], 3D: ys ycore[0]:ycore[1]) needs
+        # neither CPML nor the free surface's image; the frame of interior cells around it does
+        band = [[R + n if n else 0 for n in (lo[a], hi[a])] for a in range(3)]
         if free_surface:
             band[0][0] = R  # the surface row and the rows whose stencil reaches above it
         # the core's columns start and end at multiples of `lanes`, which the vector width of its tiles divides
         self.lanes = next(V for V in (4, 2, 1) if self.padded[2] % V == 0)
-        self.core = aligned(R + band[0][0], self.padded[0] - R - band[0][1], R + band[1][0], self.padded[2] - R - band[1][1], self.lanes)
-        core_rows, core_cols = self.core[1] - self.core[0], self.core[3] - self.core[2]
-        self.frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - max(core_rows, 0) * max(core_cols, 0)
-        self.has_core = self.ndim == 2 and core_rows > 0 and core_cols > 0 and self.n_shots * self.padded[0] * self.padded[2] < 2**31  # int32 indices
+        self.core = aligned(R + band[0][0], self.padded[0] - R - band[0][1], R + band[2][0], self.padded[2] - R - band[2][1], self.lanes)
+        self.ycore = wp.vec2i(R + band[1][0], self.padded[1] - R - band[1][1]) if self.ndim == 3 else wp.vec2i(0, 1)
+        self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * halo[1], self.padded[2] - 2 * R)
+        extents = (self.core[1] - self.core[0], self.ycore[1] - self.ycore[0], self.core[3] - self.core[2])
+        self.frame_cells = math.prod(self.interior[1:]) - math.prod(max(e, 0) for e in extents)
+        fits = min(extents) > 0 and self.n_shots * math.prod(self.padded) < 2**31  # int32 indices
+        self.has_core = self.ndim == 2 and fits  # the 2D core: GPU step and adjoint, CPU rows
         # the adjoint's core: the cells whose stencil neighbours are all core cells (else an empty box)
         c = self.core
         inner = aligned(c[0] + R, c[1] - R, c[2] + R, c[3] - R, self.lanes)
         self.adjoint_box = inner if self.has_core and inner[1] > inner[0] and inner[3] > inner[2] else wp.vec4i(R, R, R, R)
         box = self.adjoint_box
         self.adjoint_frame_cells = (self.padded[0] - 2 * R) * (self.padded[2] - 2 * R) - (box[1] - box[0]) * (box[3] - box[2])
-        self.core_frame = self.has_core and wp.get_device(device).is_cuda  # the 2D GPU step: psi, core and frame kernels
-        self.interior = (self.n_shots, self.padded[0] - 2 * R, self.padded[1] - 2 * halo[1], self.padded[2] - 2 * R)
+        self.core_frame = fits and wp.get_device(device).is_cuda  # the GPU step: psi, core and frame kernels
         self.inv_dx = dtype(1.0 / dx)
         self.dt2 = dtype(dt * dt)
         self.src_scale = dtype(dt * dt / dx**self.ndim)
         self.cuda = wp.get_device(device).is_cuda
-        self.core_rows, self.core_cols, self.core_threads = GPU_CORE_ROWS, min(GPU_CORE_COLS, self.lanes), GPU_CORE_THREADS
+        rows, cols = (GPU_CORE3_ROWS, GPU_CORE3_COLS) if self.ndim == 3 else (GPU_CORE_ROWS, GPU_CORE_COLS)
+        self.core_rows, self.core_cols, self.core_threads = rows, min(cols, self.lanes), GPU_CORE_THREADS
         self.threads = 1 if self.cuda else max(1, min(CPU_THREADS, os.cpu_count() or 1, self.interior[1]))
         self._pool = None
         self._launches = {}  # recorded CPU step launches per set of arrays (_cpu_step)
@@ -1354,22 +1432,25 @@ class Acoustic:
             u_next = out.u
         step_args = [st.u, st.u_prev, u_next, vpad, *out.psi, *st.zeta, *out.zeta, *self.axes, self.dt2, self.inv_dx, self.top]
         # Under a wp.Tape (Warp's generated adjoints, adjoint="warp") the per-cell reference kernels run; a
-        # GPU runs the 2D step as two launches (pre_step: psi and record; step_core: core and frame; 3D: the
-        # reference kernels); a CPU runs rows, split among threads.
+        # GPU runs the 2D step as two launches (pre_step: psi and record; step_core: core and frame), the 3D one
+        # as psi along each axis, then step_core; a CPU runs rows, split among threads.
         generated = wp._src.context.runtime.tape is not None
         fused = self.core_frame and not generated
-        if record is not None and not (fused and isinstance(record[1], tuple)):
+        if record is not None and not (fused and self.ndim == 2 and isinstance(record[1], tuple)):
             self.record(st.u, *record)
             record = None
-        if fused:
+        if fused and self.ndim == 2:
             self._pre_step(st, out, record)
             self.step_core(step_args, st.u, st.u_prev, u_next, vpad)
-        elif generated or self.cuda:
+        elif fused or generated or self.cuda:
             for a in range(3):
                 if self.strip_width[a]:
                     wp.launch(self.k.psi[a][0], dim=self.strip_shape(a), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx],
                               device=self.device, record_tape=generated)  # fmt: skip
-            wp.launch(self.k.step, dim=self.interior, inputs=step_args, device=self.device, record_tape=generated)
+            if fused:
+                self.step_core(step_args, st.u, st.u_prev, u_next, vpad)
+            else:
+                wp.launch(self.k.step, dim=self.interior, inputs=step_args, device=self.device, record_tape=generated)
         else:
             self._cpu_step(st, out, u_next, vpad, step_args)
         return out
@@ -1416,10 +1497,10 @@ class Acoustic:
         wp.launch(self.k.post_adjoint, dim=z + x + points, inputs=[adj_out, adj_psi[1][0], adj_psi[0][0], adj_zeta[0][0], adj_psi[1][2],
                   adj_psi[0][2], adj_zeta[0][2], self.axes[0], self.axes[2], self.inv_dx, z, x, data, idx, wq, n, clock], device=self.device)  # fmt: skip
 
-    def tiles(self, box, rows=None, cols=None) -> int:
-        """Threads of a core-layout launch over `box` (_tile; default: this helper's rows and columns)."""
+    def tiles(self, box, rows=None, cols=None, ys=1) -> int:
+        """Threads of a core-layout launch over `box` and `ys` values of y (_tile; default: this helper's rows and columns)."""
         rows, cols = rows or self.core_rows, cols or self.core_cols
-        return self.n_shots * -(-(box[1] - box[0]) // rows) * -(-(box[3] - box[2]) // cols)
+        return self.n_shots * -(-(box[1] - box[0]) // rows) * -(-(box[3] - box[2]) // cols) * ys
 
     def core_kernel(self):
         return self.k.step_core(self.core_rows, self.core_cols)
@@ -1427,13 +1508,13 @@ class Acoustic:
     def adjoint_kernel(self):
         return self.k.adjoint_core(self.core_rows, self.core_cols)
 
-    def _merged(self, kernel, inputs, box, frame_cells: int, part=None):
+    def _merged(self, kernel, inputs, box, frame_cells: int, part=None, ys=1):
         """Launch a core-and-frame kernel (_step_core, _adjoint_core) over the tiles of `box`, then, from
         a block boundary, the frame's cells; part "core" or "frame": only that part (for timing). On a CPU
         the work is split among the step's threads: the frame's cells in one (their CPML adjoints scatter with
         atomics, which are plain adds on a CPU), the tiles (each writes only its own cells) shared so that the
-        threads' work is about equal, a frame cell counted as FRAME_CELL_COST tile cells."""
-        tiles = self.tiles(box)
+        threads' work is about equal, a frame cell counted as FRAME_CELL_COST tile cells. ys: a 3D box's number of ys."""
+        tiles = self.tiles(box, ys=ys)
         frame = -(-tiles // self.core_threads) * self.core_threads
         cells = self.n_shots * frame_cells
 
@@ -1461,9 +1542,10 @@ class Acoustic:
             self._split(job)
 
     def step_core(self, step_args, u, u_prev, u_next, vpad, part=None):
-        """The 2D GPU step but psi (step_args: the reference step's arguments)."""
+        """The GPU step but psi (step_args: the reference step's arguments)."""
         flat = [as_vectors(a, self.core_cols) for a in (u, u_prev, u_next, vpad)]
-        self._merged(self.core_kernel(), [*step_args, self.core, self.frame_cells, *flat], self.core, self.frame_cells, part)
+        self._merged(self.core_kernel(), [*step_args, self.core, self.ycore, self.frame_cells, *flat], self.core, self.frame_cells, part,
+                     self.ycore[1] - self.ycore[0])
 
     def adjoint_core(self, args, u, lam, adj, g, adj_out, g_out, w, part=None):
         """The 2D adjoint step but psi and receivers (args: adjoint_step's arguments)."""
