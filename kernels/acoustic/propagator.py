@@ -705,10 +705,10 @@ def _core_tile(ns, rows: int, V: int):
                     dxx = dtype(wp.static(A[0])) * w[j, wp.static(R)]
                     for m in range(wp.static(R)):
                         dxx += dtype(wp.static(A[m + 1])) * (r[j + wp.static(R + 1) + m] + r[j + wp.static(R - 1) - m])
+                    lap = d2w(w[j]) + dxx
                     if wp.static(three):
-                        out[j] = advance(w[j, wp.static(R)], up[j], vv[j], dt2, (d2w(w[j]) + dxx + dyy[j]) * inv_dx2)
-                    else:
-                        out[j] = advance(w[j, wp.static(R)], up[j], vv[j], dt2, (d2w(w[j]) + dxx) * inv_dx2)
+                        lap = lap + dyy[j]
+                    out[j] = advance(w[j, wp.static(R)], up[j], vv[j], dt2, lap * inv_dx2)
                 put(u_next, i, out)
                 if wp.static(k + 1 < rows):
                     a = load(u, i + wp.static(R + 1) * n)
@@ -750,12 +750,11 @@ def _step_core(ns, rows: int, V: int):
             f = t - frame - s * cells
             if wp.static(three):
                 c = frame_cell3(f, u.shape[1], u.shape[2], u.shape[3], core, ycore)
-                cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
-                     az, ay, ax, dt2, inv_dx, top, s, c[0], c[1], c[2])  # fmt: skip
             else:
                 zx = frame_cell(f, u.shape[1], u.shape[3], core)
-                cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
-                     az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
+                c = wp.vec3i(zx[0], 0, zx[1])
+            cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                 az, ay, ax, dt2, inv_dx, top, s, c[0], c[1], c[2])  # fmt: skip
 
     return step_core
 
