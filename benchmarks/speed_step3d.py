@@ -1,6 +1,6 @@
 """Per-launch GPU times of the 3D acoustic step's parts on a bench scene (S3D400 by default): psi along each axis,
-the frame (CPML and halo cells, per cell), the core tiles at several layouts (rows x columns a thread, threads a
-block) alone and with the frame, and the per-cell reference step; each replayed from a captured graph. The
+the frame (CPML and halo cells, per cell, by flat offsets), the core tiles at several layouts (rows x columns a
+thread, threads a block) alone and with the frame, and the per-cell reference step; each replayed from a captured graph. The
 layouts' results are checked against the reference step's.
 
     python benchmarks/speed_step3d.py [SCENE]      (a CUDA device)
@@ -41,7 +41,7 @@ def main(name="S3D400", device="cuda:0"):
     for ax in range(3):
         def psi(ax=ax):
             inputs = [st.u, st.psi[ax], out.psi[ax], prop.axes[ax], prop.inv_dx]
-            wp.launch(prop.k.psi[ax][0], dim=prop.strip_shape(ax), inputs=inputs, device=device)
+            wp.launch(prop.k.psi_flat[ax], dim=int(np.prod(prop.strip_shape(ax))), inputs=inputs, device=device)
 
         show(f"psi along axis {ax}", per_launch(psi, device, 20), int(np.prod(prop.strip_shape(ax))))
     reference = per_launch(lambda: wp.launch(prop.k.step, dim=prop.interior, inputs=args, device=device), device, 20)

@@ -307,6 +307,27 @@ def as_vectors(a: wp.array, V: int) -> wp.array:
 
 
 @functools.lru_cache(maxsize=None)
+def flat_access(dtype):
+    """(load3(a, i), load4(a, i), store4(a, i, v)): element i of a contiguous 3D or 4D array a of dtype in its flat
+    order, for kernels that address cells by a flat offset and its neighbours by adding strides. Indexing (s, z, y, x)
+    costs four multiply-adds and four negative-index checks a load; a GPU step that reads ~30 values a cell is then
+    bound by that integer arithmetic (docs/benchmarks.md, "Flat offsets in the frame"). Not differentiable: for the
+    GPU steps, not the kernels Warp's tape records."""
+    arr3, arr4 = wp.array3d(dtype=dtype), wp.array4d(dtype=dtype)
+
+    @wp.func_native("return a.data[i];\n")
+    def load3(a: arr3, i: int) -> dtype: ...
+
+    @wp.func_native("return a.data[i];\n")
+    def load4(a: arr4, i: int) -> dtype: ...
+
+    @wp.func_native("a.data[i] = v;\n")
+    def store4(a: arr4, i: int, v: dtype): ...
+
+    return load3, load4, store4
+
+
+@functools.lru_cache(maxsize=None)
 def vector_access(V: int, dtype):
     """(load(f, i), store(f, i, v)) of element i of a contiguous array f of vector(V, dtype), as one access of
     V * itemsize bytes (two of 16 for 32) on a GPU: Warp indexes a vector array component by component, and the GPU

@@ -45,6 +45,7 @@ from adseismic.kernels.common import (
     aligned,
     as_vectors,
     block_rows,
+    flat_access,
     hicks_axis,
     unique_kernel,
     vector_access,
@@ -75,7 +76,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         vars(ns).update(builder(ns))
     return Kernels(
         Axis=ns.Axis, step=ns.step, step_core=functools.lru_cache(maxsize=None)(functools.partial(_step_core, ns)), step_rows=ns.step_rows,
-        step_core_rows=ns.step_core_rows, psi=ns.psi, inject=ns.inject, adjoint_step=ns.adjoint_step,
+        step_core_rows=ns.step_core_rows, psi=ns.psi, psi_flat=ns.psi_flat, inject=ns.inject, adjoint_step=ns.adjoint_step,
         adjoint_core=functools.lru_cache(maxsize=None)(functools.partial(_adjoint_core, ns)), squared=ns.squared, model_gradient=ns.model_gradient,
         psi_adjoint=ns.psi_adjoint, post_adjoint=ns.post_adjoint, pre_step=ns.pre_step, record=ns.record, weights=ns.weights, compact=ns.compact,
         inject_fixed=ns.inject_fixed, record_fixed=ns.record_fixed, record_summed=ns.record_summed, pad_model=ns.pad_model, scatter=ns.scatter,
@@ -190,16 +191,24 @@ def _stencils(ns):
         return acc
 
     @wp.func
+    def d1w(w: vecw) -> dtype:
+        # first derivative (times dx) from a window of 2R+1 values centred on the cell: d1's sum in d1's order
+        acc = dtype(0.0)
+        for m in range(wp.static(R)):
+            acc += dtype(wp.static(B[m])) * (w[wp.static(R + 1) + m] - w[wp.static(R - 1) - m])
+        return acc
+
+    @wp.func
     def flat(a: arr1, base: int, k: int) -> dtype:
         # a[base + k] for base, k >= 0, written so that the compiler sees a non-negative index: Warp wraps
         # negative indices, and the select that takes keeps a loop over k from being vectorised
         return a[wp.max(base, 0) + k]
 
-    return dict(Axis=Axis, d2z=d2z, d2y=d2y, d2x=d2x, d1=d1, d1t=d1t, vecw=vecw, d2w=d2w, flat=flat)
+    return dict(Axis=Axis, d2z=d2z, d2y=d2y, d2x=d2x, d1=d1, d1t=d1t, vecw=vecw, d2w=d2w, d1w=d1w, flat=flat)
 
 
 def _cpml(ns):
-    """The CPML: psi per cell and its kernels (GPU and CPU rows) along each axis, and the stretch terms of d2."""
+    """The CPML: psi per cell and its kernels (per cell and CPU rows) along each axis, and the stretch terms of d2."""
     dtype, R, B, arr1, arr4, Axis, d1, flat = ns.dtype, ns.R, ns.B, ns.arr1, ns.arr4, ns.Axis, ns.d1, ns.flat
 
     def make_psi_cell(axis: int):
@@ -229,10 +238,10 @@ def _cpml(ns):
         return psi_cell
 
     psi_cells = [make_psi_cell(a) for a in range(3)]
-    psi_cell_z, psi_cell_x = psi_cells[0], psi_cells[2]
 
     def make_psi(axis: int):
-        # one thread per strip cell (GPU, and Warp's generated adjoint)
+        # one thread per strip cell (Warp's generated adjoint, and a GPU step without a core; the GPU step's own is
+        # _gpu_step's psi_flat)
         cell = psi_cells[axis]
 
         @unique_kernel(grid_stride=False)
@@ -289,6 +298,13 @@ def _cpml(ns):
 
     pair = wp.types.vector(length=2, dtype=dtype)
 
+    @wp.func
+    def cpml_term(t: dtype, dpsi: dtype, zeta: dtype, a: dtype, b: dtype, inv_dx: dtype) -> pair:
+        # (d(psi)/dx + zeta_new, zeta_new) from t = d2u/dx2, dpsi = d1 of psi (times dx), the old zeta and the cell's a, b
+        d = dpsi * inv_dx
+        zn = b * zeta + a * (t + d)
+        return pair(d + zn, zn)
+
     def make_stretch(axis: int):
         # CPML term of the second derivative along `axis`, from t = d2u/dx2 at (s, z, y, x) and the cell's strip
         # index j = ca.store[p] (p: its index along `axis`): stretch gives (d(psi)/dx + zeta_new, zeta_new) in the
@@ -308,9 +324,7 @@ def _cpml(ns):
         def stretch(t: dtype, j: int, p: int, s: int, z: int, y: int, x: int, psi: arr4, zeta: arr4, ca: Axis, inv_dx: dtype) -> pair:
             if j >= 0:
                 c = at_strip(j, z, y, x)
-                d = dpsi(psi, s, c[0], c[1], c[2]) * inv_dx
-                zn = ca.b[p] * zeta[s, c[0], c[1], c[2]] + ca.a[p] * (t + d)
-                return pair(d + zn, zn)
+                return cpml_term(t, dpsi(psi, s, c[0], c[1], c[2]), zeta[s, c[0], c[1], c[2]], ca.a[p], ca.b[p], inv_dx)
             return pair(dtype(0.0), dtype(0.0))
 
         @wp.func
@@ -322,20 +336,32 @@ def _cpml(ns):
         return stretch, keep
 
     (stretch_z, keep_z), (stretch_y, keep_y), (stretch_x, keep_x) = make_stretch(0), make_stretch(1), make_stretch(2)
-    return dict(psi_cell_z=psi_cell_z, psi_cell_x=psi_cell_x, psi=psi, stretch_z=stretch_z, stretch_y=stretch_y, stretch_x=stretch_x,
-                keep_z=keep_z, keep_y=keep_y, keep_x=keep_x)
+    return dict(psi=psi, pair=pair, cpml_term=cpml_term, stretch_z=stretch_z, stretch_y=stretch_y, stretch_x=stretch_x, keep_z=keep_z,
+                keep_y=keep_y, keep_x=keep_x)
 
 
 def _reference_step(ns):
     """The per-cell update and the reference step (one thread per interior cell)."""
     dtype, R, fs, three, arr3, arr4, Axis, d2z = ns.dtype, ns.R, ns.fs, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.d2z
     d2y, d2x, stretch_z, stretch_y, stretch_x = ns.d2y, ns.d2x, ns.stretch_z, ns.stretch_y, ns.stretch_x
-    keep_z, keep_y, keep_x = ns.keep_z, ns.keep_y, ns.keep_x
+    keep_z, keep_y, keep_x, pair = ns.keep_z, ns.keep_y, ns.keep_x, ns.pair
 
     @wp.func
     def advance(uc: dtype, up: dtype, vv: dtype, dt2: dtype, lap: dtype) -> dtype:
         # u[n+1] from u[n] = uc, u[n-1] = up, the velocity vv and the (stretched) Laplacian lap
         return dtype(2.0) * uc - up + vv * vv * dt2 * lap
+
+    @wp.func
+    def stretched(uc: dtype, up: dtype, vv: dtype, dt2: dtype, inv_dx2: dtype, dzz: dtype, dxx: dtype, dyy: dtype, ty: dtype, tz: dtype,
+                  tx: dtype) -> dtype:  # fmt: skip
+        # u_next from the plain d2u along each axis (times dx^2) and the CPML terms (0 outside the strips): the plain
+        # Laplacian comes first and the CPML terms are added to it, so that outside the strips it rounds as in
+        # step_core, whatever multiply-adds the compiler fuses
+        if wp.static(three):
+            lap = (dzz + dxx + dyy) * inv_dx2 + ty
+        else:
+            lap = (dzz + dxx) * inv_dx2
+        return advance(uc, up, vv, dt2, lap + tz + tx)
 
     @wp.func
     def update(
@@ -346,26 +372,21 @@ def _reference_step(ns):
         az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
         s: int, z: int, y: int, x: int, dzz: dtype, dxx: dtype, uc: dtype,
     ):  # fmt: skip
-        # u_next at one cell from uc = u there and its d2u along z and x (times dx^2). The plain Laplacian
-        # comes first and the CPML terms (0 outside the strips) are added to it, so that outside the
-        # strips it rounds as in step_core, whatever multiply-adds the compiler fuses. Every load comes before
-        # the first store.
+        # u_next at one cell from uc = u there and its d2u along z and x (times dx^2). Every load comes before the
+        # first store.
         inv_dx2 = inv_dx * inv_dx
         jz = az.store[z]
         jx = ax.store[x]
+        jy = int(-1)
+        dyy = dtype(0.0)
+        ty = pair()
         if wp.static(three):
             jy = ay.store[y]
             dyy = d2y(u, s, z, y, x, top)
-            lap = (dzz + dxx + dyy) * inv_dx2
             ty = stretch_y(dyy * inv_dx2, jy, y, s, z, y, x, psi_y, zeta_y, ay, inv_dx)
-            lap = lap + ty[0]
-        else:
-            lap = (dzz + dxx) * inv_dx2
         tz = stretch_z(dzz * inv_dx2, jz, z, s, z, y, x, psi_z, zeta_z, az, inv_dx)
-        lap = lap + tz[0]
         tx = stretch_x(dxx * inv_dx2, jx, x, s, z, y, x, psi_x, zeta_x, ax, inv_dx)
-        lap = lap + tx[0]
-        un = advance(uc, u_prev[s, z, y, x], v[z, y, x], dt2, lap)
+        un = stretched(uc, u_prev[s, z, y, x], v[z, y, x], dt2, inv_dx2, dzz, dxx, dyy, ty[0], tz[0], tx[0])
         if wp.static(three):
             keep_y(ty[1], jy, s, z, y, x, zeta_y_new)
         keep_z(tz[1], jz, s, z, y, x, zeta_z_new)
@@ -408,7 +429,7 @@ def _reference_step(ns):
         cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
              az, ay, ax, dt2, inv_dx, top, s, z, y, x)  # fmt: skip
 
-    return dict(advance=advance, update=update, cell=cell, step=step)
+    return dict(advance=advance, stretched=stretched, update=update, cell=cell, step=step)
 
 
 def _cpu_rows(ns):
@@ -507,9 +528,124 @@ def _cpu_rows(ns):
 
 
 def _gpu_step(ns):
-    """The GPU step's cell maps (frame_cell, frame_cell3, strip_cell) and the 2D pre_step; its core is _step_core."""
-    dtype, R, arr3, arr4, iarr1, Axis, psi_cell_z = ns.dtype, ns.R, ns.arr3, ns.arr4, ns.iarr1, ns.Axis, ns.psi_cell_z
-    psi_cell_x, record_point = ns.psi_cell_x, ns.record_point
+    """The GPU step's cells addressed by flat offsets (flat_access): psi (psi_flat: its 3D kernels; pre_step: the 2D
+    step's first launch) and the frame's cells (flat_cell); its cell maps (frame_cell, frame_cell3, strip_cell). Its
+    core is _step_core."""
+    dtype, R, fs, three, arr3, arr4, iarr1, Axis, vecw = ns.dtype, ns.R, ns.fs, ns.three, ns.arr3, ns.arr4, ns.iarr1, ns.Axis, ns.vecw
+    d2w, d1w, pair, cpml_term, stretched, record_point = ns.d2w, ns.d1w, ns.pair, ns.cpml_term, ns.stretched, ns.record_point
+    load3, load4, store4 = flat_access(dtype)
+
+    @wp.func
+    def line(a: arr4, o: int, d: int) -> vecw:
+        # the 2R + 1 values of a centred on flat offset o along the axis of stride d
+        w = vecw()
+        for m in range(wp.static(2 * R + 1)):
+            w[m] = load4(a, o + wp.static(m - R) * d)
+        return w
+
+    @wp.func
+    def zline(u: arr4, o: int, n: int, z: int, top: int) -> vecw:
+        # line along z (stride n) of the cell at offset o in row z; above a free surface (row top) the image, as `at`
+        w = vecw()
+        for m in range(wp.static(2 * R + 1)):
+            if wp.static(fs):
+                zm = z + wp.static(m - R)
+                above = zm < top
+                w[m] = wp.where(above, dtype(-1.0), dtype(1.0)) * load4(u, o + (wp.where(above, 2 * top - zm, zm) - z) * n)
+            else:
+                w[m] = load4(u, o + wp.static(m - R) * n)
+        return w
+
+    def make_psi_flat(axis: int):
+        # psi along `axis` at flat cell q of its strip (S, Wz, Ly, Lx), (S, Lz, Wy, Lx) or (S, Lz, Ly, Wx), as psi_cell
+        @wp.func
+        def psi_flat(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype, q: int):
+            ly, lx = u.shape[2], u.shape[3]
+            if wp.static(axis == 0):
+                n = ly * lx
+                sj = q // n
+                s = sj // psi_new.shape[1]
+                p = ax.pos[sj - s * psi_new.shape[1]]
+                o = (s * u.shape[1] + p) * n + q - sj * n
+                d = n
+            elif wp.static(axis == 1):
+                r = q // lx
+                sz = r // psi_new.shape[2]
+                p = ax.pos[r - sz * psi_new.shape[2]]
+                o = (sz * ly + p) * lx + q - r * lx
+                d = lx
+            else:
+                r = q // psi_new.shape[3]
+                p = ax.pos[q - r * psi_new.shape[3]]
+                o = r * lx + p
+                d = 1
+            a = ax.a[p]
+            val = dtype(0.0)
+            if a != dtype(0.0):
+                val = ax.b[p] * load4(psi_old, q) + a * d1w(line(u, o, d)) * inv_dx
+            store4(psi_new, q, val)
+
+        @unique_kernel(grid_stride=False, enable_backward=False)
+        def psi_kernel(u: arr4, psi_old: arr4, psi_new: arr4, ax: Axis, inv_dx: dtype):
+            psi_flat(u, psi_old, psi_new, ax, inv_dx, wp.tid())
+
+        return psi_flat, psi_kernel
+
+    (psi_flat_z, psi_z), (psi_flat_y, psi_y), (psi_flat_x, psi_x) = make_psi_flat(0), make_psi_flat(1), make_psi_flat(2)
+
+    @wp.func
+    def strip_term(t: dtype, j: int, p: int, psi: arr4, zeta: arr4, q: int, d: int, ca: Axis, inv_dx: dtype) -> pair:
+        # stretch's CPML term at strip index j (flat offset q in psi and zeta, d: the axis' stride there), else 0
+        if j >= 0:
+            return cpml_term(t, d1w(line(psi, q, d)), load4(zeta, q), ca.a[p], ca.b[p], inv_dx)
+        return pair(dtype(0.0), dtype(0.0))
+
+    @wp.func
+    def flat_cell(
+        u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
+        psi_z: arr4, psi_y: arr4, psi_x: arr4,
+        zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
+        s: int, z: int, y: int, x: int,
+    ):  # fmt: skip
+        # cell (the reference step's cell) with flat offsets: o of (s, z, y, x) in the fields, c in the model, qz, qy,
+        # qx in the strips; every load before the first store
+        lz, ly, lx = u.shape[1], u.shape[2], u.shape[3]
+        n = ly * lx
+        c = (z * ly + y) * lx + x
+        o = s * lz * n + c
+        if wp.static(fs):
+            if z == top:
+                store4(u_next, o, dtype(0.0))
+                return
+        inv_dx2 = inv_dx * inv_dx
+        jz = az.store[z]
+        jx = ax.store[x]
+        wz = zline(u, o, n, z, top)
+        dzz = d2w(wz)
+        dxx = d2w(line(u, o, 1))
+        qz = ((s * psi_z.shape[1] + jz) * ly + y) * lx + x
+        qx = ((s * lz + z) * ly + y) * psi_x.shape[3] + jx
+        jy = int(-1)
+        qy = int(0)
+        dyy = dtype(0.0)
+        ty = pair()
+        if wp.static(three):
+            jy = ay.store[y]
+            dyy = d2w(line(u, o, lx))
+            qy = ((s * lz + z) * psi_y.shape[2] + jy) * lx + x
+            ty = strip_term(dyy * inv_dx2, jy, y, psi_y, zeta_y, qy, lx, ay, inv_dx)
+        tz = strip_term(dzz * inv_dx2, jz, z, psi_z, zeta_z, qz, n, az, inv_dx)
+        tx = strip_term(dxx * inv_dx2, jx, x, psi_x, zeta_x, qx, 1, ax, inv_dx)
+        un = stretched(wz[wp.static(R)], load4(u_prev, o), load3(v, c), dt2, inv_dx2, dzz, dxx, dyy, ty[0], tz[0], tx[0])
+        if jy >= 0:
+            store4(zeta_y_new, qy, ty[1])
+        if jz >= 0:
+            store4(zeta_z_new, qz, tz[1])
+        if jx >= 0:
+            store4(zeta_x_new, qx, tx[1])
+        store4(u_next, o, un)
 
     @wp.func
     def frame_cell(f: int, lz: int, lx: int, box: wp.vec4i) -> wp.vec2i:
@@ -569,11 +705,9 @@ def _gpu_step(ns):
         # (the next x_cells), then record_fixed's receiver points of u (idx: (S, n_rec, points))
         t = wp.tid()
         if t < z_cells:
-            c = strip_cell(t, psi_z_new)
-            psi_cell_z(u, psi_z, psi_z_new, az, inv_dx, c[0], c[1], 0, c[2])
+            psi_flat_z(u, psi_z, psi_z_new, az, inv_dx, t)
         elif t < z_cells + x_cells:
-            c = strip_cell(t - z_cells, psi_x_new)
-            psi_cell_x(u, psi_x, psi_x_new, ax, inv_dx, c[0], c[1], 0, c[2])
+            psi_flat_x(u, psi_x, psi_x_new, ax, inv_dx, t - z_cells)
         else:
             q = t - z_cells - x_cells
             per = idx.shape[1] * idx.shape[2]
@@ -581,7 +715,8 @@ def _gpu_step(ns):
             rec = (q - s * per) // idx.shape[2]
             record_point(u, data, idx, w, n, clock, s, rec, q - s * per - rec * idx.shape[2])
 
-    return dict(frame_cell=frame_cell, frame_cell3=frame_cell3, strip_cell=strip_cell, pre_step=pre_step)
+    return dict(psi_flat=(psi_z, psi_y, psi_x), flat_cell=flat_cell, frame_cell=frame_cell, frame_cell3=frame_cell3, strip_cell=strip_cell,
+                pre_step=pre_step)
 
 
 def _tile(rows: int, cols: int, three: bool):
@@ -728,7 +863,7 @@ def _step_core(ns, rows: int, V: int):
     # as V-vectors), from `frame` (a block boundary, so that no warp mixes the two) one interior cell outside
     # the core as the reference step does it (frame_cell, frame_cell3: the CPML strips and the free-surface
     # rows), `cells` per shot.
-    dtype, three, arr3, arr4, Axis, cell = ns.dtype, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.cell
+    dtype, three, arr3, arr4, Axis, cell = ns.dtype, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.flat_cell
     frame_cell, frame_cell3 = ns.frame_cell, ns.frame_cell3
     core_tile, arrv = _core_tile(ns, rows, V)
 
@@ -1444,8 +1579,9 @@ class Acoustic:
         elif fused or generated or self.cuda:
             for a in range(3):
                 if self.strip_width[a]:
-                    wp.launch(self.k.psi[a][0], dim=self.strip_shape(a), inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx],
-                              device=self.device, record_tape=generated)  # fmt: skip
+                    kernel, dim = (self.k.psi_flat[a], math.prod(self.strip_shape(a))) if fused else (self.k.psi[a][0], self.strip_shape(a))
+                    wp.launch(kernel, dim=dim, inputs=[st.u, st.psi[a], out.psi[a], self.axes[a], self.inv_dx], device=self.device,
+                              record_tape=generated)  # fmt: skip
             if fused:
                 self.step_core(step_args, st.u, st.u_prev, u_next, vpad)
             else:
