@@ -72,7 +72,8 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         arr3=wp.array3d(dtype=dtype), arr4=wp.array4d(dtype=dtype),
     )  # fmt: skip
     # each builder reads what the ones before it made (pre_step calls _points' record_point)
-    for builder in (_stencils, _cpml, _reference_step, _cpu_rows, _points, _gpu_step, _psi_adjoint, _adjoint_terms, _adjoint_step, _model_ops):
+    for builder in (_stencils, _cpml, _reference_step, _cpu_rows, _points, _flat_cells, _gpu_step, _psi_adjoint, _adjoint_terms,
+                    _adjoint_step, _model_ops):
         vars(ns).update(builder(ns))
     return Kernels(
         Axis=ns.Axis, step=ns.step, step_core=functools.lru_cache(maxsize=None)(functools.partial(_step_core, ns)), step_rows=ns.step_rows,
@@ -527,12 +528,11 @@ def _cpu_rows(ns):
     return dict(step_rows=step_rows, step_core_rows=step_core_rows)
 
 
-def _gpu_step(ns):
-    """The GPU step's cells addressed by flat offsets (flat_access): psi (psi_flat: its 3D kernels; pre_step: the 2D
-    step's first launch) and the frame's cells (flat_cell); its cell maps (frame_cell, frame_cell3, strip_cell). Its
-    core is _step_core."""
-    dtype, R, fs, three, arr3, arr4, iarr1, Axis, vecw = ns.dtype, ns.R, ns.fs, ns.three, ns.arr3, ns.arr4, ns.iarr1, ns.Axis, ns.vecw
-    d2w, d1w, pair, cpml_term, stretched, record_point = ns.d2w, ns.d1w, ns.pair, ns.cpml_term, ns.stretched, ns.record_point
+def _flat_cells(ns):
+    """The GPU step's cells addressed by flat offsets (flat_access; neighbours by strides): psi at a strip cell
+    (psi_flat, and its 3D kernels) and the frame's cell (flat_cell), with the reference step's arithmetic."""
+    dtype, R, fs, three, arr3, arr4, Axis, vecw = ns.dtype, ns.R, ns.fs, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.vecw
+    d2w, d1w, pair, cpml_term, stretched = ns.d2w, ns.d1w, ns.pair, ns.cpml_term, ns.stretched
     load3, load4, store4 = flat_access(dtype)
 
     @wp.func
@@ -647,6 +647,15 @@ def _gpu_step(ns):
             store4(zeta_x_new, qx, tx[1])
         store4(u_next, o, un)
 
+    return dict(psi_flat=(psi_z, psi_y, psi_x), psi_flat_z=psi_flat_z, psi_flat_x=psi_flat_x, flat_cell=flat_cell)
+
+
+def _gpu_step(ns):
+    """The GPU step's cell maps (frame_cell, frame_cell3, strip_cell) and the 2D pre_step; its core and frame are
+    _step_core's."""
+    dtype, R, arr3, arr4, iarr1, Axis, record_point = ns.dtype, ns.R, ns.arr3, ns.arr4, ns.iarr1, ns.Axis, ns.record_point
+    psi_flat_z, psi_flat_x = ns.psi_flat_z, ns.psi_flat_x
+
     @wp.func
     def frame_cell(f: int, lz: int, lx: int, box: wp.vec4i) -> wp.vec2i:
         # (z, x) of the f-th interior cell outside the rows [box[0], box[1]) x columns [box[2], box[3])
@@ -715,8 +724,7 @@ def _gpu_step(ns):
             rec = (q - s * per) // idx.shape[2]
             record_point(u, data, idx, w, n, clock, s, rec, q - s * per - rec * idx.shape[2])
 
-    return dict(psi_flat=(psi_z, psi_y, psi_x), flat_cell=flat_cell, frame_cell=frame_cell, frame_cell3=frame_cell3, strip_cell=strip_cell,
-                pre_step=pre_step)
+    return dict(frame_cell=frame_cell, frame_cell3=frame_cell3, strip_cell=strip_cell, pre_step=pre_step)
 
 
 def _tile(rows: int, cols: int, three: bool):
@@ -861,9 +869,8 @@ def _step_core(ns, rows: int, V: int):
     # The GPU step but psi in one 1D launch (unravelling a multi-dimensional thread index costs 64-bit
     # divisions): thread t + offset below `tiles` does a core tile (_core_tile; uf..vf: the flat arrays
     # as V-vectors), from `frame` (a block boundary, so that no warp mixes the two) one interior cell outside
-    # the core as the reference step does it (frame_cell, frame_cell3: the CPML strips and the free-surface
-    # rows), `cells` per shot.
-    dtype, three, arr3, arr4, Axis, cell = ns.dtype, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.flat_cell
+    # the core (frame_cell, frame_cell3: the CPML strips and the free-surface rows) by flat_cell, `cells` per shot.
+    dtype, three, arr3, arr4, Axis, flat_cell = ns.dtype, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.flat_cell
     frame_cell, frame_cell3 = ns.frame_cell, ns.frame_cell3
     core_tile, arrv = _core_tile(ns, rows, V)
 
@@ -888,8 +895,8 @@ def _step_core(ns, rows: int, V: int):
             else:
                 zx = frame_cell(f, u.shape[1], u.shape[3], core)
                 c = wp.vec3i(zx[0], 0, zx[1])
-            cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
-                 az, ay, ax, dt2, inv_dx, top, s, c[0], c[1], c[2])  # fmt: skip
+            flat_cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                      az, ay, ax, dt2, inv_dx, top, s, c[0], c[1], c[2])  # fmt: skip
 
     return step_core
 
