@@ -26,7 +26,7 @@ import adseismic.solve.acoustic as P  # noqa: E402
 from adseismic.accel.graphs import graph_plan, replay  # noqa: E402
 from adseismic.accel.reductions import field_stats  # noqa: E402
 from adseismic.kernels.acoustic import DESCRIPTION  # noqa: E402
-from adseismic.solve.common import BlowupGuard, source_end  # noqa: E402
+from adseismic.solve.common import BlowupGuard, init_warp, source_end  # noqa: E402
 from adseismic.solve.loop import capture, run_levels  # noqa: E402
 
 CORE_VARIANTS = [(4, 4, 128), (4, 2, 128), (8, 4, 128), (2, 4, 128), (4, 1, 128), (4, 4, 256)]  # (rows, columns per thread (one vector), threads per block) of the core kernels
@@ -224,7 +224,7 @@ def main():
     ap.add_argument("--profile", action="store_true", help="also profile one forward() call per scene (host time)")
     ap.add_argument("--adjoint-only", action="store_true", help="only the adjoint step's kernels")
     a = ap.parse_args()
-    P.init_warp()
+    init_warp()
     if a.adjoint_only:
         adjoint_only(a)
         return

@@ -1,5 +1,5 @@
 """Per-launch GPU times of the 3D acoustic step's parts on a bench scene (S3D400 by default): psi along each axis,
-the frame (CPML and halo cells, per cell, by flat offsets), the core tiles at several layouts (rows x columns a
+the frame (CPML and halo cells, in tiles of flat-offset cells), the core tiles at several layouts (rows x columns a
 thread, threads a block) alone and with the frame, and the per-cell reference step; each replayed from a captured graph. The
 layouts' results are checked against the reference step's.
 

@@ -308,7 +308,7 @@ def as_vectors(a: wp.array, V: int) -> wp.array:
 
 @functools.lru_cache(maxsize=None)
 def flat_access(dtype):
-    """(load3(a, i), load4(a, i), store4(a, i, v)): element i of a contiguous 3D or 4D array a of dtype in its flat
+    """(load3(a, i), load4(a, i), store4(a, i, v), add4(a, i, v)): element i of a contiguous 3D or 4D array a of dtype in its flat
     order, for kernels that address cells by a flat offset and its neighbours by adding strides. Indexing (s, z, y, x)
     costs four multiply-adds and four negative-index checks a load; a GPU step that reads ~30 values a cell is then
     bound by that integer arithmetic (docs/benchmarks.md, "Flat offsets in the frame"). Not differentiable: for the
@@ -324,7 +324,10 @@ def flat_access(dtype):
     @wp.func_native("a.data[i] = v;\n")
     def store4(a: arr4, i: int, v: dtype): ...
 
-    return load3, load4, store4
+    @wp.func_native("wp::atomic_add(a.data + i, v);\n")
+    def add4(a: arr4, i: int, v: dtype): ...
+
+    return load3, load4, store4, add4
 
 
 @functools.lru_cache(maxsize=None)

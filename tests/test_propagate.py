@@ -249,7 +249,7 @@ def test_gpu_step_kernels_equal_reference_kernels(free_surface, lanes):
 @pytest.mark.parametrize("lanes, rows", [(1, 3), (4, 8)])
 def test_gpu_step_kernels_equal_reference_kernels_3d(free_surface, lanes, rows):
     # the 3D GPU step (psi along each axis, and step_core: core tiles of `lanes` columns x `rows` rows read as
-    # vectors, with their y neighbours; frame cells by frame_cell3) run on DEVICE, also on the CPU, so that CI
+    # vectors, with their y neighbours; frame tiles of the same layout) run on DEVICE, also on the CPU, so that CI
     # checks its indexing (x: 24 cells + PML 6 + halo 2 on each side = 40, a multiple of 4; 21 core rows, which
     # neither 3 nor 8 divides)
     import warp as wp
@@ -262,7 +262,7 @@ def test_gpu_step_kernels_equal_reference_kernels_3d(free_surface, lanes, rows):
     su = propagate.setup(v, 10.0, 1e-3, s, src, rec, device=DEVICE, free_surface=free_surface, precision="float32", pml_width=6)
     prop = su.prop
     assert prop.lanes == 4 and prop.ndim == 3
-    prop.core_frame, prop.core_cols, prop.core_rows = True, lanes, rows
+    prop.core_frame, prop.core_cols, prop.core_rows, prop.frame_cols, prop.frame_rows = True, lanes, rows, lanes, rows
     data = wp.zeros((prop.n_shots, su.receivers.shape[1], su.nt), dtype=prop.dtype, device=prop.device)
     run_levels(su, prop.new_state(), su.model(), (data,), range(su.nt))
     ref = reference_traces(su)

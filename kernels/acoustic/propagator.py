@@ -56,6 +56,7 @@ from adseismic.kernels.numerics import FIRST_DERIVATIVE, SECOND_DERIVATIVE
 # (docs/benchmarks.md, "Layout timings")
 GPU_CORE_ROWS, GPU_CORE_COLS, GPU_CORE_THREADS = 4, 2, 128
 GPU_CORE3_ROWS, GPU_CORE3_COLS = 4, 2
+GPU_FRAME3_ROWS, GPU_FRAME3_COLS = 4, 1  # the 3D frame's cells a thread: rows along z x adjacent columns (2D: one)
 CPU_THREADS = int(os.environ.get("ADSEISMIC_CPU_THREADS", "2"))  # threads over row blocks of a CPU step
 FRAME_CELL_COST = 2.0  # a CPU adjoint step: the time of a frame cell (the per-cell gather, CPML) over a tile's cell
 
@@ -73,7 +74,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     )  # fmt: skip
     # each builder reads what the ones before it made (pre_step calls _points' record_point)
     for builder in (_stencils, _cpml, _reference_step, _cpu_rows, _points, _flat_cells, _gpu_step, _psi_adjoint, _adjoint_terms,
-                    _adjoint_step, _model_ops):
+                    _adjoint_step, _flat_adjoint, _model_ops):
         vars(ns).update(builder(ns))
     return Kernels(
         Axis=ns.Axis, step=ns.step, step_core=functools.lru_cache(maxsize=None)(functools.partial(_step_core, ns)), step_rows=ns.step_rows,
@@ -533,7 +534,7 @@ def _flat_cells(ns):
     (psi_flat, and its 3D kernels) and the frame's cell (flat_cell), with the reference step's arithmetic."""
     dtype, R, fs, three, arr3, arr4, Axis, vecw = ns.dtype, ns.R, ns.fs, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.vecw
     d2w, d1w, pair, cpml_term, stretched = ns.d2w, ns.d1w, ns.pair, ns.cpml_term, ns.stretched
-    load3, load4, store4 = flat_access(dtype)
+    load3, load4, store4, _ = flat_access(dtype)
 
     @wp.func
     def line(a: arr4, o: int, d: int) -> vecw:
@@ -647,11 +648,11 @@ def _flat_cells(ns):
             store4(zeta_x_new, qx, tx[1])
         store4(u_next, o, un)
 
-    return dict(psi_flat=(psi_z, psi_y, psi_x), psi_flat_z=psi_flat_z, psi_flat_x=psi_flat_x, flat_cell=flat_cell)
+    return dict(psi_flat=(psi_z, psi_y, psi_x), psi_flat_z=psi_flat_z, psi_flat_x=psi_flat_x, flat_cell=flat_cell, line=line, zline=zline)
 
 
 def _gpu_step(ns):
-    """The GPU step's cell maps (frame_cell, frame_cell3, strip_cell) and the 2D pre_step; its core and frame are
+    """The GPU step's cell maps (frame_cell: the 2D frame's, strip_cell) and the 2D pre_step; its core and frame are
     _step_core's."""
     dtype, R, arr3, arr4, iarr1, Axis, record_point = ns.dtype, ns.R, ns.arr3, ns.arr4, ns.iarr1, ns.Axis, ns.record_point
     psi_flat_z, psi_flat_x = ns.psi_flat_z, ns.psi_flat_x
@@ -674,27 +675,6 @@ def _gpu_step(ns):
         if x >= box[2]:
             x = x - box[2] + box[3]
         return wp.vec2i(box[0] + g // sides, x)
-
-    @wp.func
-    def frame_cell3(f: int, lz: int, ly: int, lx: int, box: wp.vec4i, ybox: wp.vec2i) -> wp.vec3i:
-        # (z, y, x) of the f-th interior cell outside the rows [box[0], box[1]) x ys [ybox[0], ybox[1]) x columns
-        # [box[2], box[3]) of a 3D grid (lz, ly, lx): first every column of the (z, y) rows outside the box's
-        # (frame_cell of the (z, y) plane), then the left and right parts of the box's (z, y) rows
-        nx = lx - wp.static(2 * R)
-        ny = ybox[1] - ybox[0]
-        outer = ((lz - wp.static(2 * R)) * (ly - wp.static(2 * R)) - (box[1] - box[0]) * ny) * nx
-        if f < outer:
-            q = f // nx
-            zy = frame_cell(q, lz, ly, wp.vec4i(box[0], box[1], ybox[0], ybox[1]))
-            return wp.vec3i(zy[0], zy[1], wp.static(R) + f - q * nx)
-        g = f - outer
-        sides = box[2] - wp.static(R) + lx - wp.static(R) - box[3]
-        q = g // sides
-        x = wp.static(R) + g - q * sides
-        if x >= box[2]:
-            x = x - box[2] + box[3]
-        zq = q // ny
-        return wp.vec3i(box[0] + zq, ybox[0] + q - zq * ny, x)
 
     @wp.func
     def strip_cell(t: int, a: arr4) -> wp.vec3i:
@@ -724,7 +704,7 @@ def _gpu_step(ns):
             rec = (q - s * per) // idx.shape[2]
             record_point(u, data, idx, w, n, clock, s, rec, q - s * per - rec * idx.shape[2])
 
-    return dict(frame_cell=frame_cell, frame_cell3=frame_cell3, strip_cell=strip_cell, pre_step=pre_step)
+    return dict(frame_cell=frame_cell, strip_cell=strip_cell, pre_step=pre_step)
 
 
 def _tile(rows: int, cols: int, three: bool):
@@ -865,14 +845,49 @@ def _core_tile(ns, rows: int, V: int):
     return core_tile, arrv
 
 
-def _step_core(ns, rows: int, V: int):
+@functools.lru_cache(maxsize=None)
+def _frame_tile(ns, rows: int, cols: int):
+    # GPU step of a tile of a 3D frame box (Acoustic._frame_boxes: interior cells outside the core), `rows` rows x up
+    # to `cols` adjacent columns a thread in _tile's layout, each cell by flat_cell: a thread's index arithmetic (the
+    # divisions of _tile) is shared by its cells
+    dtype, arr3, arr4, Axis, flat_cell = ns.dtype, ns.arr3, ns.arr4, ns.Axis, ns.flat_cell
+    tile = _tile(rows, cols, True)
+
+    @wp.func
+    def frame_tile(
+        t: int, u: arr4, u_prev: arr4, u_next: arr4, v: arr3,
+        psi_z: arr4, psi_y: arr4, psi_x: arr4,
+        zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, box: wp.vec4i, ybox: wp.vec2i,
+    ):  # fmt: skip
+        lz, ly, lx = u.shape[1], u.shape[2], u.shape[3]
+        tl = tile(t, box, ybox, lz, ly, lx)
+        q = tl[2] // lx
+        x0 = tl[2] - q * lx
+        y = q - (q // ly) * ly
+        s = tl[3] // (lz * ly * lx)
+        for k in range(wp.static(rows)):
+            z = tl[0] + k
+            if z < box[1]:
+                for j in range(wp.static(cols)):
+                    if j < tl[1]:
+                        flat_cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                                  az, ay, ax, dt2, inv_dx, top, s, z, y, x0 + j)  # fmt: skip
+
+    return frame_tile
+
+
+def _step_core(ns, rows: int, V: int, frame_rows: int, frame_cols: int):
     # The GPU step but psi in one 1D launch (unravelling a multi-dimensional thread index costs 64-bit
     # divisions): thread t + offset below `tiles` does a core tile (_core_tile; uf..vf: the flat arrays
-    # as V-vectors), from `frame` (a block boundary, so that no warp mixes the two) one interior cell outside
-    # the core (frame_cell, frame_cell3: the CPML strips and the free-surface rows) by flat_cell, `cells` per shot.
-    dtype, three, arr3, arr4, Axis, flat_cell = ns.dtype, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.flat_cell
-    frame_cell, frame_cell3 = ns.frame_cell, ns.frame_cell3
+    # as V-vectors), from `frame` (a block boundary, so that no warp mixes the two) the frame (the CPML strips
+    # and the free-surface rows) by flat_cell: in 2D one interior cell outside the core (frame_cell), `cells` per
+    # shot; in 3D a tile (_frame_tile) of the boxes `frames` (z0, z1, x0, x1) with frame_ys (y0, y1, the box's
+    # first thread).
+    dtype, three, arr3, arr4, Axis, flat_cell, frame_cell = ns.dtype, ns.three, ns.arr3, ns.arr4, ns.Axis, ns.flat_cell, ns.frame_cell
     core_tile, arrv = _core_tile(ns, rows, V)
+    frame_tile = _frame_tile(ns, frame_rows, frame_cols)
 
     @unique_kernel(grid_stride=False, enable_backward=False)
     def step_core(
@@ -881,22 +896,27 @@ def _step_core(ns, rows: int, V: int):
         zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
         zeta_z_new: arr4, zeta_y_new: arr4, zeta_x_new: arr4,
         az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int,
-        core: wp.vec4i, ycore: wp.vec2i, cells: int, uf: arrv, uf_prev: arrv, uf_next: arrv, vf: arrv, tiles: int, frame: int, offset: int,
+        core: wp.vec4i, ycore: wp.vec2i, cells: int, frames: wp.array(dtype=wp.vec4i), frame_ys: wp.array(dtype=wp.vec3i),
+        uf: arrv, uf_prev: arrv, uf_next: arrv, vf: arrv, tiles: int, frame: int, offset: int,
     ):  # fmt: skip
         t = wp.tid() + offset
         if t < frame:
             if t < tiles:
                 core_tile(t, uf, uf_prev, uf_next, vf, u.shape[1], u.shape[2], u.shape[3], core, ycore, dt2, inv_dx)
+        elif wp.static(three):
+            f = t - frame
+            b = int(0)
+            for q in range(1, frames.shape[0]):
+                if f >= frame_ys[q][2]:
+                    b = q
+            y = frame_ys[b]
+            frame_tile(f - y[2], u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
+                       az, ay, ax, dt2, inv_dx, top, frames[b], wp.vec2i(y[0], y[1]))  # fmt: skip
         else:
             s = (t - frame) // cells
-            f = t - frame - s * cells
-            if wp.static(three):
-                c = frame_cell3(f, u.shape[1], u.shape[2], u.shape[3], core, ycore)
-            else:
-                zx = frame_cell(f, u.shape[1], u.shape[3], core)
-                c = wp.vec3i(zx[0], 0, zx[1])
+            zx = frame_cell(t - frame - s * cells, u.shape[1], u.shape[3], core)
             flat_cell(u, u_prev, u_next, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, zeta_z_new, zeta_y_new, zeta_x_new,
-                      az, ay, ax, dt2, inv_dx, top, s, c[0], c[1], c[2])  # fmt: skip
+                      az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
 
     return step_core
 
@@ -984,6 +1004,16 @@ def _adjoint_terms(ns):
     """The adjoint step's terms along each axis: the gathered stencil weights and the strips' adjoints."""
     dtype, R, A, fs, arr3, arr4, Axis, d1, d1t = ns.dtype, ns.R, ns.A, ns.fs, ns.arr3, ns.arr4, ns.Axis, ns.d1, ns.d1t
 
+    @wp.func
+    def weighted(q: dtype, a: dtype, adj_zn: dtype) -> dtype:
+        # the weight of q = v^2 dt^2 lam of an updated cell in a strip (stretched = (1 + a) g + b zeta there)
+        return q + a * (q + adj_zn)
+
+    @wp.func
+    def strip_total(g: dtype, zeta: dtype, a: dtype, b: dtype) -> dtype:
+        # the stretched d2u/dx2 in a strip from g = d2u/dx2 + d(psi)/dx
+        return g + b * zeta + a * g
+
     def make_gather(axis: int):
         @wp.func
         def weight(lam: arr4, v: arr3, adj_zn: arr4, ca: Axis, dt2: dtype, s: int, z: int, y: int, x: int) -> dtype:
@@ -1007,7 +1037,7 @@ def _adjoint_terms(ns):
                     iy = j
                 else:
                     ix = j
-                return q + ca.a[p] * (q + adj_zn[s, iz, iy, ix])
+                return weighted(q, ca.a[p], adj_zn[s, iz, iy, ix])
             return q
 
         @wp.func
@@ -1072,14 +1102,15 @@ def _adjoint_terms(ns):
                 adj_zn = q + adj_zeta_new[s, iz, iy, ix]
                 wp.atomic_add(adj_zeta, s, iz, iy, ix, ca.b[p] * adj_zn)
                 dpsi_t(adj_psi, s, iz, iy, ix, (q + ca.a[p] * adj_zn) * inv_dx)
-                return g + ca.b[p] * zeta[s, iz, iy, ix] + ca.a[p] * g
+                return strip_total(g, zeta[s, iz, iy, ix], ca.a[p], ca.b[p])
             return t
 
         return strip_adjoint
 
     sadj_z, sadj_y, sadj_x = make_strip_adjoint(0), make_strip_adjoint(1), make_strip_adjoint(2)
 
-    return dict(gather_z=gather_z, gather_y=gather_y, gather_x=gather_x, sadj_z=sadj_z, sadj_y=sadj_y, sadj_x=sadj_x)
+    return dict(gather_z=gather_z, gather_y=gather_y, gather_x=gather_x, sadj_z=sadj_z, sadj_y=sadj_y, sadj_x=sadj_x, weighted=weighted,
+                strip_total=strip_total)
 
 
 def _adjoint_step(ns):
@@ -1146,6 +1177,104 @@ def _adjoint_step(ns):
     return dict(adjoint_cell=adjoint_cell, adjoint_step=adjoint_step)
 
 
+def _flat_adjoint(ns):
+    """adjoint_cell by flat offsets (flat_access): the GPU adjoint step's frame cells (_adjoint_core). Same terms in
+    the same order as adjoint_cell (gather, weight, strip_adjoint)."""
+    dtype, R, A, B, fs, three, arr3, arr4, Axis = ns.dtype, ns.R, ns.A, ns.B, ns.fs, ns.three, ns.arr3, ns.arr4, ns.Axis
+    d2w, d1w, line, zline, weighted, strip_total = ns.d2w, ns.d1w, ns.line, ns.zline, ns.weighted, ns.strip_total
+    load3, load4, store4, add4 = flat_access(dtype)
+
+    @wp.func
+    def weight(lam: arr4, v: arr3, adj_zn: arr4, ca: Axis, dt2: dtype, o: int, c: int, p: int, qb: int, qd: int) -> dtype:
+        # weight of the updated cell at field offset o, model offset c, index p along the axis, strip offset qb + j qd
+        vv = load3(v, c)
+        q = vv * vv * dt2 * load4(lam, o)
+        j = ca.store[p]
+        if j >= 0:
+            return weighted(q, ca.a[p], load4(adj_zn, qb + j * qd))
+        return q
+
+    def make_gather(axis: int):
+        @wp.func
+        def gather(lam: arr4, v: arr3, adj_zn: arr4, ca: Axis, dt2: dtype, o: int, c: int, p: int, d: int, qb: int, qd: int, lo: int, hi: int,
+                   top: int) -> dtype:  # fmt: skip
+            # gather along the axis of stride d (fields and model) from the cell at index p
+            acc = dtype(0.0)
+            for m in range(wp.static(2 * R + 1)):
+                e = wp.static(m - R)
+                if p - e >= lo and p - e < hi:
+                    acc += dtype(wp.static(A[abs(m - R)])) * weight(lam, v, adj_zn, ca, dt2, o - e * d, c - e * d, p - e, qb, qd)
+            if wp.static(fs and axis == 0):
+                for k in range(1, wp.static(R + 1)):
+                    zp = 2 * top - p + k
+                    if p > top and k > p - top and zp < hi:
+                        acc -= dtype(wp.static(A[k])) * weight(lam, v, adj_zn, ca, dt2, o + (zp - p) * d, c + (zp - p) * d, zp, qb, qd)
+            return acc
+
+        return gather
+
+    gather_z, gather_y, gather_x = make_gather(0), make_gather(1), make_gather(2)
+
+    @wp.func
+    def strip_adjoint(t: dtype, q: dtype, p: int, psi: arr4, zeta: arr4, adj_psi: arr4, adj_zeta: arr4, adj_zeta_new: arr4, ca: Axis,
+                      inv_dx: dtype, qb: int, qd: int) -> dtype:  # fmt: skip
+        j = ca.store[p]
+        if j >= 0:
+            k = qb + j * qd
+            g = t + d1w(line(psi, k, qd)) * inv_dx
+            adj_zn = q + load4(adj_zeta_new, k)
+            add4(adj_zeta, k, ca.b[p] * adj_zn)
+            gp = (q + ca.a[p] * adj_zn) * inv_dx
+            for m in range(wp.static(R)):
+                cm = dtype(wp.static(B[m])) * gp
+                add4(adj_psi, k + wp.static(m + 1) * qd, cm)
+                add4(adj_psi, k - wp.static(m + 1) * qd, -cm)
+            return strip_total(g, load4(zeta, k), ca.a[p], ca.b[p])
+        return t
+
+    @wp.func
+    def flat_adjoint_cell(
+        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        lam: arr4, adj: arr4, g: arr4, adj_out: arr4, g_out: arr4,
+        adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
+        adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
+        adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, s: int, z: int, y: int, x: int,
+    ):  # fmt: skip
+        lz, ly, lx = u.shape[1], u.shape[2], u.shape[3]
+        n = ly * lx
+        c = (z * ly + y) * lx + x
+        o = s * lz * n + c
+        bz = (s * psi_z.shape[1] * ly + y) * lx + x  # strip offsets: base + j stride
+        by = (s * lz + z) * psi_y.shape[2] * lx + x
+        bx = ((s * lz + z) * ly + y) * psi_x.shape[3]
+        lo_z = wp.static(R)
+        if wp.static(fs):
+            lo_z = top + 1
+        inv_dx2 = inv_dx * inv_dx
+        acc = gather_z(lam, v, adj_zeta_z_new, az, dt2, o, c, z, n, bz, n, lo_z, lz - wp.static(R), top)
+        acc += gather_x(lam, v, adj_zeta_x_new, ax, dt2, o, c, x, 1, bx, 1, wp.static(R), lx - wp.static(R), top)
+        if wp.static(three):
+            acc += gather_y(lam, v, adj_zeta_y_new, ay, dt2, o, c, y, lx, by, lx, wp.static(R), ly - wp.static(R), top)
+        acc = acc * inv_dx2
+        if z >= lo_z:
+            lc = load4(lam, o)
+            vv = load3(v, c)
+            q = vv * vv * dt2 * lc
+            acc += dtype(2.0) * lc
+            acc -= load4(adj, o)
+            total = strip_adjoint(d2w(zline(u, o, n, z, top)) * inv_dx2, q, z, psi_z, zeta_z, adj_psi_z, adj_zeta_z, adj_zeta_z_new, az, inv_dx,
+                                  bz, n)  # fmt: skip
+            total += strip_adjoint(d2w(line(u, o, 1)) * inv_dx2, q, x, psi_x, zeta_x, adj_psi_x, adj_zeta_x, adj_zeta_x_new, ax, inv_dx, bx, 1)
+            if wp.static(three):
+                total += strip_adjoint(d2w(line(u, o, lx)) * inv_dx2, q, y, psi_y, zeta_y, adj_psi_y, adj_zeta_y, adj_zeta_y_new, ay, inv_dx,
+                                       by, lx)  # fmt: skip
+            store4(g_out, o, load4(g, o) + lc * total)
+        store4(adj_out, o, acc)
+
+    return dict(flat_adjoint_cell=flat_adjoint_cell)
+
+
 def _adjoint_core(ns, rows: int, V: int):
     # The 2D adjoint step in one 1D launch, laid out as step_core: thread t + offset below `tiles` does a
     # tile of adjoint_cell on the flat arrays as V-vectors (_lanes; u, lam, adj, g: S * Lz * Lx / V; w =
@@ -1154,7 +1283,7 @@ def _adjoint_core(ns, rows: int, V: int):
     # Laplacian); from `frame` (a block boundary) one interior cell outside `box` (frame_cell), `cells` per
     # shot, by the per-cell gather.
     dtype, R, A, arr3, arr4, Axis, d2w = ns.dtype, ns.R, ns.A, ns.arr3, ns.arr4, ns.Axis, ns.d2w
-    frame_cell, adjoint_cell = ns.frame_cell, ns.adjoint_cell
+    frame_cell, adjoint_cell = ns.frame_cell, ns.flat_adjoint_cell
     vec, arrv, win, line, sides, row, load, put = _lanes(ns, V)
     tile = _tile(rows, V, False)
 
@@ -1528,6 +1657,8 @@ class Acoustic:
         self.cuda = wp.get_device(device).is_cuda
         rows, cols = (GPU_CORE3_ROWS, GPU_CORE3_COLS) if self.ndim == 3 else (GPU_CORE_ROWS, GPU_CORE_COLS)
         self.core_rows, self.core_cols, self.core_threads = rows, min(cols, self.lanes), GPU_CORE_THREADS
+        self.frame_rows, self.frame_cols = (GPU_FRAME3_ROWS, GPU_FRAME3_COLS) if self.ndim == 3 else (1, 1)
+        self._frames = {}  # _frame_boxes per 3D frame layout
         self.threads = 1 if self.cuda else max(1, min(CPU_THREADS, os.cpu_count() or 1, self.interior[1]))
         self._pool = None
         self._launches = {}  # recorded CPU step launches per set of arrays (_cpu_step)
@@ -1645,20 +1776,18 @@ class Acoustic:
         return self.n_shots * -(-(box[1] - box[0]) // rows) * -(-(box[3] - box[2]) // cols) * ys
 
     def core_kernel(self):
-        return self.k.step_core(self.core_rows, self.core_cols)
+        return self.k.step_core(self.core_rows, self.core_cols, self.frame_rows, self.frame_cols)
 
     def adjoint_kernel(self):
         return self.k.adjoint_core(self.core_rows, self.core_cols)
 
-    def _merged(self, kernel, inputs, box, frame_cells: int, part=None, ys=1):
-        """Launch a core-and-frame kernel (_step_core, _adjoint_core) over the tiles of `box`, then, from
-        a block boundary, the frame's cells; part "core" or "frame": only that part (for timing). On a CPU
-        the work is split among the step's threads: the frame's cells in one (their CPML adjoints scatter with
-        atomics, which are plain adds on a CPU), the tiles (each writes only its own cells) shared so that the
-        threads' work is about equal, a frame cell counted as FRAME_CELL_COST tile cells. ys: a 3D box's number of ys."""
-        tiles = self.tiles(box, ys=ys)
+    def _merged(self, kernel, inputs, tiles: int, cells: int, part=None, cost=FRAME_CELL_COST):
+        """Launch a core-and-frame kernel (_step_core, _adjoint_core): `tiles` core tiles, then, from a block
+        boundary, `cells` frame threads (a cell or a tile each); part "core" or "frame": only that part (for
+        timing). On a CPU the work is split among the step's threads: the frame in one (the adjoint's CPML terms
+        scatter with atomics, which are plain adds on a CPU), the tiles (each writes only its own cells) shared so
+        that the threads' work is about equal, a frame thread counted as `cost` tile cells."""
         frame = -(-tiles // self.core_threads) * self.core_threads
-        cells = self.n_shots * frame_cells
 
         def launch(dim, offset):
             if dim > 0:
@@ -1671,7 +1800,7 @@ class Acoustic:
         else:
             others = self.threads - 1
             per_tile = self.core_rows * self.core_cols
-            first = round(min(max((tiles * per_tile / others - FRAME_CELL_COST * cells) / (per_tile + per_tile / others), 0), tiles))
+            first = round(min(max((tiles * per_tile / others - cost * cells) / (per_tile + per_tile / others), 0), tiles))
 
             def job(i, barrier):
                 if i == 0:
@@ -1686,14 +1815,36 @@ class Acoustic:
     def step_core(self, step_args, u, u_prev, u_next, vpad, part=None):
         """The GPU step but psi (step_args: the reference step's arguments)."""
         flat = [as_vectors(a, self.core_cols) for a in (u, u_prev, u_next, vpad)]
-        self._merged(self.core_kernel(), [*step_args, self.core, self.ycore, self.frame_cells, *flat], self.core, self.frame_cells, part,
-                     self.ycore[1] - self.ycore[0])
+        layout = (self.frame_rows, self.frame_cols)
+        if layout not in self._frames:
+            self._frames[layout] = self._frame_boxes(*layout)
+        boxes, ys, threads = self._frames[layout]
+        self._merged(self.core_kernel(), [*step_args, self.core, self.ycore, self.frame_cells, boxes, ys, *flat],
+                     self.tiles(self.core, ys=self.ycore[1] - self.ycore[0]), threads, part, FRAME_CELL_COST * self.frame_rows * self.frame_cols)
+
+    def _frame_boxes(self, rows: int, cols: int):
+        """The 3D frame (the interior cells outside the core) as boxes for _frame_tile: (boxes (z0, z1, x0, x1), their
+        (y0, y1, first thread), threads in all): the rows above and below the core, the ys before and after it, the
+        columns left and right of it, in tiles of `rows` x `cols`. In 2D: one box standing for none, and a thread a
+        frame cell (frame_cell)."""
+        R, (lz, ly, lx), c, yc = self.k.halo, self.padded, self.core, self.ycore
+        boxes, ys, threads = [(0, 0, 0, 0)], [(0, 0, 0)], self.n_shots * self.frame_cells
+        if self.ndim == 3:
+            parts = [((R, c[0], R, lx - R), (R, ly - R)), ((c[1], lz - R, R, lx - R), (R, ly - R)), ((c[0], c[1], R, lx - R), (R, yc[0])),
+                     ((c[0], c[1], R, lx - R), (yc[1], ly - R)), ((c[0], c[1], R, c[2]), (yc[0], yc[1])), ((c[0], c[1], c[3], lx - R), (yc[0], yc[1]))]  # fmt: skip
+            boxes, ys, threads = [], [], 0
+            for box, y in parts:
+                if box[1] > box[0] and box[3] > box[2] and y[1] > y[0]:
+                    boxes.append(box)
+                    ys.append((*y, threads))
+                    threads += self.tiles(box, rows, cols, y[1] - y[0])
+        return wp.array(boxes, dtype=wp.vec4i, device=self.device), wp.array(ys, dtype=wp.vec3i, device=self.device), threads
 
     def adjoint_core(self, args, u, lam, adj, g, adj_out, g_out, w, part=None):
         """The 2D adjoint step but psi and receivers (args: adjoint_step's arguments)."""
         flat = [as_vectors(a, self.core_cols) for a in (u, lam, adj, g, adj_out, g_out, w)]
         box = self.adjoint_box
-        self._merged(self.adjoint_kernel(), [*args, box, self.adjoint_frame_cells, *flat], box, self.adjoint_frame_cells, part)
+        self._merged(self.adjoint_kernel(), [*args, box, self.adjoint_frame_cells, *flat], self.tiles(box), self.n_shots * self.adjoint_frame_cells, part)
 
     def _cpu_step(self, st, out, u_next, vpad, step_args):
         """A CPU step, split among threads by rows: each thread does its rows of the psi strips and of the
