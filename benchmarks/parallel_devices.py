@@ -6,8 +6,9 @@ Dask (solve.distributed.ShotPool, a LocalCluster worker process per device; skip
 best of REPEATS warm evaluations (a first one builds the kernels and captures the graphs); every path's gradient is
 compared with the plain one. Prints the efficiency of N devices against the plain path, T1 / (N x TN), the
 overhead of each pool on one device against it, and the seconds spent inside solve.acoustic.gradient per device
-(the rest of an evaluation is the path's own: dispatch, transfers, reduction). The plain path runs again last, so a
-drift of the device's speed over the run shows beside the pools' overheads.
+(the rest of an evaluation is the path's own: dispatch, transfers, reduction). The pools' task (batch_gradient) also
+runs in the plain loop, on the main thread without a pool, which separates the task's own cost from the pool's. The
+plain path runs again last, so a drift of the device's speed over the run shows beside the pools' overheads.
 
     python benchmarks/parallel_devices.py                       # every GPU of this host (32 shots, < 3 min on H100s)
     python benchmarks/parallel_devices.py --device cpu --cpus 2 --shots 4 --n 150 --nt 800   # CPU threads
@@ -105,6 +106,14 @@ def main():
     t1, (loss1, grad1) = best(plain)
     rows = [("one process, one device (plain)", 1, t1, 0.0, inside["plain"])]
 
+    def direct():  # the pools' task (batch_gradient) in the plain loop: on the main thread, no pool, no stream of its own
+        rs = [distributed.batch_gradient(v0, dict(b, key=f"direct-{k}"), dict(params, device=devices[0])) for k, b in enumerate(batches)]
+        inside["direct"] = sum(r["seconds"] for r in rs)
+        return distributed.reduce_in_order(rs, v0.shape)[:2]
+
+    td, (_, grad_d) = best(direct)
+    rows.append(("one process, one device (the pools' task)", 1, td, float(np.linalg.norm(grad_d - grad1) / np.linalg.norm(grad1)), inside["direct"]))
+
     def pooled(name, pool, nd):
         def evaluate():
             rs = pool.evaluate(v0, params)
@@ -139,8 +148,9 @@ def main():
     print("|---|---|---|---|---|---|")
     for name, nd, tn, err, spent in rows:
         print(f"| {name} | {nd} | {tn:.3f} | {t1 / (nd * tn):.0%} | {err:.1e} | {spent:.3f} |")
-    one = {name.split(",")[0]: tn for name, nd, tn, *_ in rows if nd == 1 and "plain" not in name}
-    print(f"the plain path again after the pools: {t1_again:.3f} s ({t1_again / t1 - 1:+.1%} against its first measurement)")
+    one = {name.split(",")[0]: tn for name, nd, tn, *_ in rows if nd == 1 and "one process" not in name}
+    print(f"the plain path again after the pools: {t1_again:.3f} s ({t1_again / t1 - 1:+.1%} against its first measurement); "
+          f"the pools' task in the plain loop: {td / t1 - 1:+.1%}")
     print("overhead on one device against the plain path: "
           + ", ".join(f"{k} {v / t1 - 1:+.1%}" for k, v in one.items()) + f"; load average {os.getloadavg()[0]:.2f}")
 
