@@ -1178,7 +1178,7 @@ def _adjoint_step(ns):
 
 
 def _flat_adjoint(ns):
-    """adjoint_cell by flat offsets (flat_access): the GPU adjoint step's frame cells (_adjoint_core). Same terms in
+    """adjoint_cell by flat offsets (flat_access): the 2D adjoint step's frame cells (_adjoint_core, CPU and GPU). Same terms in
     the same order as adjoint_cell (gather, weight, strip_adjoint)."""
     dtype, R, A, B, fs, three, arr3, arr4, Axis = ns.dtype, ns.R, ns.A, ns.B, ns.fs, ns.three, ns.arr3, ns.arr4, ns.Axis
     d2w, d1w, line, zline, weighted, strip_total = ns.d2w, ns.d1w, ns.line, ns.zline, ns.weighted, ns.strip_total
@@ -1281,9 +1281,9 @@ def _adjoint_core(ns, rows: int, V: int):
     # v^2 dt^2: Lz * Lx / V) inside `box`, the cells whose stencil neighbours all lie in step_core's core (no
     # CPML, no surface image), with windows of q = w lam (gathered) and of u (the model gradient's
     # Laplacian); from `frame` (a block boundary) one interior cell outside `box` (frame_cell), `cells` per
-    # shot, by the per-cell gather.
+    # shot, by flat_adjoint_cell.
     dtype, R, A, arr3, arr4, Axis, d2w = ns.dtype, ns.R, ns.A, ns.arr3, ns.arr4, ns.Axis, ns.d2w
-    frame_cell, adjoint_cell = ns.frame_cell, ns.flat_adjoint_cell
+    frame_cell, flat_adjoint_cell = ns.frame_cell, ns.flat_adjoint_cell
     vec, arrv, win, line, sides, row, load, put = _lanes(ns, V)
     tile = _tile(rows, V, False)
 
@@ -1361,9 +1361,9 @@ def _adjoint_core(ns, rows: int, V: int):
         else:
             s = (t - frame) // cells
             zx = frame_cell(t - frame - s * cells, u.shape[1], u.shape[3], box)
-            adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_out, g_out, adj_psi_z, adj_psi_y, adj_psi_x,
-                         adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
-                         az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
+            flat_adjoint_cell(u, v, psi_z, psi_y, psi_x, zeta_z, zeta_y, zeta_x, lam, adj, g, adj_out, g_out, adj_psi_z, adj_psi_y, adj_psi_x,
+                              adj_zeta_z, adj_zeta_y, adj_zeta_x, adj_zeta_z_new, adj_zeta_y_new, adj_zeta_x_new,
+                              az, ay, ax, dt2, inv_dx, top, s, zx[0], 0, zx[1])  # fmt: skip
 
     return adjoint_core
 
