@@ -392,8 +392,14 @@ def _choose_dx_dt(order, ndim, vmin, vmax, f_max, accuracy, safety, pins, extent
         dt = float(pins["dt"])
         free_dx, free_dt, why, _ = _choose_dx_dt(order, ndim, vmin, vmax, f_max, accuracy, safety, {}, extent_cells_fn, t_record)
         dx_stable = vmax * dt / (safety * limit)
-        if free_dx >= dx_stable:
-            return free_dx, dt, why, "pinned by the config"
+        if free_dx >= dx_stable:  # dispersion depends on dt too: a finer dx (still stable) where the pinned dt needs it
+            dx = free_dx
+            while _group_error(order, ndim, vmin, vmax, f_max, dx, dt) > accuracy and _nice_floor(0.98 * dx) >= dx_stable:
+                dx = _nice_floor(0.98 * dx)
+            if dx != free_dx:
+                why = (f"{vmin / (f_max * dx):.1f} points per minimum wavelength (v_min {vmin:.0f} m/s at f_max {f_max:.3g} Hz) "
+                       f"meet the {100 * accuracy:g}% group-velocity target at order {order} with the pinned dt")
+            return dx, dt, why, "pinned by the config"
         dx = _nice_ceil(dx_stable)
         return dx, dt, (f"the smallest dx for which the pinned dt = {dt:g} s is stable ({safety:g} x the CFL limit at v_max "
                         f"{vmax:.0f} m/s); the accuracy target needs dx <= {free_dx:g} m, which needs dt <= {free_dt:g} s"), \

@@ -15,7 +15,9 @@ import pytest
 import yaml
 
 from adseismic.cli import main
-from adseismic.inversion.fwi import band_pass, estimate_wavelet
+from adseismic.config import load_fwi_config
+from adseismic.inversion.fwi import BAND_EDGE, _decimated, band_pass, band_plan, estimate_wavelet, prepare_fwi
+from adseismic.solve.acoustic import forward
 from adseismic.inversion.optimize import Journal
 from adseismic.wavelets import ricker
 
@@ -63,6 +65,55 @@ def test_tiny_inversion_end_to_end(tmp_path, capsys):
     with h5py.File(out / "history.h5") as f, h5py.File(out / "model.h5") as m:
         assert sorted(f) == ["band0", "band1"] and len(f["band1"]) == 3
         assert f["band0/iter0001/model"].shape == m["model"].shape  # the planner's grid
+
+
+def test_per_band_grid_is_coarser_where_a_band_allows_and_still_accurate(tmp_path, capsys):
+    """inversion.grid per_band: the low band runs on a coarser grid and a longer step that meet simulation.accuracy
+    (its data match the plan grid's within the travel-time error that accuracy allows), the full band on the plan's
+    grid; the history and the result stay on the plan's grid; a resumed run replays the coarse band's journal and
+    reproduces the run bit for bit (float64 on a CPU)."""
+    cfg = dict(TINY, inversion=dict(TINY["inversion"], grid="per_band"))
+    config = load_fwi_config(write(tmp_path, cfg))
+    prep = prepare_fwi(config)
+    p, sc = prep.plan, prep.scene
+    low, full = config.inversion.bands
+    pb, m = band_plan(config, p, prep.bounds, low)
+    assert pb.dx > 2 * p.dx and m >= 2 and pb.dt == m * p.dt and pb.origin == p.origin
+    assert pb.expected_error <= config.forward.simulation.accuracy and not pb.warnings
+    assert band_plan(config, p, prep.bounds, full) == (p, 1)
+    fixed = load_fwi_config(write(tmp_path, TINY, "fixed.yaml"))
+    assert band_plan(fixed, p, prep.bounds, low) == (p, 1)
+
+    # the low band's data on its grid against the plan grid's: a relative difference below the phase error that the
+    # planned group-velocity error allows over the longest path, 2 pi f_edge err t (f_edge: the band's grid edge)
+    kw = {"order": p.order, "pml_width": p.pml_width, "precision": "float64"}
+    w = band_pass(sc.wavelet, p.dt, low)
+
+    def traces(plan, wavelet):
+        v = config.true_model.resample(plan.dx, plan.origin, plan.shape).values
+        amp = np.broadcast_to(wavelet, sc.source_amplitudes.shape[:-1] + wavelet.shape).copy()
+        return forward(v, plan.dx, plan.dt, amp, sc.source_locations, sc.receiver_locations, **kw).receiver_amplitudes
+
+    fine, coarse = _decimated(traces(p, w), m, pb.nt), traces(pb, _decimated(w, m, pb.nt))
+    geo = config.forward.geometry
+    t_max = np.linalg.norm(geo.receivers[None] - geo.sources[:, None], axis=-1).max() / config.true_model.vmin
+    allowed = 2 * np.pi * BAND_EDGE * low[1] * pb.expected_error * t_max
+    assert np.linalg.norm(coarse - fine) / np.linalg.norm(fine) < allowed
+
+    out = tmp_path / "run"
+    assert main(["fwi", str(tmp_path / "fwi.yaml"), "-o", str(out), "-q"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["errors"]["final_anomaly"] < 0.5 * summary["errors"]["start_anomaly"]
+    assert f"band 0 (<= 4 Hz) grid: {' x '.join(map(str, pb.shape))} cells, dx = {pb.dx:g} m" in (out / "fwi.log").read_text()
+    with h5py.File(out / "history.h5") as f, h5py.File(out / "model.h5") as mf:
+        assert {f[f"band{b}/iter0003/model"].shape for b in (0, 1)} == {mf["model"].shape} == {p.shape}
+        assert (f["band0/iter0001"].attrs["dx"], f["band1/iter0001"].attrs["dx"]) == (pb.dx, p.dx)
+        whole = mf["model"][...]
+    for name in ("model.h5", "summary.json", "journal_band1.h5"):  # killed after band 0: its journal replays
+        (out / name).unlink()
+    assert main(["fwi", str(tmp_path / "fwi.yaml"), "-o", str(out), "--resume", "-q"]) == 0
+    with h5py.File(out / "model.h5") as mf:
+        np.testing.assert_array_equal(mf["model"][...], whole)
 
 
 @pytest.mark.slow

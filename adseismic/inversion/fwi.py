@@ -8,8 +8,9 @@ rho; or a neural network's weights) for all shots of the config:
    files; stored in RUNDIR/observed.h5 so that a resumed run uses the same data (and, with pyasdf, in ASDF as
    RUNDIR/observed_waveforms.h5 on the simulation's time axis, adseismic.data.asdf's layout; the final model's
    synthetics go to RUNDIR/synthetic_waveforms.h5 at the end);
-3. for each band (low to high), the wavelet and the observed data get the same zero-phase
-   Butterworth band-pass (filtering the source filters the synthetics exactly: the data are linear
+3. for each band (low to high), on the plan's grid or (inversion.grid per_band) on the coarsest grid and longest
+   time step that resolve the band (band_plan; the model moves between grids by slowness interpolation), the
+   wavelet and the observed data get the same zero-phase Butterworth band-pass (filtering the source filters the synthetics exactly: the data are linear
    in the source), optionally a least-squares wavelet estimate, and the optimiser minimises the
    misfit (normalised by its value at the band's start model, summed over the recorded channels) plus
    regularisation over x, the model space's vector (inversion.model_space: x = v / V_REF for acoustic pixels), with
@@ -22,6 +23,7 @@ rho; or a neural network's weights) for all shots of the config:
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -32,10 +34,12 @@ from types import SimpleNamespace
 import h5py
 import numpy as np
 import warp as wp
+from scipy.ndimage import map_coordinates
 from scipy.signal import butter, sosfiltfilt
 
 from adseismic import plotting
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
+from adseismic.data.model import Model
 from adseismic.inversion import conditioning
 from adseismic.inversion.model_space import (OWN_QUANTITIES, PARAMETERIZATIONS, PHYSICS_PARAMETERS, REFERENCE, UNITS, ModelSpace,
                                               quantities_of)
@@ -58,6 +62,10 @@ from adseismic.solve.vti import MODELS as VTI_MODELS
 from adseismic.solve.vti import forward_vti, gradient_vti
 
 log = logging.getLogger(__name__)
+
+# A low-passed band needs a grid up to BAND_EDGE x its high corner, not the wavelet's full band (the zero-phase
+# order-4 Butterworth of band_pass is -20 dB there).
+BAND_EDGE = 1.33
 
 # The physics whose solvers take the explosive source's moment S(t) (Simulator._moment) and their own parameters:
 # (forward, gradient, the solver's model arguments in order).
@@ -98,6 +106,46 @@ def band_pass(x, dt, band, order=4):
     else:
         sos = butter(order, [lo, hi], btype="bandpass", fs=1.0 / dt, output="sos")
     return sosfiltfilt(sos, np.asarray(x, float), axis=-1)
+
+
+def band_plan(cfg, plan, bounds, band) -> tuple:
+    """(plan, m): band's simulation grid and its time step as a multiple m of plan.dt. inversion.grid per_band: the
+    coarsest grid and longest step that resolve the band (plan_scene for BAND_EDGE x its high corner at
+    simulation.accuracy, dx and dt unpinned), never finer than `plan` (the simulation's grid, which the history
+    and the result keep), dt = m plan.dt so that the data are decimated, not interpolated; else, for a full band
+    or where a coarser grid would save less than a fifth of the cells x steps, (plan, 1). bounds: (v_min, v_max) m/s planned for."""
+    if cfg.inversion.grid != "per_band" or band[1] is None:
+        return plan, 1
+    fwd, f_max = cfg.forward, BAND_EDGE * band[1]
+
+    def planned(dx, dt):
+        sim = dataclasses.replace(fwd.simulation, dx=dx, dt=dt)
+        return plan_scene(dataclasses.replace(fwd, simulation=sim), velocity_range=bounds, f_max=f_max, check_memory_of_run=False)
+
+    free = planned(None, None)
+    m = max(1, int(free.dt / plan.dt * (1 + 1e-9)))
+    if (max(free.dx, plan.dx) / plan.dx) ** plan.ndim * m < 1.25:  # not worth a second grid: under a fifth less work
+        return plan, 1
+    for m in range(m, 0, -1):  # dx again for the step taken (dispersion depends on both); a shorter step if it must
+        pb = planned(None, m * plan.dt)
+        if pb.expected_error <= fwd.simulation.accuracy or m == 1:
+            break
+    return (pb if pb.dx >= plan.dx else planned(plan.dx, m * plan.dt)), m
+
+
+def _decimated(a, m: int, nt: int) -> np.ndarray:
+    """Every m-th sample of a (..., time), cut or zero-padded to nt samples."""
+    a = np.asarray(a)[..., ::m][..., :nt]
+    return a if a.shape[-1] == nt else np.concatenate([a, np.zeros(a.shape[:-1] + (nt - a.shape[-1],), a.dtype)], axis=-1)
+
+
+def _regridded(values, src, dst, velocity: bool) -> np.ndarray:
+    """values (nz, [ny,] nx) on plan src's grid at plan dst's nodes: a velocity (m/s) by Model.resample (slowness,
+    anti-aliased when coarsening), anything else (a gradient) by multilinear interpolation; edges replicated."""
+    if velocity:
+        return Model(np.asarray(values, float), src.dx, src.origin).resample(dst.dx, dst.origin, dst.shape).values
+    axes = [np.clip((o1 + dst.dx * np.arange(n) - o0) / src.dx, 0, m - 1) for o0, o1, n, m in zip(src.origin, dst.origin, dst.shape, src.shape)]
+    return map_coordinates(np.asarray(values, float), np.meshgrid(*axes, indexing="ij"), order=1, mode="nearest")
 
 
 def estimate_wavelet(wavelet, synthetic, observed, damping=1e-3):
@@ -142,13 +190,15 @@ class _History:
         self.rows = []  # (band, iteration, misfit): the misfit curve; the arrays are on disk only
         self.seconds = 0.0  # time spent in add(), for the log's time breakdown
 
-    def add(self, band, iteration, model, grad, misfit):
-        """model, grad: arrays (datasets model, gradient) or {dataset name: array} (elastic: model_vp, ...)."""
+    def add(self, band, iteration, model, grad, misfit, dx=None):
+        """model, grad: arrays (datasets model, gradient) or {dataset name: array} (elastic: model_vp, ...), on the
+        file's grid; dx: the spacing (m) of the grid the band ran on (attribute dx; inversion.grid per_band: coarser
+        than the file's, its model and gradient interpolated onto the file's grid)."""
         t0 = time.perf_counter()
         with h5py.File(self.path, "a" if self.rows else "w", locking=False) as f:
             if not self.rows:
                 f.attrs["dx"], f.attrs["origin"], f.attrs["units"] = self.dx, self.origin, self.units
-                f.attrs["layout"] = "band<b>/iter<i:04d>/{model, gradient} float32, attr misfit; appended per iteration"
+                f.attrs["layout"] = "band<b>/iter<i:04d>/{model, gradient} float32, attrs misfit, dx (the band's grid); appended per iteration"
             name = f"band{band}/iter{iteration:04d}"
             if name in f:  # (not in a normal run: the file is truncated by a process's first add)
                 del f[name]
@@ -157,6 +207,7 @@ class _History:
             for key, a in arrays.items():
                 grp.create_dataset(key, data=np.asarray(a, np.float32), compression=self.compression)
             grp.attrs["misfit"] = float(misfit)
+            grp.attrs["dx"] = float(self.dx if dx is None else dx)
         self.rows.append((band, iteration, float(misfit)))
         self.seconds += time.perf_counter() - t0
 
@@ -322,8 +373,7 @@ def prepare_fwi(cfg) -> Prepared:
     ranges = probe.physical_ranges()
     bounds = wave_speed_range(cfg, ranges)
     highs = [hi for _, hi in inv.bands]
-    # a low-passed last band needs no grid for the wavelet's full band (Butterworth: -20 dB at 1.33 f_high)
-    f_max = None if None in highs else 1.33 * max(highs)
+    f_max = None if None in highs else BAND_EDGE * max(highs)
     # the inversion checks its own memory estimate (below), not the planner's forward-run one
     extra = {"vs_range": ranges["vs"]} if "vs" in ranges else {}
     plan = plan_scene(fwd, velocity_range=bounds, f_max=f_max, check_memory_of_run=False, **extra)
@@ -775,9 +825,7 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     sim = _simulator(cfg, prep, inv, bounds)
     obs = _observed(cfg, prep, rundir, progress, sim)
     obs = obs if isinstance(obs, dict) else {"data": obs}
-    shape = space.shape
-    region_mask = conditioning.mask(shape, p.dx, p.origin, inv.water_depth, fwd.geometry.sources, inv.source_radius)
-    depth = (p.origin[0] + p.dx * np.arange(shape[0])).reshape((-1,) + (1,) * (len(shape) - 1)) * np.ones(shape) + p.dx
+    region_mask, depth = _masks(p, inv, fwd)
     history = _History(rundir / "history.h5", p.dx, p.origin, units=_history_units(space))
     batches = shot_slices(len(scene.source_amplitudes), inv.shots_per_batch or (1 if pool is not None else None))
     x = space.x0()
@@ -786,13 +834,23 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     last = {}  # the latest gradient (accepted iterate) and data residual of shot 0, for the figures
     weights = data_weights(scene, inv, fwd.geometry)
     figures = plotting.Background()  # each band's figures are drawn while the next band runs
+    grid, gspace = p, space  # the grid and the model space that x lives on (inversion.grid per_band: the band's)
     for b, band in enumerate(inv.bands):
-        wavelet = band_pass(scene.wavelet, p.dt, band)
-        obs_b = {c: band_pass(o, p.dt, band) for c, o in obs.items()}
-        amp = np.broadcast_to(wavelet, scene.source_amplitudes.shape).copy()
+        pb, m = band_plan(cfg, p, bounds, band)
+        if not _same_grid(pb, grid):  # the model moves onto the band's grid; L-BFGS starts afresh every band anyway
+            gspace = space.around({"vp": _regridded(gspace.point(x).physical["vp"], grid, pb, velocity=True)})
+            x, grid = gspace.x0(), pb
+        if pb is not p:
+            log.info("band %d (%s) grid: %s cells, dx = %g m, dt = %g s (%d x the plan's), %d steps; %s", b, format_band(*band),
+                     " x ".join(map(str, pb.shape)), pb.dx, pb.dt, m, pb.nt, "; ".join(pb.warnings) or "no warnings")  # fmt: skip
+        mask_b, depth_b = _masks(pb, inv, fwd) if pb is not p else (region_mask, depth)
+        weights_b = weights if pb is p else data_weights(SimpleNamespace(plan=pb), inv, fwd.geometry)
+        wavelet = _decimated(band_pass(scene.wavelet, p.dt, band), m, pb.nt)
+        obs_b = {c: _decimated(band_pass(o, p.dt, band), m, pb.nt) for c, o in obs.items()}
+        amp = np.broadcast_to(wavelet, scene.source_amplitudes.shape[:-1] + wavelet.shape).copy()
         sim.kw["pml_frequency"] = band[1] / 2 if band[1] else None
         if inv.wavelet_estimation:  # (acoustic: refused for elastic physics by the config)
-            syn = sim.forward(space.point(x).physical, p.dx, p.dt, amp, scene.source_locations, scene.receiver_locations)["data"]
+            syn = sim.forward(gspace.point(x).physical, pb.dx, pb.dt, amp, scene.source_locations, scene.receiver_locations)["data"]
             wavelet = estimate_wavelet(wavelet, syn, obs_b["data"])
             amp = np.broadcast_to(wavelet, amp.shape).copy()
         # The misfit is normalised by its value at the band's start model; that value is kept on disk
@@ -801,22 +859,25 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
         scale = json.loads(scale_path.read_text()) if scale_path.exists() else {}
         if pool is not None:  # each batch's data stay on a worker for the band; an evaluation sends only the model
             pool.keep([{"amplitudes": amp[sl], "sources": scene.source_locations[sl], "receivers": scene.receiver_locations[sl],
-                        "weights": weights[sl], "observed": obs_b["data"][sl], "first": sl.start} for sl in batches])  # fmt: skip
+                        "weights": weights_b[sl], "observed": obs_b["data"][sl], "first": sl.start} for sl in batches])  # fmt: skip
 
         timing = _EvaluationTimes(b, history)
-        objective = make_objective(space, sim, p, amp, scene.source_locations, scene.receiver_locations, obs_b, weights, batches,
-                                   inv, region_mask, depth, scale, scale_path, timing, last, pool)  # fmt: skip
+        objective = make_objective(gspace, sim, pb, amp, scene.source_locations, scene.receiver_locations, obs_b, weights_b, batches,
+                                   inv, mask_b, depth_b, scale, scale_path, timing, last, pool)  # fmt: skip
 
-        def callback(iteration, xv, f, g, b=b, band=band):
+        def callback(iteration, xv, f, g, b=b, band=band, gspace=gspace, pb=pb):
             t, appended = time.perf_counter(), history.seconds
-            pt = space.point(xv)
-            cells = _cells_of(space, xv, g, last)
-            history.add(b, iteration, _history_models(space, pt), _history_gradients(space, cells, g), f)
+            pt = gspace.point(xv)
+            cells = _cells_of(gspace, xv, g, last)
+            models, grads = _history_models(gspace, pt), _history_gradients(gspace, cells, g)
+            if pb is not p:  # (per_band: acoustic pixels) onto the plan's grid, which the history keeps
+                models, grads = _regridded(models, pb, p, velocity=True), _regridded(grads, pb, p, velocity=False)
+            history.add(b, iteration, models, grads, f, dx=pb.dx)
             last["gradient"] = cells
             log.info("band %d (%s) iteration %d: misfit %.4g", b, format_band(*band), iteration, f)
             timing.iteration += time.perf_counter() - t - (history.seconds - appended)
 
-        res = minimize(objective, x, method=inv.optimizer, bounds=space.x_bounds(),
+        res = minimize(objective, x, method=inv.optimizer, bounds=gspace.x_bounds(),
                        max_iterations=inv.iterations[b] if isinstance(inv.iterations, list) else inv.iterations, max_evaluations=inv.evaluations, rel_decrease=inv.rel_decrease, grad_tol=0.0,
                        journal_path=rundir / f"journal_band{b}.h5", callback=callback, on_evaluation=timing,
                        options={"gd": {"step": inv.step}, "adam": {"lr": inv.lr}}.get(inv.optimizer))  # fmt: skip
@@ -824,12 +885,14 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
         t_fig = time.perf_counter()
         if "gradient" in last and "residual" in last:  # (a run resumed after its last band has no residual)
             drawn = {"gradient": {k: np.array(v) for k, v in last["gradient"].items()}, "residual": np.array(last["residual"])}
-            figures.submit(_figures, rundir, history.misfits(), space, space.point(res.x), drawn, p, fwd, b, inv.bands)
+            figures.submit(_figures, rundir, history.misfits(), gspace, gspace.point(res.x), drawn, pb, fwd, b, inv.bands)
         timing.summary(figures=time.perf_counter() - t_fig)
         results.append({"band": format_band(*band), "f_low_hz": band[0], "f_high_hz": band[1], "iterations": res.iterations, "evaluations": res.evaluations,
                         "misfit": res.f, "stop_reason": res.stop_reason})  # fmt: skip
         x = res.x
-    final = space.point(x).physical
+    final = gspace.point(x).physical
+    if not _same_grid(grid, p):
+        final = {"vp": _regridded(final["vp"], grid, p, velocity=True)}
     out = FWIResult(model=final["vp"], start_model=start["vp"], dx=p.dx, origin=p.origin, bands=results, seconds=time.perf_counter() - t_start,
                     models=final, start_models=start)  # fmt: skip
     if cfg.true_model is not None:
@@ -839,6 +902,18 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     figures.wait()  # before summary.json, which marks the run complete
     _write_result(rundir, out, fwd, space)
     return out
+
+
+def _same_grid(a, b) -> bool:
+    return a.dx == b.dx and tuple(a.shape) == tuple(b.shape) and tuple(a.origin) == tuple(b.origin)
+
+
+def _masks(plan, inv, fwd) -> tuple:
+    """The gradient's region mask (water depth, source radius) and the depth of each cell (m, + dx) on plan's grid."""
+    shape = plan.shape
+    mask = conditioning.mask(shape, plan.dx, plan.origin, inv.water_depth, fwd.geometry.sources, inv.source_radius)
+    depth = (plan.origin[0] + plan.dx * np.arange(shape[0])).reshape((-1,) + (1,) * (len(shape) - 1)) * np.ones(shape) + plan.dx
+    return mask, depth
 
 
 def _simulator(cfg, prep: Prepared, inv, bounds) -> Simulator:

@@ -97,6 +97,11 @@ class ModelSpace:
         if network is not None and (physics != "acoustic" or self.names != ("vp",)):
             raise ValueError("an nn model represents the acoustic velocity only")
 
+    def around(self, start: dict) -> "ModelSpace":
+        """The same space (physics, inverted names, parameterisation, bounds, transform; pixels) around another start
+        model, e.g. on another grid; its x0() is that model's x."""
+        return ModelSpace(self.physics, start, self.names, self.parameterization, self.bounds, None, self.transform)
+
     # ---------------------------------------------------------------- x <-> m
     @property
     def size(self) -> int:
