@@ -1599,7 +1599,8 @@ class Acoustic:
     """Launch helper: padded grid, CPML coefficients and one time step of the acoustic scheme.
 
     shape: physical grid (nz, nx) or (nz, ny, nx) cells; dx (m) and dt (s); pml_width cells on every
-    absorbing side; positions passed to inject/record are metres from the physical grid's node 0.
+    absorbing side (up to 3 more at the far end of x, where they make the padded width a multiple of 4);
+    positions passed to inject/record are metres from the physical grid's node 0.
     """
 
     def __init__(self, shape, dx, dt, order, n_shots, pml_width, pml_reflection, pml_frequency, vmax,
@@ -1615,6 +1616,8 @@ class Acoustic:
         lo = [0 if free_surface else nb, nb if self.ndim == 3 else 0, nb]
         hi = [nb, nb if self.ndim == 3 else 0, nb]
         halo = [R, R if self.ndim == 3 else 0, R]
+        if nb:  # padded x a multiple of 4, the GPU tiles' widest vectors (lanes): up to 3 more CPML cells on the far side
+            hi[2] += -(shape3[2] + lo[2] + hi[2] + 2 * halo[2]) % 4
         self.padded = tuple(shape3[a] + lo[a] + hi[a] + 2 * halo[a] for a in range(3))
         self.origin = wp.vec3i(*(halo[a] + lo[a] for a in range(3)))
         self.top = R
