@@ -368,6 +368,11 @@ CATALOGUE = [
       "inversion.preconditioning: pseudo_hessian is acoustic only", "use none or depth"),
     C("fwi elastic observed files", {"c.yaml": elastic() + "observed: {kind: hdf5, path: obs.h5}\ninversion: {iterations: 1}\n"}, FWI, 2,
       "observed: given with physics elastic", "use true_model"),
+    C("fwi elastic per-band grids", {"c.yaml": elastic() + ETRUE + "inversion: {iterations: 1, grid: per_band}\n"}, FWI, 2,
+      "inversion.grid: per_band with physics elastic", "acoustic pixel models only", "use grid: fixed"),
+    C("fwi nn model per-band grids", {"c.yaml": fwi("{bands: [3.0, null], iterations: 1, grid: per_band}",
+                                                    model="model: {kind: nn, shape: [21, 31], spacing: 10.0, v0: 2000.0, scale: 200.0}\n")},
+      FWI, 2, "inversion.grid: per_band with a network model", "use grid: fixed"),
     # --- physics acoustic_vd (issue 26): its own solver (solve/acoustic_vd.py), 2D and 3D
     C("acoustic_vd with vs", {"c.yaml": elastic().replace("physics: elastic", "physics: acoustic_vd")}, FWD, 2,
       "model.vs: {'vp_ratio': 1.8} given with physics acoustic_vd", "drop vs", "physics: elastic"),

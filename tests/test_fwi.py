@@ -17,8 +17,8 @@ import yaml
 from adseismic.cli import main
 from adseismic.config import load_fwi_config
 from adseismic.inversion.fwi import BAND_EDGE, _decimated, band_pass, band_plan, estimate_wavelet, prepare_fwi
-from adseismic.solve.acoustic import forward
 from adseismic.inversion.optimize import Journal
+from adseismic.solve.acoustic import forward
 from adseismic.wavelets import ricker
 
 TINY = {

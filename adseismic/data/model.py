@@ -53,6 +53,20 @@ def check_velocities(values: np.ndarray, key: str, note: str = "") -> None:
                          f"({where}); every velocity must be a positive finite number (m/s)")
 
 
+def interpolate(values: np.ndarray, spacing, origin, new_spacing: float, new_origin, shape) -> np.ndarray:
+    """values (axis order z,[y,]x) on the grid of per-axis ``spacing`` (m) with node 0 at ``origin`` (m), by
+    (multi)linear interpolation at the ``shape`` nodes of spacing ``new_spacing`` from ``new_origin``; nodes outside
+    the input extent take the nearest edge node's value."""
+    out = np.asarray(values, float)
+    for axis, (o_new, n_new, o, d, n) in enumerate(zip(new_origin, shape, origin, spacing, out.shape)):
+        idx = np.clip((o_new + new_spacing * np.arange(n_new) - o) / d, 0, n - 1)
+        i0 = np.minimum(np.floor(idx).astype(int), n - 1)
+        w = (idx - i0).reshape([-1 if a == axis else 1 for a in range(out.ndim)])
+        i1 = np.minimum(i0 + 1, n - 1)
+        out = (1 - w) * out.take(i0, axis) + w * out.take(i1, axis)
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class Model:
     """Gridded P-wave velocity model.
@@ -144,11 +158,5 @@ class Model:
         ratio = np.array([h / d for d in self.spacing])
         slow = ndimage.gaussian_filter(1.0 / self.values, np.where(ratio > 1, 0.5 * ratio, 0.0),
                                        mode="nearest")
-        for axis, (o_new, n_new, o, d, n) in enumerate(
-                zip(origin, shape, self.origin, self.spacing, self.shape)):
-            idx = np.clip((o_new + h * np.arange(n_new) - o) / d, 0, n - 1)
-            i0 = np.minimum(np.floor(idx).astype(int), n - 1)
-            w = (idx - i0).reshape([-1 if a == axis else 1 for a in range(self.ndim)])
-            i1 = np.minimum(i0 + 1, n - 1)
-            slow = (1 - w) * slow.take(i0, axis) + w * slow.take(i1, axis)
+        slow = interpolate(slow, self.spacing, self.origin, h, origin, shape)
         return Model(1.0 / slow, h, origin, self.name)

@@ -34,12 +34,11 @@ from types import SimpleNamespace
 import h5py
 import numpy as np
 import warp as wp
-from scipy.ndimage import map_coordinates
 from scipy.signal import butter, sosfiltfilt
 
 from adseismic import plotting
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
-from adseismic.data.model import Model
+from adseismic.data.model import Model, interpolate
 from adseismic.inversion import conditioning
 from adseismic.inversion.model_space import (OWN_QUANTITIES, PARAMETERIZATIONS, PHYSICS_PARAMETERS, REFERENCE, UNITS, ModelSpace,
                                               quantities_of)
@@ -144,8 +143,7 @@ def _regridded(values, src, dst, velocity: bool) -> np.ndarray:
     anti-aliased when coarsening), anything else (a gradient) by multilinear interpolation; edges replicated."""
     if velocity:
         return Model(np.asarray(values, float), src.dx, src.origin).resample(dst.dx, dst.origin, dst.shape).values
-    axes = [np.clip((o1 + dst.dx * np.arange(n) - o0) / src.dx, 0, m - 1) for o0, o1, n, m in zip(src.origin, dst.origin, dst.shape, src.shape)]
-    return map_coordinates(np.asarray(values, float), np.meshgrid(*axes, indexing="ij"), order=1, mode="nearest")
+    return interpolate(values, (src.dx,) * len(src.shape), src.origin, dst.dx, dst.origin, dst.shape)
 
 
 def estimate_wavelet(wavelet, synthetic, observed, damping=1e-3):
@@ -825,14 +823,13 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     sim = _simulator(cfg, prep, inv, bounds)
     obs = _observed(cfg, prep, rundir, progress, sim)
     obs = obs if isinstance(obs, dict) else {"data": obs}
-    region_mask, depth = _masks(p, inv, fwd)
+    region_mask, _ = _masks(p, inv, fwd)  # (the model errors': on the plan's grid)
     history = _History(rundir / "history.h5", p.dx, p.origin, units=_history_units(space))
     batches = shot_slices(len(scene.source_amplitudes), inv.shots_per_batch or (1 if pool is not None else None))
     x = space.x0()
     start = space.point(x).physical
     results = []
     last = {}  # the latest gradient (accepted iterate) and data residual of shot 0, for the figures
-    weights = data_weights(scene, inv, fwd.geometry)
     figures = plotting.Background()  # each band's figures are drawn while the next band runs
     grid, gspace = p, space  # the grid and the model space that x lives on (inversion.grid per_band: the band's)
     for b, band in enumerate(inv.bands):
@@ -843,8 +840,8 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
         if pb is not p:
             log.info("band %d (%s) grid: %s cells, dx = %g m, dt = %g s (%d x the plan's), %d steps; %s", b, format_band(*band),
                      " x ".join(map(str, pb.shape)), pb.dx, pb.dt, m, pb.nt, "; ".join(pb.warnings) or "no warnings")  # fmt: skip
-        mask_b, depth_b = _masks(pb, inv, fwd) if pb is not p else (region_mask, depth)
-        weights_b = weights if pb is p else data_weights(SimpleNamespace(plan=pb), inv, fwd.geometry)
+        mask_b, depth_b = _masks(pb, inv, fwd)
+        weights_b = data_weights(SimpleNamespace(plan=pb), inv, fwd.geometry)
         wavelet = _decimated(band_pass(scene.wavelet, p.dt, band), m, pb.nt)
         obs_b = {c: _decimated(band_pass(o, p.dt, band), m, pb.nt) for c, o in obs.items()}
         amp = np.broadcast_to(wavelet, scene.source_amplitudes.shape[:-1] + wavelet.shape).copy()
