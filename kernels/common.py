@@ -209,9 +209,45 @@ def unique_kernel(f=None, **options):
 
     def wrap(f):
         name = re.sub("[^0-9a-zA-Z_]+", "", f.__qualname__.replace(".", "__"))
+        f.code_keyed = True  # read by the module hasher, from the kernel's declaration on
         return wp.kernel(f, name=f"{name}_{code_key(f)}", module="unique", **options)
 
     return wrap if f is None else wrap(f)
+
+
+def _hash_modules_of_named_kernels_as_declared():
+    """Make the hash of a module of unique_kernel's kernels the same whenever Warp computes it (once per process).
+
+    Warp 1.19 hashes a Warp func with the wp.static() values it evaluated while generating code for it (the deferred
+    ones, read through a loop variable), which exist only once some module calling the func has been compiled in this
+    process. A module hashed after another one's compile (a cold kernel cache) got another hash than the same module
+    hashed in a process that compiles nothing (a warm cache): each run after the first compiled again the modules whose
+    funcs another module shares (2-4 s on a GPU; `adseismic bench --fwi`, issue 22). The values are in such a kernel's
+    name (code_key), so its module is hashed without them, as before any compile; other modules as Warp does."""
+    from warp._src.context import ModuleHasher
+
+    if getattr(ModuleHasher, "code_keyed", False):
+        return
+    init, hash_adjoint = ModuleHasher.__init__, ModuleHasher.hash_adjoint
+
+    def __init__(self, kernels, options):
+        kernels = list(kernels)
+        self.code_keyed = bool(kernels) and all(getattr(k.func, "code_keyed", False) for k in kernels)
+        init(self, kernels, options)
+
+    def hash_declared(self, adj):
+        if not self.code_keyed or not adj.deferred_static_expressions:
+            return hash_adjoint(self, adj)
+        kept, adj.deferred_static_expressions = adj.deferred_static_expressions, []
+        try:  # under Warp's codegen lock, as every hash and build: no build sees the list emptied
+            return hash_adjoint(self, adj)
+        finally:
+            adj.deferred_static_expressions = kept
+
+    ModuleHasher.__init__, ModuleHasher.hash_adjoint, ModuleHasher.code_keyed = __init__, hash_declared, True
+
+
+_hash_modules_of_named_kernels_as_declared()
 
 
 def adjoint_launch(kernel, dim, inputs, adjoints: dict, device):

@@ -123,6 +123,36 @@ def test_elastic_kernels_are_named_by_their_weights(order, dtype):
                 assert changed <= stress, (m, factor)
 
 
-if __name__ == "__main__":  # the second process of the test above: prints impulse_step(scale) as JSON
+def module_hashes(compile_first: bool) -> dict:
+    """{kernel: its module's hash} of the 2D acoustic helper's GPU-layout kernels on the CPU, after compiling the step's
+    module (compile_first) or compiling nothing."""
+    p = propagator.Acoustic((12, 16), 10.0, 1e-3, 4, 1, 4, 1e-3, 10.0, 2000.0, dtype=wp.float32, device="cpu")
+    core = p.core_kernel()
+    if compile_first:
+        wp.load_module(core.module, device="cpu")
+    kernels = {"step_core": core, "pre_step": p.k.pre_step, "adjoint_core": p.adjoint_kernel(), "post_adjoint": p.k.post_adjoint}
+    return {n: f"{k.module.name} {k.module.hash_module().hex()}" for n, k in kernels.items()}
+
+
+@pytest.mark.slow
+def test_a_module_is_named_and_hashed_alike_whatever_this_process_compiled_before(tmp_path):
+    """The adjoint's module calls Warp funcs that the step's module calls too. Warp hashes a func with the wp.static()
+    values it evaluated while generating code for it, so compiling the step (into an empty cache) used to change the
+    adjoint's module name and hash: the next run, which compiles nothing, looked for another module and compiled the
+    adjoint again (a warm cache that was not: 2-4 s on a GPU, issue 22). Two processes, one compiling the step first
+    into an empty cache, the other nothing, must name and hash every module alike."""
+    env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "kernel-cache"))
+
+    def run(mode):
+        done = subprocess.run([sys.executable, __file__, mode], env=env, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-3000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    compiled, declared = run("compile"), run("declare")
+    assert compiled == declared
+
+
+if __name__ == "__main__":  # the second process of the tests above: prints impulse_step(scale) or module_hashes as JSON
     wp.config.quiet = True
-    print(json.dumps(impulse_step(float(sys.argv[1])).tolist()))
+    mode = sys.argv[1]
+    print(json.dumps(module_hashes(mode == "compile") if mode in ("compile", "declare") else impulse_step(float(mode)).tolist()))
