@@ -12,6 +12,7 @@ Bording 1999). Numbers here are checked against ../shared/docs/reference.md sect
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -89,8 +90,10 @@ def dispersion_error(order: int, ndim: int, ppw, courant: float) -> dict:
     return {"phase": phase_err, "group": group_err}
 
 
+@functools.lru_cache(maxsize=1024)
 def ppw_for_error(order: int, ndim: int, courant: float, target: float, kind: str = "group") -> float:
-    """Fewest grid points per wavelength for which the dispersion error is <= target (bisection)."""
+    """Fewest grid points per wavelength for which the dispersion error is <= target (bisection; cached, as
+    every plan of a scene, e.g. each band's of an FWI, asks for the same Courant numbers)."""
     lo, hi = 2.0, 400.0
     if dispersion_error(order, ndim, hi, courant)[kind][0] > target:
         raise ValueError(f"a {kind}-velocity error of {target:g} is unreachable at order {order} with Courant number {courant:.3f}")
