@@ -288,7 +288,7 @@ def test_a_gpu_listed_twice_is_refused(monkeypatch):
 
 @pytest.mark.skipif(not wp.get_cuda_device_count(), reason="no CUDA device")
 def test_every_gpu_of_this_host_gives_the_gradient_of_one_gpu(tmp_path):
-    # the CUDA path: a thread and a stream per GPU, graphs captured in the threads, kept per device
+    # the CUDA path: a thread per GPU on its own stream, graphs captured in the threads, kept per device
     problem = Problem(tmp_path, n_shots=2 * wp.get_cuda_device_count() + 1)
     problem.kw["device"] = "cuda:0"
     with DevicePool(ParallelConfig(engine="threads", devices="all"), "cuda:0", problem.n_shots) as pool:

@@ -4,8 +4,10 @@ one evaluation spread over the devices of this host, without Dask.
 A `DevicePool` has the face of solve.distributed.ShotPool (keep / evaluate / close / workers; solve.pools.open_pool
 picks one by engine), so a workflow uses either without branching:
 
-- one Python thread and one Warp stream per device (a single-thread executor; its tasks run under wp.ScopedStream
-  on a GPU, wp.ScopedDevice on the CPU, and every allocation and launch of the solvers names its device). Kernel
+- one Python thread per device (a single-thread executor; its tasks run under wp.ScopedDevice, and every allocation
+  and launch of the solvers names its device), on that device's own stream: a GPU is used by one thread only
+  (thread_devices), so its stream is that thread's. While a second stream of a GPU that had run a gradient existed,
+  every gradient on that GPU ran ~8% slower, on its own stream too (docs/benchmarks.md, 2026-11-29). Kernel
   launches on different GPUs run concurrently; CPU kernels too (Warp calls them with the GIL released), so
   `devices: [cpu, cpu]` uses two cores;
 - resident data: `keep` places batch k on device k % n (round-robin, as the Dask pool does); the first evaluation
@@ -95,7 +97,6 @@ class DevicePool:
         self.devices = thread_devices(par, sim_device, n_shots)
         self.token, self.generation, self.progress, self.evaluations = uuid.uuid4().hex[:12], 0, progress, 0
         self.batches, self.place, self.alive = [], [], list(range(len(self.devices)))
-        self.streams = [wp.Stream(d) if wp.get_device(d).is_cuda else None for d in self.devices]
         self.threads = [ThreadPoolExecutor(1, thread_name_prefix=f"adseismic-{i}-{d}") for i, d in enumerate(self.devices)]
         log.info("parallel: %d thread(s) in this process on %s", len(self.devices), ", ".join(self.devices))
 
@@ -109,7 +110,7 @@ class DevicePool:
         for t in self.threads:
             t.shutdown(wait=True)
         evict(self.token)
-        self.batches, self.streams = [], []
+        self.batches = []
 
     def workers(self) -> list[str]:
         """One name per thread still in use (a failed device's is dropped): "<index>: <device>"."""
@@ -141,12 +142,9 @@ class DevicePool:
     def _call(self, i, fn, model, data, params, after):
         if after is not None:
             wait([after])
-        with self._scope(i):
+        with wp.ScopedDevice(self.devices[i]):
             return fn(model, data, dict(params, device=self.devices[i]))
 
-    def _scope(self, i):
-        s = self.streams[i]
-        return wp.ScopedStream(s) if s is not None else wp.ScopedDevice(self.devices[i])
 
     def _completions(self, model, params, fn, results):
         """Run every batch on the thread of its device (self.place), filling results; yield once per finished batch.
