@@ -185,6 +185,21 @@ def test_band_pass_has_the_butterworth_response():
     assert np.linalg.norm(c[2:]) == pytest.approx(1 / (1 + (20 / 6) ** 8), rel=0.05)
 
 
+def test_band_pass_of_a_large_array_on_threads_is_scipys_bit_for_bit():
+    # a band's observed data (n_shots, n_receivers, nt) above PARALLEL_FILTER_SAMPLES is filtered a shot a thread
+    from scipy.signal import butter, sosfiltfilt
+
+    from adseismic.inversion import fwi
+
+    x = np.random.default_rng(3).standard_normal((3, 7, fwi.PARALLEL_FILTER_SAMPLES // 20))
+    assert x.size > fwi.PARALLEL_FILTER_SAMPLES
+    for band in ((None, 6.0), (2.0, 6.0), (2.0, None)):
+        sos = butter(4, [f for f in band if f is not None] if None not in band else next(f for f in band if f is not None),
+                     btype={(True, False): "lowpass", (False, False): "bandpass", (False, True): "highpass"}[(band[0] is None, band[1] is None)],
+                     fs=1e3, output="sos")  # fmt: skip
+        np.testing.assert_array_equal(band_pass(x, 1e-3, band), sosfiltfilt(sos, x, axis=-1))
+
+
 def test_wavelet_estimation_recovers_scale_and_shift():
     dt, nt = 1e-3, 600
     w0 = ricker(10.0, nt, dt)

@@ -84,3 +84,20 @@ def test_planned_scene_matches_analytic_solution(order):
     for i, (z, x) in enumerate(((500.0, 1100.0), (100.0, 900.0))):
         a = acoustic_2d(sc.wavelet, sc.plan.dt, np.hypot(z - 500.0, x - 300.0), C)
         assert np.linalg.norm(r.receiver_amplitudes[0, i] - a) / np.linalg.norm(a) < 0.016
+
+
+def test_a_second_plan_of_the_same_model_and_geometry_traces_no_ray(monkeypatch):
+    # the longest direct arrival is kept per model object and geometry (an FWI plans each band's grid for them)
+    import dataclasses
+
+    from adseismic import scene as sc
+
+    calls = []
+    rays = sc.straight_ray_times
+    monkeypatch.setattr(sc, "straight_ray_times", lambda *a, **k: calls.append(1) or rays(*a, **k))
+    c = config()
+    first = plan_scene(c)
+    plan_scene(c, f_max=20.0)  # another band's plan
+    assert len(calls) == 1
+    near = dataclasses.replace(c, geometry=config(receivers=((500.0, 700.0),)).geometry)  # the same model, another geometry
+    assert plan_scene(near).nt < first.nt and len(calls) == 2
