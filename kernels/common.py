@@ -232,7 +232,7 @@ def _hash_modules_of_named_kernels_as_declared():
 
     def __init__(self, kernels, options):
         kernels = list(kernels)
-        self.code_keyed = bool(kernels) and all(getattr(k.func, "code_keyed", False) for k in kernels)
+        self.code_keyed = bool(kernels) and all(getattr(getattr(k, "func", None), "code_keyed", False) for k in kernels)
         init(self, kernels, options)
 
     def hash_declared(self, adj):

@@ -145,7 +145,6 @@ class DevicePool:
         with wp.ScopedDevice(self.devices[i]):
             return fn(model, data, dict(params, device=self.devices[i]))
 
-
     def _completions(self, model, params, fn, results):
         """Run every batch on the thread of its device (self.place), filling results; yield once per finished batch.
         The first evaluation runs each device's first batch after the previous device's (kernels built one thread
