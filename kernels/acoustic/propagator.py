@@ -1661,7 +1661,9 @@ class Acoustic:
         rows, cols = (GPU_CORE3_ROWS, GPU_CORE3_COLS) if self.ndim == 3 else (GPU_CORE_ROWS, GPU_CORE_COLS)
         self.core_rows, self.core_cols, self.core_threads = rows, min(cols, self.lanes), GPU_CORE_THREADS
         self.frame_rows, self.frame_cols = (GPU_FRAME3_ROWS, GPU_FRAME3_COLS) if self.ndim == 3 else (1, 1)
-        self._frames = {}  # _frame_boxes per 3D frame layout
+        # _frame_boxes per 3D frame layout, the default's made here: made at a first step inside a graph capture,
+        # the arrays' upload would be captured from host buffers freed after it (replays read garbage boxes)
+        self._frames = {(self.frame_rows, self.frame_cols): self._frame_boxes(self.frame_rows, self.frame_cols)}
         self.threads = 1 if self.cuda else max(1, min(CPU_THREADS, os.cpu_count() or 1, self.interior[1]))
         self._pool = None
         self._launches = {}  # recorded CPU step launches per set of arrays (_cpu_step)
@@ -1820,6 +1822,8 @@ class Acoustic:
         flat = [as_vectors(a, self.core_cols) for a in (u, u_prev, u_next, vpad)]
         layout = (self.frame_rows, self.frame_cols)
         if layout not in self._frames:
+            if wp.get_device(self.device).is_capturing:
+                raise RuntimeError(f"3D frame layout {layout} first used inside a graph capture; run a step outside it first")
             self._frames[layout] = self._frame_boxes(*layout)
         boxes, ys, threads = self._frames[layout]
         self._merged(self.core_kernel(), [*step_args, self.core, self.ycore, self.frame_cells, boxes, ys, *flat],
