@@ -80,6 +80,15 @@ def test_marmousi_fwi_config_reads_the_clones_model():
     assert c.true_model.vmin < c.forward.model.vmin < c.forward.model.vmax < c.true_model.vmax  # smoothed
 
 
+@pytest.mark.parametrize("name, grid", [("fwi_demo", "per_band"), ("elastic_fwi", "fixed"), ("nn_fwi", "fixed")])
+def test_band_grids_default_to_per_band_where_it_applies(name, grid):
+    """inversion.grid left out: per_band for acoustic pixel models, fixed for other physics and network models
+    (which per_band refuses when asked for)."""
+    from adseismic.config import load_fwi_config
+
+    assert load_fwi_config(CONFIGS / f"{name}.yaml").inversion.grid == grid
+
+
 def test_parse_defaults_and_axis_order():
     c = parse_config(cfg(**{"simulation": None, "output": ...}))
     assert c.simulation == SimulationConfig()

@@ -68,12 +68,12 @@ def test_tiny_inversion_end_to_end(tmp_path, capsys):
 
 
 def test_per_band_grid_is_coarser_where_a_band_allows_and_still_accurate(tmp_path, capsys):
-    """inversion.grid per_band: the low band runs on a coarser grid and a longer step that meet simulation.accuracy
+    """inversion.grid per_band (the default here): the low band runs on a coarser grid and a longer step that meet simulation.accuracy
     (its data match the plan grid's within the travel-time error that accuracy allows), the full band on the plan's
     grid; the history and the result stay on the plan's grid; a resumed run replays the coarse band's journal and
     reproduces the run bit for bit (float64 on a CPU)."""
-    cfg = dict(TINY, inversion=dict(TINY["inversion"], grid="per_band"))
-    config = load_fwi_config(write(tmp_path, cfg))
+    config = load_fwi_config(write(tmp_path))  # the default for acoustic pixels
+    assert config.inversion.grid == "per_band"
     prep = prepare_fwi(config)
     p, sc = prep.plan, prep.scene
     low, full = config.inversion.bands
@@ -81,7 +81,7 @@ def test_per_band_grid_is_coarser_where_a_band_allows_and_still_accurate(tmp_pat
     assert pb.dx > 2 * p.dx and m >= 2 and pb.dt == m * p.dt and pb.origin == p.origin
     assert pb.expected_error <= config.forward.simulation.accuracy and not pb.warnings
     assert band_plan(config, p, prep.bounds, full) == (p, 1)
-    fixed = load_fwi_config(write(tmp_path, TINY, "fixed.yaml"))
+    fixed = load_fwi_config(write(tmp_path, dict(TINY, inversion=dict(TINY["inversion"], grid="fixed")), "fixed.yaml"))
     assert band_plan(fixed, p, prep.bounds, low) == (p, 1)
 
     # the low band's data on its grid against the plan grid's: a relative difference below the phase error that the

@@ -70,7 +70,7 @@ class InversionConfig:
     parameters: tuple | None = None  # the inverted quantities (None: all of the parameterization's)
     parameterization: str = "vp-vs-rho"  # or lambda-mu-rho (physics elastic)
     transform: str = "sigmoid"  # q = lo + (hi - lo) sigmoid(x), or linear (inversion.model_space)
-    grid: str = "fixed"  # or per_band: each band on the coarsest grid that resolves it (inversion.fwi.band_plan)
+    grid: str | None = None  # fixed or per_band (each band on the coarsest grid that resolves it: inversion.fwi.band_plan); None: resolved by _check_inversion_physics
 
 
 @dataclass
@@ -203,9 +203,12 @@ def _check_inversion_physics(inv: InversionConfig, physics: str, network, raw) -
                    "vti": "{vp: [1500, 3500], epsilon: [0, 0.3]}"}.get(physics, "{vp: [1500, 3500], rho: [1000, 2600]} (m/s, kg/m^3)")
         raise ConfigError(f"inversion.bounds: {list(inv.bounds)} is one [min, max] pair but physics {physics} inverts "
                           f"{', '.join(inverted)}; give one per quantity, e.g. {example}")
-    if inv.grid == "per_band" and (physics != "acoustic" or network is not None):
+    pixels = physics == "acoustic" and network is None
+    if inv.grid == "per_band" and not pixels:
         raise ConfigError(f"inversion.grid: per_band with {'a network model' if network is not None else f'physics {physics}'}; "
                           f"the per-band grids move acoustic pixel models only: use grid: fixed")
+    if inv.grid is None:  # per_band where it applies: fewer cells and steps for a low band at the same accuracy
+        inv.grid = "per_band" if pixels else "fixed"
     if physics != "acoustic":  # the staggered solvers (elastic, acoustic_vd, viscoacoustic, vti)
         for key, bad, why, fix in (("preconditioning", inv.preconditioning == "pseudo_hessian", f"the {physics} gradient has no illumination", "use none or depth"),
                                    ("wavelet_estimation", inv.wavelet_estimation, "the wavelet fit is for one data channel", "set it false")):  # fmt: skip

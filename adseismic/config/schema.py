@@ -538,11 +538,12 @@ class Inversion(_Section):
                    "bound, moves little; docs/fwi_physics.md) or linear (x = q / reference, the bounds a box "
                    "L-BFGS-B projects onto); pixels only")
     grid: Annotated[Literal["fixed", "per_band"] | None, OneOf("fixed", "per_band")] = F(
-        "fixed", "the simulation grid of each band: fixed (the plan's grid for the highest band, every band) or "
-                 "per_band (each low-passed band on the coarsest grid and longest time step that resolve it at "
-                 "simulation.accuracy, planned for 1.33 x its high corner: never finer than the plan's grid, dt a whole "
-                 "multiple of the plan's; the model moves between grids by slowness interpolation, the history and the "
-                 "result stay on the plan's grid); acoustic pixels only")
+        None, "the simulation grid of each band: null (per_band where it applies, acoustic pixel models; else fixed), "
+              "fixed (the plan's grid for the highest band, every band) or per_band (each low-passed band on the "
+              "coarsest grid and longest time step that resolve it at simulation.accuracy, planned for 1.33 x its high "
+              "corner: never finer than the plan's grid, dt a whole multiple of the plan's; the model moves between "
+              "grids by slowness interpolation, the history and the result stay on the plan's grid; acoustic pixels "
+              "only; docs/fwi.md measures it against fixed)")
     parameterization: Annotated[Literal[PARAMETERIZATIONS] | None, OneOf(*PARAMETERIZATIONS)] = F(
         "vp-vs-rho", "physics elastic: the quantities the optimiser moves, vp-vs-rho (m/s, m/s, kg/m^3) or "
                      "lambda-mu-rho (Lame moduli in Pa, kg/m^3); acoustic_vd: vp-vs-rho (vp and rho move, vs stays 0) "
