@@ -154,8 +154,8 @@ def band_grid_holds(sim, scene, p, pb, m: int, v, grid, wavelet, observed, weigh
     band-passed, on p's time axis; weights: data_weights on p); the coarse grid holds when its modelling error
     |W (d_pb - d_p)| is at most MODELLING_SHARE x the residual |W (d_p - observed)| the band is to explain (L2 on
     pb's samples). A dispersion error below that is mostly a phase shift the band absorbs as a small velocity
-    error, which the next, finer band corrects (docs/fwi.md: the tests' tiny inversion at 0.65 and the Marmousi race
-    at 0.32 end at a lower model error than on the plan's grid). What the dispersion planner cannot see is caught
+    error, which the next, finer band corrects (docs/fwi.md: the tests' tiny inversion at 0.65 and the race's bands
+    at 0.22 and 0.95 end at a lower model error than on the plan's grid). What the dispersion planner cannot see is caught
     here: near a free surface the traces within a few cells of a shallow source carry most of a low band's energy
     and depend on the grid (Marmousi-II at 3 Hz: 99% in the 15 traces within 50 m; 0.81 of it missed on a 47 m
     grid, 23x the residual). Returns (holds, modelling, residual), the two norms relative to |W observed|."""
