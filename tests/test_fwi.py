@@ -120,8 +120,8 @@ def test_a_band_grid_that_misses_the_data_runs_on_the_plan_grid(tmp_path):
     """band_grid_holds: a band's own grid must reproduce the plan grid's data to within the residual it is to explain.
     The tiny inversion's 4 Hz grid does (test above). Under a free surface, with sources 20 m and receivers 10 m deep,
     the near-source traces carry most of the data and depend on the grid, so band 0 runs on the plan's grid, and
-    fwi.log says why."""
-    cfg = dict(TINY, simulation=dict(TINY["simulation"], free_surface=True), inversion=dict(TINY["inversion"], iterations=1))
+    fwi.log says why. (Its forward runs go shots_per_batch at a time.)"""
+    cfg = dict(TINY, simulation=dict(TINY["simulation"], free_surface=True), inversion=dict(TINY["inversion"], iterations=1, shots_per_batch=2))
     config = load_fwi_config(write(tmp_path, cfg))
     prep = prepare_fwi(config)
     p = prep.plan

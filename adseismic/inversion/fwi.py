@@ -148,7 +148,7 @@ def band_plan(cfg, plan, bounds, band) -> tuple:
     return (pb if pb.dx >= plan.dx else planned(plan.dx, m * plan.dt)), m
 
 
-def band_grid_holds(sim, scene, p, pb, m: int, v, grid, wavelet, observed, weights) -> tuple[bool, float, float]:
+def band_grid_holds(sim, scene, p, pb, m: int, v, grid, wavelet, observed, weights, shots_per_batch=None) -> tuple[bool, float, float]:
     """Whether band plan pb (band_plan: dt = m p.dt) reproduces the plan grid's data where the band's misfit looks.
     At the band's start model v (m/s, on plan `grid`), both grids simulate the band's data (wavelet and observed:
     band-passed, on p's time axis; weights: data_weights on p); the coarse grid holds when its modelling error
@@ -158,12 +158,15 @@ def band_grid_holds(sim, scene, p, pb, m: int, v, grid, wavelet, observed, weigh
     at 0.22 and 0.95 end at a lower model error than on the plan's grid). What the dispersion planner cannot see is caught
     here: near a free surface the traces within a few cells of a shallow source carry most of a low band's energy
     and depend on the grid (Marmousi-II at 3 Hz: 99% in the 15 traces within 50 m; 0.81 of it missed on a 47 m
-    grid, 23x the residual). Returns (holds, modelling, residual), the two norms relative to |W observed|."""
+    grid, 23x the residual). The shots run shots_per_batch at a time (None: all at once). Returns (holds, modelling,
+    residual), the two norms relative to |W observed|."""
+    src, rec = scene.source_locations, scene.receiver_locations
 
     def data(plan, w):
         vv = v if _same_grid(plan, grid) else _regridded(v, grid, plan, velocity=True)
         amp = np.broadcast_to(w, scene.source_amplitudes.shape[:-1] + w.shape).copy()
-        return sim.forward({"vp": vv}, plan.dx, plan.dt, amp, scene.source_locations, scene.receiver_locations)["data"]
+        return np.concatenate([sim.forward({"vp": vv}, plan.dx, plan.dt, amp[sl], src[sl], rec[sl])["data"]
+                               for sl in shot_slices(len(amp), shots_per_batch)])
 
     wt = _decimated(weights, m, pb.nt)
     fine = wt * _decimated(data(p, wavelet), m, pb.nt)
@@ -880,7 +883,7 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
         wavelet, obs_p = band_pass(scene.wavelet, p.dt, band), {c: band_pass(o, p.dt, band) for c, o in obs.items()}
         if pb is not p:
             holds, modelling, residual = band_grid_holds(sim, scene, p, pb, m, gspace.point(x).physical["vp"], grid, wavelet,
-                                                         obs_p["data"], weights)  # fmt: skip
+                                                         obs_p["data"], weights, inv.shots_per_batch)  # fmt: skip
             log.info("band %d (%s) grid check: on %g m cells the data differ from the plan grid's by %.3g of the observed "
                      "data, against a residual of %.3g at the band's start model (at most %g x it allowed): %s", b,
                      format_band(*band), pb.dx, modelling, residual, MODELLING_SHARE,
