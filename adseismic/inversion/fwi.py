@@ -877,13 +877,13 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     last = {}  # the latest gradient (accepted iterate) and data residual of shot 0, for the figures
     figures = plotting.Background()  # each band's figures are drawn while the next band runs
     grid, gspace = p, space  # the grid and the model space that x lives on (inversion.grid per_band: the band's)
-    weights = data_weights(SimpleNamespace(plan=p), inv, fwd.geometry)
     for b, band in enumerate(inv.bands):
         pb, m = band_plan(cfg, p, bounds, band)
         wavelet, obs_p = band_pass(scene.wavelet, p.dt, band), {c: band_pass(o, p.dt, band) for c, o in obs.items()}
         if pb is not p:
             holds, modelling, residual = band_grid_holds(sim, scene, p, pb, m, gspace.point(x).physical["vp"], grid, wavelet,
-                                                         obs_p["data"], weights, inv.shots_per_batch)  # fmt: skip
+                                                         obs_p["data"], data_weights(SimpleNamespace(plan=p), inv, fwd.geometry),
+                                                         inv.shots_per_batch)  # fmt: skip
             log.info("band %d (%s) grid check: on %g m cells the data differ from the plan grid's by %.3g of the observed "
                      "data, against a residual of %.3g at the band's start model (at most %g x it allowed): %s", b,
                      format_band(*band), pb.dx, modelling, residual, MODELLING_SHARE,
