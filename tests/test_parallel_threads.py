@@ -17,7 +17,7 @@ from adseismic.accel import graphs
 from adseismic.cli import main
 from adseismic.config import load_fwi_config
 from adseismic.config.parallel import ParallelConfig
-from adseismic.inversion.fwi import _observed, band_pass, data_weights, prepare_fwi
+from adseismic.inversion.fwi import _observed, band_filter, data_weights, prepare_fwi
 from adseismic.solve import devices, distributed, pools, residency
 from adseismic.solve.acoustic import gradient
 from adseismic.solve.batch import shot_slices
@@ -47,8 +47,8 @@ class Problem:
         prep = prepare_fwi(self.cfg)
         self.scene, p = prep.scene, prep.plan
         band = self.cfg.inversion.bands[0]
-        self.obs = band_pass(_observed(self.cfg, prep, tmp_path, False), p.dt, band)
-        wavelet = band_pass(self.scene.wavelet, p.dt, band)
+        self.obs = band_filter(_observed(self.cfg, prep, tmp_path, False), p.dt, band)
+        wavelet = band_filter(self.scene.wavelet, p.dt, band)
         self.amp = np.broadcast_to(wavelet, self.scene.source_amplitudes.shape).copy()
         self.weights = data_weights(self.scene, self.cfg.inversion, self.cfg.forward.geometry)
         self.kw = dict(order=p.order, pml_width=p.pml_width, pml_reflection=p.pml_reflection, pml_velocity=prep.bounds[1],

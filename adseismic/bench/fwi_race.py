@@ -186,7 +186,7 @@ def run_deepwave_fwi(sc: RaceScene, a: dict) -> Curve:
     import deepwave
     import torch
 
-    from adseismic.inversion.fwi import band_pass
+    from adseismic.inversion.fwi import band_filter
 
     dev = torch.device(sc.device)
     dx, dt, lo, hi = a["dx"], a["dt"], *BOUNDS
@@ -212,8 +212,8 @@ def run_deepwave_fwi(sc: RaceScene, a: dict) -> Curve:
     ref = float(np.linalg.norm(a["v_true"] - a["v_start"]))
     t0 = time.perf_counter()
     for b, f_high in enumerate(sc.bands):
-        amp = tensor(band_pass(full, dt, (None, f_high)))
-        obs = tensor(band_pass(observed, dt, (None, f_high)))
+        amp = tensor(band_filter(full, dt, (None, f_high)))
+        obs = tensor(band_filter(observed, dt, (None, f_high)))
         opt = torch.optim.LBFGS([theta], max_iter=sc.iterations, line_search_fn="strong_wolfe")
         scale = []
 

@@ -517,7 +517,8 @@ class Inversion(_Section):
     bands: Annotated[list[Annotated[Band | float | None, BeforeValidator(_band)]] | None,
                      _nonempty_list("[3, 5, 8] (Hz, low to high)")] = F(
         [None], "pass bands, low to high: a number is a low-pass corner (Hz), {fmin, fmax} a band-pass, null the full "
-                "band; each band starts from the previous one's result", "Hz")
+                "band; each band starts from the previous one's result. The filter, a causal order-4 Butterworth, is "
+                "applied to the source wavelet and the observed data alike", "Hz")
     misfit: Annotated[Literal[MISFIT_NAMES] | None, OneOf(*MISFIT_NAMES)] = F("l2", "the data misfit")
     optimizer: Annotated[Literal[OPTIMIZERS] | None, OneOf(*OPTIMIZERS)] = F(
         "lbfgs", "lbfgs (L-BFGS; with transform linear scipy's L-BFGS-B on the bounds), gd (steepest descent, strong-Wolfe line search), adam")

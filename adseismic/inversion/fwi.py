@@ -10,8 +10,9 @@ rho; or a neural network's weights) for all shots of the config:
    synthetics go to RUNDIR/synthetic_waveforms.h5 at the end);
 3. for each band (low to high), on the plan's grid or (inversion.grid per_band) on the coarsest grid and longest
    time step that resolve the band (band_plan; the model moves between grids by slowness interpolation), the
-   wavelet and the observed data get the same zero-phase Butterworth band-pass (filtering the source filters the synthetics exactly: the data are linear
-   in the source), optionally a least-squares wavelet estimate, and the optimiser minimises the
+   wavelet and the observed data get the same causal Butterworth filter (band_filter: filtering the source filters the
+   synthetics exactly, the data being linear in the source; a zero-phase filter would not, see band_filter),
+   optionally a least-squares wavelet estimate, and the optimiser minimises the
    misfit (normalised by its value at the band's start model, summed over the recorded channels) plus
    regularisation over x, the model space's vector (inversion.model_space: x = v / V_REF for acoustic pixels), with
    the per-cell gradient masked, smoothed and preconditioned before the chain rule takes it back to x;
@@ -36,7 +37,7 @@ from types import SimpleNamespace
 import h5py
 import numpy as np
 import warp as wp
-from scipy.signal import butter, sosfiltfilt
+from scipy.signal import butter, sosfilt, sosfiltfilt
 
 from adseismic import plotting
 from adseismic.data.atomic import write_h5_atomic, write_text_atomic
@@ -64,9 +65,10 @@ from adseismic.solve.vti import forward_vti, gradient_vti
 
 log = logging.getLogger(__name__)
 
-# A low-passed band needs a grid up to BAND_EDGE x its high corner, not the wavelet's full band (the zero-phase
-# order-4 Butterworth of band_pass is -20 dB there).
+# A low-passed band needs a grid up to BAND_EDGE x its high corner, not the wavelet's full band (band_filter's
+# causal order-4 Butterworth is -10 dB there; what its tail beyond costs on a coarse grid, band_grid_holds measures).
 BAND_EDGE = 1.33
+BAND_ORDER = 4  # band_filter's Butterworth order (order 8 ended the race 0.01 worse, for Deepwave too: docs/fwi.md)
 MODELLING_SHARE = 1.0  # a band's own grid: its modelling error at most this fraction of the data residual (band_grid_holds)
 PARALLEL_FILTER_SAMPLES = 1_000_000  # band_pass filters arrays of more samples on threads, a first-axis slice each
 
@@ -94,10 +96,24 @@ class FWIResult:
     start_models: dict = field(default_factory=dict)
 
 
-def band_pass(x, dt, band, order=4):
-    """Zero-phase Butterworth band-pass along the last axis; band = (f_low or None, f_high or None) Hz. A large
-    array (a band's observed data, (n_shots, n_receivers, nt)) is filtered one first-axis slice a thread (scipy
-    filters without the GIL; the same numbers: each trace is filtered alone)."""
+def band_filter(x, dt, band):
+    """An FWI band's filter, applied alike to the source wavelet and the observed data (..., nt) sampled at dt s:
+    a causal Butterworth of order BAND_ORDER; band = (f_low or None, f_high or None) Hz.
+
+    Causal, because filtering the wavelet then filters the synthetics exactly: a causal filter started from rest
+    commutes with the record's cut at its end and with the source starting at t = 0. A zero-phase filter does
+    neither: the filtered wavelet's part before t = 0 is lost, and the observed data's backward pass starts from
+    the cut end. At the true model that left a residual of 9% (the 4 Hz band of configs/fwi_demo.yaml) to 21%
+    (2.5 Hz) of the band's data that no model could explain; the causal filter leaves 0.1% (the PML tuned to the
+    band). Both sides are delayed alike (about 0.41 / f_high s at low frequencies), so the misfit is not."""
+    return band_pass(x, dt, band, order=BAND_ORDER, causal=True)
+
+
+def band_pass(x, dt, band, order=4, causal=False):
+    """Butterworth band-pass along the last axis, zero-phase (forward and backward: the response squared) or causal
+    (forward, from rest); band = (f_low or None, f_high or None) Hz. A large array (a band's observed data,
+    (n_shots, n_receivers, nt)) is filtered one first-axis slice a thread (scipy filters without the GIL; the same
+    numbers: each trace is filtered alone)."""
     lo, hi = band
     nyq = 0.5 / dt
     if lo is None and hi is None:
@@ -111,12 +127,13 @@ def band_pass(x, dt, band, order=4):
     else:
         sos = butter(order, [lo, hi], btype="bandpass", fs=1.0 / dt, output="sos")
     x = np.asarray(x, float)
+    run = sosfilt if causal else sosfiltfilt
     if x.ndim < 2 or len(x) < 2 or x.size < PARALLEL_FILTER_SAMPLES:
-        return sosfiltfilt(sos, x, axis=-1)
+        return run(sos, x, axis=-1)
     out = np.empty_like(x)
 
     def part(i):
-        out[i] = sosfiltfilt(sos, x[i], axis=-1)
+        out[i] = run(sos, x[i], axis=-1)
 
     with ThreadPoolExecutor(min(len(x), os.cpu_count() or 1)) as pool:
         list(pool.map(part, range(len(x))))
@@ -879,7 +896,7 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     grid, gspace = p, space  # the grid and the model space that x lives on (inversion.grid per_band: the band's)
     for b, band in enumerate(inv.bands):
         pb, m = band_plan(cfg, p, bounds, band)
-        wavelet, obs_p = band_pass(scene.wavelet, p.dt, band), {c: band_pass(o, p.dt, band) for c, o in obs.items()}
+        wavelet, obs_p = band_filter(scene.wavelet, p.dt, band), {c: band_filter(o, p.dt, band) for c, o in obs.items()}
         if pb is not p:
             holds, modelling, residual = band_grid_holds(sim, scene, p, pb, m, gspace.point(x).physical["vp"], grid, wavelet,
                                                          obs_p["data"], data_weights(SimpleNamespace(plan=p), inv, fwd.geometry),
@@ -890,8 +907,9 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
                      "the band runs on its own grid" if holds else "the band runs on the plan's grid")  # fmt: skip
             if not holds:
                 log.warning("band %d (%s): the %g m grid misses %.0f%% of the plan grid's data where the misfit looks (the "
-                            "residual to explain is %.0f%%); this band runs on the plan's grid. Near a free surface, traces "
-                            "within a few cells of a shallow source are the usual cause: inversion.offsets can mute them",
+                            "residual to explain is %.0f%%); this band runs on the plan's grid. Usual causes: a start model "
+                            "already close to the data, whose small residual the coarse grid's dispersion error exceeds; "
+                            "near a free surface, traces within a few cells of a shallow source (inversion.offsets can mute them)",
                             b, format_band(*band), pb.dx, 100 * modelling, 100 * residual)  # fmt: skip
                 pb, m = p, 1
         if not _same_grid(pb, grid):  # the model moves onto the band's grid; L-BFGS starts afresh every band anyway
