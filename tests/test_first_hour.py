@@ -200,7 +200,7 @@ def test_signal_during_fwi_exits_130_and_the_run_resumes(sig, tmp_path):
     os.kill(p.pid, getattr(signal, sig))
     err = p.communicate(timeout=120)[1]
     assert p.returncode == 130, err
-    lines = [line for line in err.splitlines() if not line.startswith("Warp")]
+    lines = [line for line in err.splitlines() if not line.startswith(("Warp", "WARNING: band 0"))]  # (TINY's band grid refused)
     assert len(lines) == 1 and f"interrupted by {sig}" in lines[0] and "--resume" in lines[0], lines
     assert not list(out.glob("*.part")) and not (out / "summary.json").exists()
     r = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)

@@ -65,6 +65,11 @@ METHODS = ("lbfgs", "gd", "adam")
 STOP_REASONS = ("grad_tol", "rel_decrease", "max_iterations", "max_evaluations",
                 "line_search_failed")
 
+# The free L-BFGS keeps up to LBFGS_MEMORY pairs (torch.optim.LBFGS's history_size), fewer where they would pass
+# LBFGS_MEMORY_BYTES, never fewer than 10 (L-BFGS-B's). With 10 pairs the FWI race ended at 0.6237 model error, with
+# 20 or 100 (a band's 20 iterations all remembered) at 0.6070, in the same time (docs/benchmarks.md, 2026-12-01).
+LBFGS_MEMORY = 100
+LBFGS_MEMORY_BYTES = 2 * 2**30
 _TINY = np.finfo(np.float64).tiny
 _FORMAT = "adseismic-optimize-journal"
 _TAIL_MAGIC = b"ADSJ"
@@ -599,7 +604,8 @@ def minimize(fun: Callable, x0, *, method: str = "lbfgs", bounds=None, max_itera
     Method details
     --------------
     * **lbfgs** without bounds (every bound infinite, or bounds None): L-BFGS, the two-loop recursion and gd's
-      strong-Wolfe line search below (``options``: ``maxcor``, ``maxls``), O(n maxcor) work an iteration.
+      strong-Wolfe line search below (``options``: ``maxcor``, default LBFGS_MEMORY pairs within
+      LBFGS_MEMORY_BYTES; ``maxls``), O(n maxcor) work an iteration.
     * **lbfgs** with bounds: scipy's L-BFGS-B with ``maxiter``/``pgtol`` mapped from ``max_iterations``/
       ``grad_tol`` and scipy's own ``ftol`` test switched off (``rel_decrease`` is applied in an
       ``intermediate_result`` callback that raises ``StopIteration``); ``max_evaluations`` is
@@ -729,11 +735,13 @@ def _two_loop(g, pairs):
 
 
 def _lbfgs_free(run: _Run, ev: _Evaluator, options):
-    """L-BFGS without bounds (Nocedal & Wright alg. 7.5): the two-loop direction from the last ``maxcor`` (10)
-    pairs, gd's strong-Wolfe line search (first trial step 1, on the first iteration 1 / |g| as L-BFGS-B),
-    ``maxls`` (20) evaluations per line search; a pair with s.y <= 1e-10 y.y is skipped. O(n maxcor) NumPy work an
-    iteration, where scipy's L-BFGS-B spends ~0.1 s an iteration on n = 70,000 unknowns (docs/benchmarks.md)."""
-    m, max_ls = int(options.get("maxcor", 10)), int(options.get("maxls", 20))
+    """L-BFGS without bounds (Nocedal & Wright alg. 7.5): the two-loop direction from the last ``maxcor`` pairs
+    (default LBFGS_MEMORY, capped at LBFGS_MEMORY_BYTES of pairs, at least 10), gd's strong-Wolfe line search (first
+    trial step 1, on the first iteration 1 / |g| as L-BFGS-B), ``maxls`` (20) evaluations per line search; a pair with
+    s.y <= 1e-10 y.y is skipped. O(n maxcor) NumPy work an iteration, where scipy's L-BFGS-B spends ~0.1 s an
+    iteration on n = 70,000 unknowns (docs/benchmarks.md)."""
+    memory = max(10, min(LBFGS_MEMORY, LBFGS_MEMORY_BYTES // (16 * run.x.size)))
+    m, max_ls = int(options.get("maxcor", memory)), int(options.get("maxls", 20))
     pairs = []
     while True:
         x, f0, g = run.x, run.f, run.g
