@@ -51,6 +51,7 @@ def test_tiny_inversion_end_to_end(tmp_path, capsys):
     assert all(p.name in wrote[0] for p in out.iterdir() if p.is_file()), wrote[0]
     log = (out / "fwi.log").read_text()
     assert log.splitlines()[0].endswith(f"fwi {cfg} -> {out}")
+    assert "inversion.preconditioning: none (the default with sources or receivers at depth: the deepest source or receiver 590 m" in log
     import pyasdf  # observed and final synthetic data in ASDF for other tools (issue 27)
 
     for name in ("observed_waveforms.h5", "synthetic_waveforms.h5"):
@@ -316,6 +317,22 @@ def test_observed_miniseed_with_stationxml_matches_our_hdf5(tmp_path):
     via_mseed = prepare_fwi(parse_fwi_config(dict(base, observed={"kind": "mseed", "paths": paths, "inventory": inventory,
                                                                      "reference": [46.0, 7.0]})))  # fmt: skip
     np.testing.assert_allclose(via_mseed.observed, via_h5.observed, rtol=0, atol=1e-6 * np.abs(via_h5.observed).max())
+
+
+def test_preconditioning_defaults_to_depth_under_a_surface_acquisition():
+    from adseismic.config import parse_fwi_config
+
+    top_line = {"line": {"start": {"x": 0, "z": 10}, "end": {"x": 800, "z": 10}, "count": 21}}
+    surface = dict(TINY, geometry=dict(TINY["geometry"], receivers=top_line))
+    cfg = parse_fwi_config(surface)
+    assert cfg.inversion.preconditioning == "depth"
+    assert cfg.chosen["preconditioning"].startswith("the default under a surface acquisition: the deepest source or receiver 20 m")
+    assert parse_fwi_config(TINY).inversion.preconditioning == "none"  # receivers at 590 m of 600 m: transmission
+    given = parse_fwi_config(dict(surface, inversion=dict(TINY["inversion"], preconditioning="none")))
+    assert given.inversion.preconditioning == "none" and given.chosen == {}
+    net = parse_fwi_config(dict(surface, model={"kind": "nn", "shape": [31, 41], "spacing": 20.0, "v0": 2000.0, "scale": 300.0,
+                                                           "hidden": 12, "seed": 0}))
+    assert net.inversion.preconditioning == "none"  # not measured for a network model
 
 
 def test_offset_mute_and_time_window_weights():

@@ -10,7 +10,9 @@ Each tool inverts data it simulated itself from the true model (its own forward 
 another solver's errors); the data are simulated before the clock starts. Then:
 - adseismic: the fwi workflow (inversion.fwi: what ``adseismic fwi`` runs) with its defaults, clocked from loading the
   config to the end (the observed data waiting in the run directory, where a run reads them); the wall time of each
-  iteration from the workflow's iteration log records, the model of each iteration from history.h5.
+  iteration from the workflow's iteration log records, the model of each iteration from history.h5. The defaults
+  include the gradient's depth preconditioning (inversion.preconditioning: the default under this surface
+  acquisition); ``--fwi-inversion preconditioning=none`` races without it, as Deepwave's recipe runs.
 - Deepwave: ``deepwave.scalar`` (order 4, 20-cell PML) with Deepwave's documented FWI recipe: v = vmin + (vmax -
   vmin) sigmoid(theta), the L2 misfit of the band-passed data normalised by its value at the band's start,
   ``torch.optim.LBFGS(max_iter=iterations, line_search_fn="strong_wolfe")``, one step a band; clocked from the first
@@ -59,7 +61,8 @@ class RaceScene:
 @dataclass
 class Curve:
     """One tool's run: seconds (wall, from its start), error (relative model error, 1 at the start), band and
-    iteration of each point; total seconds, evaluations, and the failure reason of a reference that did not run."""
+    iteration of each point; total seconds, evaluations, the gradient's preconditioning, and the failure reason of a
+    reference that did not run."""
 
     engine: str
     seconds: list = field(default_factory=list)
@@ -68,6 +71,7 @@ class Curve:
     iteration: list = field(default_factory=list)
     total_seconds: float = math.nan
     evaluations: int = 0
+    preconditioning: str = "none"
     failed: str | None = None
 
     @property
@@ -158,7 +162,8 @@ def run_ours(sc: RaceScene, workdir: pathlib.Path) -> tuple[Curve, dict]:
         fwi_log.setLevel(level)
     total = time.perf_counter() - t0
     history = {(r["band"], r["iteration"]): r["model"] for r in read_history(rundir / "history.h5")}
-    curve = Curve("adseismic", seconds=[0.0], error=[1.0], band=[0], iteration=[0], total_seconds=total)
+    curve = Curve("adseismic", seconds=[0.0], error=[1.0], band=[0], iteration=[0], total_seconds=total,
+                  preconditioning=config.inversion.preconditioning)
     errors = relative_errors([history[(b, i)] for _, b, i in stamps], v_true, v_start)
     for (t, b, i), e in zip(stamps, errors):
         curve.seconds.append(t - t0)
@@ -273,9 +278,12 @@ def markdown(report: dict) -> str:
             k = max(i for i, bb in enumerate(c["band"]) if bb == b)
             lines.append(f"| {c['engine']} | {b} | {c['iteration'][k]} | {c['seconds'][k]:.1f} | {c['error'][k]:.4f} |")
     options = ", ".join(f"{k}: {v}" for k, v in report["scene"]["inversion"].items()) or "defaults"
-    lines += ["", f"- adseismic ({options}): {ours['total_seconds']:.1f} s, {ours['evaluations']} evaluations, final error {report['our_final_error']:.4f}"]
+    if "preconditioning" not in report["scene"]["inversion"]:
+        options += f"; preconditioning {ours.get('preconditioning', 'none')}"
+    lines += ["", f"- adseismic ({options}): {ours['total_seconds']:.1f} s, "
+                  f"{ours['evaluations']} evaluations, final error {report['our_final_error']:.4f}"]
     if not ref["failed"]:
-        lines += [f"- Deepwave: {ref['total_seconds']:.1f} s, {ref['evaluations']} evaluations, final error {report['deepwave_final_error']:.4f}",
+        lines += [f"- Deepwave (its recipe: preconditioning {ref.get('preconditioning', 'none')}): {ref['total_seconds']:.1f} s, {ref['evaluations']} evaluations, final error {report['deepwave_final_error']:.4f}",
                   f"- adseismic reached Deepwave's final error after {report['our_seconds_to_deepwave_error']:.1f} s: "
                   f"{report['ratio_to_deepwave_total']:.2f} x Deepwave's total time (target <= 0.5)"]  # fmt: skip
     return "\n".join(lines) + "\n"
@@ -293,7 +301,7 @@ def plot(path: pathlib.Path, report: dict) -> None:
     fig, ax = plt.subplots(figsize=(6, 4))
     for c in (report["ours"], report["deepwave"]):
         if not c["failed"]:
-            ax.plot(c["seconds"], c["error"], marker=".", label=f"{c['engine']} ({c['evaluations']} evaluations)")
+            ax.plot(c["seconds"], c["error"], marker=".", label=f"{c['engine']} ({c['evaluations']} evaluations, preconditioning {c.get('preconditioning', 'none')})")
     ax.set_xlabel("wall time (s)")
     ax.set_ylabel("model error ||v - v_true|| / ||v_start - v_true||")
     ax.set_title(f"FWI race: Marmousi-II, {report['scene']['shots']} shots, {report['scene']['device']}")

@@ -568,7 +568,9 @@ class Inversion(_Section):
     smoothing: Annotated[float | None, NonNeg(_NONNEG, "m")] = F(
         0.0, "Gaussian smoothing of the gradient, standard deviation", "m", minimum=0)
     preconditioning: Annotated[Literal[PRECONDITIONERS] | None, OneOf(*PRECONDITIONERS)] = F(
-        "none", "none, depth (z / z_max) or pseudo_hessian (divide by the normalised illumination, 1% water level)")
+        None, "none, depth (the gradient x z / z_max: it falls with depth under a surface acquisition) or "
+              "pseudo_hessian (divide by the normalised illumination, 1% water level); null: depth for acoustic pixels "
+              "under a surface acquisition (every source and receiver in the model's top tenth), else none")
     tikhonov: Annotated[float | None, NonNeg(_NONNEG)] = F(
         0.0, "Tikhonov weight on m = v / 1000 m/s (the misfit is normalised by its value at each band's start)",
         minimum=0)
