@@ -57,7 +57,7 @@ class InversionConfig:
     water_depth: float = 0.0
     source_radius: float = 0.0
     smoothing: float = 0.0
-    preconditioning: str | None = None  # None: resolved by _resolve_preconditioning
+    preconditioning: str | None = None  # None: resolved by default_preconditioning (parse_fwi_config)
     tikhonov: float = 0.0
     tv: float = 0.0
     wavelet_estimation: bool = False
