@@ -279,11 +279,12 @@ def markdown(report: dict) -> str:
             lines.append(f"| {c['engine']} | {b} | {c['iteration'][k]} | {c['seconds'][k]:.1f} | {c['error'][k]:.4f} |")
     options = ", ".join(f"{k}: {v}" for k, v in report["scene"]["inversion"].items()) or "defaults"
     if "preconditioning" not in report["scene"]["inversion"]:
-        options += f"; preconditioning {ours.get('preconditioning', 'none')}"
+        options += f"; preconditioning {ours['preconditioning']}"
     lines += ["", f"- adseismic ({options}): {ours['total_seconds']:.1f} s, "
                   f"{ours['evaluations']} evaluations, final error {report['our_final_error']:.4f}"]
     if not ref["failed"]:
-        lines += [f"- Deepwave (its recipe: preconditioning {ref.get('preconditioning', 'none')}): {ref['total_seconds']:.1f} s, {ref['evaluations']} evaluations, final error {report['deepwave_final_error']:.4f}",
+        lines += [f"- Deepwave (its recipe: preconditioning {ref['preconditioning']}): {ref['total_seconds']:.1f} s, "
+                  f"{ref['evaluations']} evaluations, final error {report['deepwave_final_error']:.4f}",
                   f"- adseismic reached Deepwave's final error after {report['our_seconds_to_deepwave_error']:.1f} s: "
                   f"{report['ratio_to_deepwave_total']:.2f} x Deepwave's total time (target <= 0.5)"]  # fmt: skip
     return "\n".join(lines) + "\n"
@@ -301,7 +302,8 @@ def plot(path: pathlib.Path, report: dict) -> None:
     fig, ax = plt.subplots(figsize=(6, 4))
     for c in (report["ours"], report["deepwave"]):
         if not c["failed"]:
-            ax.plot(c["seconds"], c["error"], marker=".", label=f"{c['engine']} ({c['evaluations']} evaluations, preconditioning {c.get('preconditioning', 'none')})")
+            label = f"{c['engine']} ({c['evaluations']} evaluations, preconditioning {c['preconditioning']})"
+            ax.plot(c["seconds"], c["error"], marker=".", label=label)
     ax.set_xlabel("wall time (s)")
     ax.set_ylabel("model error ||v - v_true|| / ||v_start - v_true||")
     ax.set_title(f"FWI race: Marmousi-II, {report['scene']['shots']} shots, {report['scene']['device']}")

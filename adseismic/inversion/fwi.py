@@ -882,7 +882,7 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     inv, fwd = cfg.inversion, cfg.forward
     scene, bounds, p, space = prep.scene, prep.bounds, prep.plan, prep.space
     log.info("plan:\n%s", p.describe())
-    for key, why in getattr(cfg, "chosen", {}).items():
+    for key, why in cfg.chosen.items():
         log.info("inversion.%s: %s (%s)", key, getattr(inv, key), why)
     sim = _simulator(cfg, prep, inv, bounds)
     obs = _observed(cfg, prep, rundir, progress, sim)
