@@ -160,7 +160,9 @@ def adjoint_times(prop, st, vpad, residual_op, reps, checks):
     args = [st.u, vpad, *nxt.psi, *st.zeta, lam, adj, g, adj_out, g_out, *ap[0], *az[1], *az[0], *prop.axes, prop.dt2, prop.inv_dx, prop.top]
     if prop.cuda and prop.has_core:
         ref_a, ref_g = wp.zeros_like(adj), wp.zeros_like(g)
-        wp.launch(prop.k.adjoint_step, dim=prop.interior, inputs=[*args[:11], ref_a, ref_g, *args[13:]], device=dev)
+        scattered = prop.new_state(with_prev=False)  # its strips' scatters, kept from the cores' inputs (pre_adjoint's output)
+        wp.launch(prop.k.adjoint_step, dim=prop.interior, inputs=[*args[:11], ref_a, ref_g, *scattered.psi, *scattered.zeta, *args[19:]],
+                  device=dev)
         ref_a, ref_g = ref_a.numpy(), ref_g.numpy()
 
         def part(name):

@@ -205,8 +205,8 @@ def test_hand_adjoint_matches_warp_generated(order, shape, free_surface):
 
 @pytest.mark.skipif(DEVICE != "cpu", reason="the CPU's threaded steps")
 def test_cpu_threads_do_not_change_the_gradient(monkeypatch):
-    # A CPU step is split among threads (forward: row blocks; adjoint: the tiles shared, the frame, whose CPML
-    # adjoints scatter with Warp's CPU atomics, which are plain adds, in one thread): bitwise the single-thread result.
+    # A CPU step is split among threads (forward: row blocks; adjoint: the tiles shared, the frame in one thread,
+    # each writing only its own cells): bitwise the single-thread result.
     from adseismic.kernels.acoustic import propagator
 
     v, s, src, rec, obs = problem()
@@ -223,7 +223,10 @@ def test_cpu_threads_do_not_change_the_gradient(monkeypatch):
 def test_l2_formed_on_the_device_equals_the_host_misfit(weighted):
     """observed (and weights) given as device arrays: the "l2" residual and loss are formed by a kernel where the data
     are; the same float64 operations as misfits.weighted_l2 / _l2 on the host, so the residual, hence the gradient,
-    is bitwise the host's; the loss is a sum in another order (float64: 1e-13 relative)."""
+    is bitwise the host's on the CPU; the loss is a sum in another order (float64: 1e-13 relative). On a GPU the
+    receivers' adjoint adds overlapping operator points with float64 atomics in a varying order: measured on an H200,
+    45 of 1200 values differ, each by at most 7e-16 of itself (2.9e-12 and half the values while the CPML strips'
+    adjoints were scattered with atomics too), so 1e-14 of the largest value."""
     v, s, src, rec, obs = problem()
     rng = np.random.default_rng(5)
     w = rng.random(obs.shape) * (rng.random(obs.shape[:2]) > 0.3)[..., None] if weighted else None
@@ -234,7 +237,8 @@ def test_l2_formed_on_the_device_equals_the_host_misfit(weighted):
     on_device = gradient(v, DX, DT, s, src, rec, obs_d, weights=w_d)
     assert isinstance(on_device.synthetic, wp.array)
     np.testing.assert_array_equal(on_device.synthetic.numpy(), host.synthetic)
-    np.testing.assert_array_equal(on_device.velocity, host.velocity)
+    atol = 0.0 if DEVICE == "cpu" else 1e-14 * np.abs(host.velocity).max()
+    np.testing.assert_allclose(on_device.velocity, host.velocity, rtol=0, atol=atol)
     assert on_device.loss == pytest.approx(host.loss, rel=1e-13)
     if weighted:  # the weights are applied: the unweighted misfit differs
         assert abs(gradient(v, DX, DT, s, src, rec, obs).loss - host.loss) > 0.05 * host.loss

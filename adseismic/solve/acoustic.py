@@ -508,7 +508,7 @@ class Levels:
         """Every kernel the segments launch (loaded before a capture, which cannot compile)."""
         prop, k = self.su.prop, self.su.prop.k
         out = [k.step, k.pre_step, prop.core_kernel(), *(k.psi[a][0] for a in range(3)), k.record, k.record_fixed, k.inject, k.inject_fixed]
-        return out + [k.adjoint_step, k.post_adjoint, prop.adjoint_kernel(), *k.psi_adjoint, k.energy]
+        return out + [k.adjoint_step, k.pre_adjoint, k.post_adjoint, prop.adjoint_kernel(), *k.psi_adjoint, k.energy]
 
     def forward_segment(self):
         su, prop, lv = self.su, self.su.prop, self.levels

@@ -25,7 +25,8 @@ surface. The Kaiser window has its edge value (1/I0(b), ~1%) subtracted so that 
 differentiable in the position (source-location gradients).
 
 All kernels write fresh outputs from inputs (or add with atomics), never read-modify their own
-input, so each time step can be differentiated by wp.Tape when given its own arrays.
+input, so each time step can be differentiated by wp.Tape when given its own arrays; the hand-written
+adjoint's kernels, never taped, may update an array in place.
 """
 
 
@@ -80,7 +81,8 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
         Axis=ns.Axis, step=ns.step, step_core=functools.lru_cache(maxsize=None)(functools.partial(_step_core, ns)), step_rows=ns.step_rows,
         step_core_rows=ns.step_core_rows, psi=ns.psi, psi_flat=ns.psi_flat, inject=ns.inject, adjoint_step=ns.adjoint_step,
         adjoint_core=functools.lru_cache(maxsize=None)(functools.partial(_adjoint_core, ns)), squared=ns.squared, model_gradient=ns.model_gradient,
-        psi_adjoint=ns.psi_adjoint, post_adjoint=ns.post_adjoint, pre_step=ns.pre_step, record=ns.record, weights=ns.weights, compact=ns.compact,
+        psi_adjoint=ns.psi_adjoint, pre_adjoint=ns.pre_adjoint, post_adjoint=ns.post_adjoint, pre_step=ns.pre_step, record=ns.record,
+        weights=ns.weights, compact=ns.compact,
         inject_fixed=ns.inject_fixed, record_fixed=ns.record_fixed, record_summed=ns.record_summed, pad_model=ns.pad_model, scatter=ns.scatter,
         energy=ns.energy, halo=R, operator_points=NPTS,
     )  # fmt: skip
@@ -929,7 +931,6 @@ def _step_core(ns, rows: int, V: int, frame_rows: int, frame_cols: int):
 def _psi_adjoint(ns):
     """The adjoints of the psi kernels along each axis, and post_adjoint (a 2D adjoint step's last launch)."""
     dtype, arr3, arr4, iarr1, Axis, d1t = ns.dtype, ns.arr3, ns.arr4, ns.iarr1, ns.Axis, ns.d1t
-    strip_cell = ns.strip_cell
 
     def make_psi_adjoint(axis: int):
         deriv_t = d1t[axis]
@@ -968,34 +969,19 @@ def _psi_adjoint(ns):
         return psi_adjoint_cell, psi_adjoint
 
     psi_adjoints = [make_psi_adjoint(a) for a in range(3)]
-    psi_adjoint_z, psi_adjoint_x = psi_adjoints[0][0], psi_adjoints[2][0]
-
     @unique_kernel(grid_stride=False, enable_backward=False)
-    def post_adjoint(
-        adj: arr4, adj_psi_z: arr4, adj_psi_z_new: arr4, adj_zeta_z_new: arr4, adj_psi_x: arr4, adj_psi_x_new: arr4, adj_zeta_x_new: arr4,
-        az: Axis, ax: Axis, inv_dx: dtype, z_cells: int, x_cells: int,
-        residual: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1,
-    ):  # fmt: skip
-        # What a 2D adjoint step does after adjoint_core, in one launch: the psi adjoints along z (the first
-        # z_cells threads) and x (the next x_cells), then the adjoint of record_fixed: adj += the receiver
-        # points' weights times residual[:, :, n + clock[0]]
-        t = wp.tid()
-        if t < z_cells:
-            c = strip_cell(t, adj_psi_z_new)
-            psi_adjoint_z(adj, adj_psi_z, adj_psi_z_new, adj_zeta_z_new, az, inv_dx, c[0], c[1], 0, c[2])
-        elif t < z_cells + x_cells:
-            c = strip_cell(t - z_cells, adj_psi_x_new)
-            psi_adjoint_x(adj, adj_psi_x, adj_psi_x_new, adj_zeta_x_new, ax, inv_dx, c[0], c[1], 0, c[2])
-        else:
-            q = t - z_cells - x_cells
-            per = idx.shape[1] * idx.shape[2]
-            s = q // per
-            rec = (q - s * per) // idx.shape[2]
-            q = q - s * per - rec * idx.shape[2]
-            wq = w[s, rec, q]
-            if wq != dtype(0.0):
-                i = idx[s, rec, q]
-                wp.atomic_add(adj, s, i[0], i[1], i[2], wq * residual[s, rec, n + clock[0]])
+    def post_adjoint(adj: arr4, residual: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1):
+        # What a 2D adjoint step does after adjoint_core: the adjoint of record_fixed, adj += the receiver points'
+        # weights times residual[:, :, n + clock[0]] (a thread a point)
+        q = wp.tid()
+        per = idx.shape[1] * idx.shape[2]
+        s = q // per
+        rec = (q - s * per) // idx.shape[2]
+        q = q - s * per - rec * idx.shape[2]
+        wq = w[s, rec, q]
+        if wq != dtype(0.0):
+            i = idx[s, rec, q]
+            wp.atomic_add(adj, s, i[0], i[1], i[2], wq * residual[s, rec, n + clock[0]])
 
     return dict(psi_adjoint=tuple(k for _, k in psi_adjoints), post_adjoint=post_adjoint)
 
@@ -1178,11 +1164,14 @@ def _adjoint_step(ns):
 
 
 def _flat_adjoint(ns):
-    """adjoint_cell by flat offsets (flat_access): the 2D adjoint step's frame cells (_adjoint_core, CPU and GPU). Same terms in
-    the same order as adjoint_cell (gather, weight, strip_adjoint)."""
-    dtype, R, A, B, fs, three, arr3, arr4, Axis = ns.dtype, ns.R, ns.A, ns.B, ns.fs, ns.three, ns.arr3, ns.arr4, ns.Axis
+    """The 2D adjoint step's cells by flat offsets (flat_access), CPU and GPU: pre_adjoint (the CPML strips' adjoints,
+    gathered) and flat_adjoint_cell (_adjoint_core's frame cells: adjoint_cell's terms in its order, the strips' read
+    from pre_adjoint's output). adjoint_cell scatters the strips' adjoints with atomics; gathering them instead took
+    the 2D GPU adjoint step from 119 to 103 us on S600x16 (docs/benchmarks.md) and leaves only the receivers' atomics."""
+    dtype, R, A, B, fs, arr3, arr4, Axis = ns.dtype, ns.R, ns.A, ns.B, ns.fs, ns.arr3, ns.arr4, ns.Axis
     d2w, d1w, line, zline, weighted, strip_total = ns.d2w, ns.d1w, ns.line, ns.zline, ns.weighted, ns.strip_total
-    load3, load4, store4, add4 = flat_access(dtype)
+    strip_cell = ns.strip_cell
+    load3, load4, store4, _ = flat_access(dtype)
 
     @wp.func
     def weight(lam: arr4, v: arr3, adj_zn: arr4, ca: Axis, dt2: dtype, o: int, c: int, p: int, qb: int, qd: int) -> dtype:
@@ -1213,24 +1202,89 @@ def _flat_adjoint(ns):
 
         return gather
 
-    gather_z, gather_y, gather_x = make_gather(0), make_gather(1), make_gather(2)
+    gather_z, gather_x = make_gather(0), make_gather(2)
 
     @wp.func
-    def strip_adjoint(t: dtype, q: dtype, p: int, psi: arr4, zeta: arr4, adj_psi: arr4, adj_zeta: arr4, adj_zeta_new: arr4, ca: Axis,
-                      inv_dx: dtype, qb: int, qd: int) -> dtype:  # fmt: skip
+    def strip_adjoint(t: dtype, p: int, psi: arr4, zeta: arr4, ca: Axis, inv_dx: dtype, qb: int, qd: int) -> dtype:
+        # the stretched d2u/dx2 at index p along the axis from t = d2u/dx2 (the strips' adjoints are pre_adjoint's)
         j = ca.store[p]
         if j >= 0:
             k = qb + j * qd
             g = t + d1w(line(psi, k, qd)) * inv_dx
-            adj_zn = q + load4(adj_zeta_new, k)
-            add4(adj_zeta, k, ca.b[p] * adj_zn)
-            gp = (q + ca.a[p] * adj_zn) * inv_dx
-            for m in range(wp.static(R)):
-                cm = dtype(wp.static(B[m])) * gp
-                add4(adj_psi, k + wp.static(m + 1) * qd, cm)
-                add4(adj_psi, k - wp.static(m + 1) * qd, -cm)
             return strip_total(g, load4(zeta, k), ca.a[p], ca.b[p])
         return t
+
+    @wp.func
+    def psi_term(f: arr4, ca: Axis, p: int, qb: int, qd: int) -> dtype:
+        # the psi recursion's adjoint at index p along the axis: the transpose of d1 applied to f = a lam_psi / dx
+        # (pre_adjoint's), gathered from the strip; 0 outside it (f is 0 but in the PML, which a strip holds with
+        # R cells on either side)
+        j = ca.store[p]
+        if j >= 0:
+            return -d1w(line(f, qb + j * qd, qd))
+        return dtype(0.0)
+
+    @wp.func
+    def strip_cell_adjoint(lam: arr4, v: arr3, adj_psi_new: arr4, adj_psi: arr4, adj_zeta_new: arr4, adj_zeta: arr4, ca: Axis, dt2: dtype,
+                           inv_dx: dtype, o: int, c: int, p: int, d: int, k: int, qd: int, lo: int, hi: int, inside: bool):  # fmt: skip
+        # pre_adjoint at strip cell k: index p along the axis of stride d in the fields and the model and qd in the
+        # strip, the field cell at o, the model's at c; `inside`: its other index is interior. It gathers what
+        # adjoint_cell's strip terms scattered: the adjoint of psi[n+1],
+        #   lam_psi = adj_psi_new (the b lam_psi of the step after) + sum_m B_m (gp(k - m - 1) - gp(k + m + 1)),
+        # gp = (q + a adj_zn) / dx of an updated cell (lo <= index < hi), q = v^2 dt^2 lam, adj_zn = q + adj_zeta_new;
+        # then stores adj_psi = b lam_psi (that of psi[n]), adj_psi_new = f = a lam_psi / dx (psi_term's input) and
+        # adj_zeta = b adj_zn (that of zeta[n]), each 0 where it is (outside the PML, or not updated)
+        a = ca.a[p]
+        lp = load4(adj_psi_new, k)
+        if a != dtype(0.0) and inside:
+            for m in range(wp.static(R)):
+                e = wp.static(m + 1)
+                if p - e >= lo and p - e < hi:
+                    vv = load3(v, c - e * d)
+                    q = vv * vv * dt2 * load4(lam, o - e * d)
+                    lp += dtype(wp.static(B[m])) * ((q + ca.a[p - e] * (q + load4(adj_zeta_new, k - e * qd))) * inv_dx)
+                if p + e >= lo and p + e < hi:
+                    vv = load3(v, c + e * d)
+                    q = vv * vv * dt2 * load4(lam, o + e * d)
+                    lp -= dtype(wp.static(B[m])) * ((q + ca.a[p + e] * (q + load4(adj_zeta_new, k + e * qd))) * inv_dx)
+        zn = dtype(0.0)
+        if inside and p >= lo and p < hi and ca.store[p] >= 0:
+            vv = load3(v, c)
+            zn = ca.b[p] * (vv * vv * dt2 * load4(lam, o) + load4(adj_zeta_new, k))
+        if a == dtype(0.0):
+            lp = dtype(0.0)
+        store4(adj_psi, k, ca.b[p] * lp)
+        store4(adj_psi_new, k, a * lp * inv_dx)
+        store4(adj_zeta, k, zn)
+
+    @unique_kernel(grid_stride=False, enable_backward=False)
+    def pre_adjoint(
+        lam: arr4, v: arr3, adj_psi_z_new: arr4, adj_psi_z: arr4, adj_zeta_z_new: arr4, adj_zeta_z: arr4,
+        adj_psi_x_new: arr4, adj_psi_x: arr4, adj_zeta_x_new: arr4, adj_zeta_x: arr4,
+        az: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, z_cells: int, x_cells: int,
+    ):  # fmt: skip
+        # What a 2D adjoint step does before adjoint_core, in one launch: strip_cell_adjoint along z (the first
+        # z_cells threads) and x (the next x_cells). Gathers, no atomics: each strip cell is written by its own thread,
+        # adj_psi_*_new after that thread read it (never taped: the hand-written adjoint is not differentiated)
+        t = wp.tid()
+        lz, lx = lam.shape[1], lam.shape[3]
+        lo_z = wp.static(R)
+        if wp.static(fs):
+            lo_z = top + 1
+        if t < z_cells:
+            sc = strip_cell(t, adj_psi_z)
+            p = az.pos[sc[1]]
+            c = p * lx + sc[2]
+            inside = sc[2] >= wp.static(R) and sc[2] < lx - wp.static(R)
+            strip_cell_adjoint(lam, v, adj_psi_z_new, adj_psi_z, adj_zeta_z_new, adj_zeta_z, az, dt2, inv_dx, sc[0] * lz * lx + c, c, p,
+                               lx, t, lx, lo_z, lz - wp.static(R), inside)  # fmt: skip
+        elif t < z_cells + x_cells:
+            sc = strip_cell(t - z_cells, adj_psi_x)
+            p = ax.pos[sc[2]]
+            c = sc[1] * lx + p
+            inside = sc[1] >= lo_z and sc[1] < lz - wp.static(R)
+            strip_cell_adjoint(lam, v, adj_psi_x_new, adj_psi_x, adj_zeta_x_new, adj_zeta_x, ax, dt2, inv_dx, sc[0] * lz * lx + c, c, p, 1,
+                               t - z_cells, 1, wp.static(R), lx - wp.static(R), inside)  # fmt: skip
 
     @wp.func
     def flat_adjoint_cell(
@@ -1246,7 +1300,6 @@ def _flat_adjoint(ns):
         c = (z * ly + y) * lx + x
         o = s * lz * n + c
         bz = (s * psi_z.shape[1] * ly + y) * lx + x  # strip offsets: base + j stride
-        by = (s * lz + z) * psi_y.shape[2] * lx + x
         bx = ((s * lz + z) * ly + y) * psi_x.shape[3]
         lo_z = wp.static(R)
         if wp.static(fs):
@@ -1254,25 +1307,18 @@ def _flat_adjoint(ns):
         inv_dx2 = inv_dx * inv_dx
         acc = gather_z(lam, v, adj_zeta_z_new, az, dt2, o, c, z, n, bz, n, lo_z, lz - wp.static(R), top)
         acc += gather_x(lam, v, adj_zeta_x_new, ax, dt2, o, c, x, 1, bx, 1, wp.static(R), lx - wp.static(R), top)
-        if wp.static(three):
-            acc += gather_y(lam, v, adj_zeta_y_new, ay, dt2, o, c, y, lx, by, lx, wp.static(R), ly - wp.static(R), top)
         acc = acc * inv_dx2
+        acc += psi_term(adj_psi_z, az, z, bz, n) + psi_term(adj_psi_x, ax, x, bx, 1)
         if z >= lo_z:
             lc = load4(lam, o)
-            vv = load3(v, c)
-            q = vv * vv * dt2 * lc
             acc += dtype(2.0) * lc
             acc -= load4(adj, o)
-            total = strip_adjoint(d2w(zline(u, o, n, z, top)) * inv_dx2, q, z, psi_z, zeta_z, adj_psi_z, adj_zeta_z, adj_zeta_z_new, az, inv_dx,
-                                  bz, n)  # fmt: skip
-            total += strip_adjoint(d2w(line(u, o, 1)) * inv_dx2, q, x, psi_x, zeta_x, adj_psi_x, adj_zeta_x, adj_zeta_x_new, ax, inv_dx, bx, 1)
-            if wp.static(three):
-                total += strip_adjoint(d2w(line(u, o, lx)) * inv_dx2, q, y, psi_y, zeta_y, adj_psi_y, adj_zeta_y, adj_zeta_y_new, ay, inv_dx,
-                                       by, lx)  # fmt: skip
+            total = strip_adjoint(d2w(zline(u, o, n, z, top)) * inv_dx2, z, psi_z, zeta_z, az, inv_dx, bz, n)
+            total += strip_adjoint(d2w(line(u, o, 1)) * inv_dx2, x, psi_x, zeta_x, ax, inv_dx, bx, 1)
             store4(g_out, o, load4(g, o) + lc * total)
         store4(adj_out, o, acc)
 
-    return dict(flat_adjoint_cell=flat_adjoint_cell)
+    return dict(flat_adjoint_cell=flat_adjoint_cell, pre_adjoint=pre_adjoint)
 
 
 def _adjoint_core(ns, rows: int, V: int):
@@ -1755,8 +1801,9 @@ class Acoustic:
         adjoint of u[n+1], adj that of u[n+2]; out = (adj_out, g_out), default (adj, g): adj_out gets the
         adjoint of u[n] (plus, with residual = (data, op, n, clock), that of recording u[n], as
         record_adjoint), g_out = g (S, Lz, Ly, Lx) + lam times the stretched Laplacian of u[n]; adj_psi = (of
-        psi[n+1], of psi[n]), adj_zeta = (of zeta[n+1], of zeta[n]), each a list over the axes; the first ones
-        are consumed and zeroed. w = v^2 dt^2 (pad_model's shape). Separate outputs are faster on a GPU."""
+        psi[n+1], of psi[n]), adj_zeta = (of zeta[n+1], of zeta[n]), each a list over the axes: the first ones
+        are consumed (zeroed by the per-cell kernels; the 2D core's pre_adjoint overwrites the second ones and leaves
+        scratch in adj_psi[0]). w = v^2 dt^2 (pad_model's shape). Separate outputs are faster on a GPU."""
         adj_out, g_out = (adj, g) if out is None else out
         args = [st.u, vpad, *nxt.psi, *st.zeta, lam, adj, g, adj_out, g_out, *adj_psi[0], *adj_zeta[1], *adj_zeta[0], *self.axes, self.dt2,
                 self.inv_dx, self.top]  # fmt: skip
@@ -1769,11 +1816,15 @@ class Acoustic:
             if residual is not None:
                 self.record_adjoint(adj_out, *residual)
             return
-        self.adjoint_core(args, st.u, lam, adj, g, adj_out, g_out, w)
         z, x = self._strip_cells()
+        if z + x:
+            wp.launch(self.k.pre_adjoint, dim=z + x, inputs=[lam, vpad, adj_psi[0][0], adj_psi[1][0], adj_zeta[0][0], adj_zeta[1][0],
+                      adj_psi[0][2], adj_psi[1][2], adj_zeta[0][2], adj_zeta[1][2], self.axes[0], self.axes[2], self.dt2, self.inv_dx,
+                      self.top, z, x], device=self.device)  # fmt: skip
+        self.adjoint_core(args, st.u, lam, adj, g, adj_out, g_out, w)
         data, idx, wq, n, clock, points = self._points(residual)
-        wp.launch(self.k.post_adjoint, dim=z + x + points, inputs=[adj_out, adj_psi[1][0], adj_psi[0][0], adj_zeta[0][0], adj_psi[1][2],
-                  adj_psi[0][2], adj_zeta[0][2], self.axes[0], self.axes[2], self.inv_dx, z, x, data, idx, wq, n, clock], device=self.device)  # fmt: skip
+        if points:
+            wp.launch(self.k.post_adjoint, dim=points, inputs=[adj_out, data, idx, wq, n, clock], device=self.device)
 
     def tiles(self, box, rows=None, cols=None, ys=1) -> int:
         """Threads of a core-layout launch over `box` and `ys` values of y (_tile; default: this helper's rows and columns)."""
@@ -1789,9 +1840,8 @@ class Acoustic:
     def _merged(self, kernel, inputs, tiles: int, cells: int, part=None, cost=FRAME_CELL_COST):
         """Launch a core-and-frame kernel (_step_core, _adjoint_core): `tiles` core tiles, then, from a block
         boundary, `cells` frame threads (a cell or a tile each); part "core" or "frame": only that part (for
-        timing). On a CPU the work is split among the step's threads: the frame in one (the adjoint's CPML terms
-        scatter with atomics, which are plain adds on a CPU), the tiles (each writes only its own cells) shared so
-        that the threads' work is about equal, a frame thread counted as `cost` tile cells."""
+        timing). On a CPU the work is split among the step's threads: the frame in one, the tiles shared so that the
+        threads' work is about equal, a frame thread counted as `cost` tile cells. Each thread writes only its own cells."""
         frame = -(-tiles // self.core_threads) * self.core_threads
 
         def launch(dim, offset):
