@@ -477,20 +477,27 @@ def run_job(job: BenchJob, emit=None) -> list[BenchRow]:
     except Exception as exc:  # a broken engine fails its rows, not the whole benchmark
         rows = [BenchRow(engine="adseismic", mode=m, status=_failure(exc), **base) for m in job.modes]
         return rows + (_deepwave_rows_guarded(job, a, base, emit, rows) if job.deepwave else [])
+    def zero_data(shape):
+        # the gradient's observed data: on a GPU's acoustic scene a device array, as an FWI keeps them (the misfit is then
+        # formed on the device, as Deepwave's loss is; a host array would add its copies and the host's misfit)
+        if device_kind(device) == "cuda" and spec.kind == "acoustic":
+            return wp.zeros(shape, dtype=wp.float64, device=device)
+        return np.zeros(shape)
+
     observed = traces = None  # traces: our forward's receiver data of a physics scene (the accuracy against Deepwave)
     for mode in job.modes:
         row = BenchRow(engine="adseismic", mode=mode, memory_scope=job.memory_scope, **base)
         rows.append(row)
         try:
             if mode == "gradient" and observed is None:
-                observed = np.zeros(engine("forward", ours).receiver_amplitudes.shape)
+                observed = zero_data(engine("forward", ours).receiver_amplitudes.shape)
             row.seconds, row.times, row.cpu_seconds, out = _timed(lambda: engine(mode, ours, observed), job.repeat, sync)
         except Exception as exc:
             row.status = _failure(exc)
             log.error("%s %s on %s: %s", spec.name, mode, device, row.status)
             continue
         if mode == "forward":
-            observed = np.zeros(out.receiver_amplitudes.shape)
+            observed = zero_data(out.receiver_amplitudes.shape)
             traces = out.receiver_amplitudes if spec.family == "physics" else None
         else:
             est = getattr(out, "peak_bytes_estimate", None)
