@@ -477,6 +477,7 @@ def run_job(job: BenchJob, emit=None) -> list[BenchRow]:
     except Exception as exc:  # a broken engine fails its rows, not the whole benchmark
         rows = [BenchRow(engine="adseismic", mode=m, status=_failure(exc), **base) for m in job.modes]
         return rows + (_deepwave_rows_guarded(job, a, base, emit, rows) if job.deepwave else [])
+
     def zero_data(shape):
         # the gradient's observed data: on a GPU's acoustic scene a device array, as an FWI keeps them (the misfit is then
         # formed on the device, as Deepwave's loss is; a host array would add its copies and the host's misfit)

@@ -75,7 +75,7 @@ def build(ndim: int, order: int, dtype, free_surface: bool):
     )  # fmt: skip
     # each builder reads what the ones before it made (pre_step calls _points' record_point)
     for builder in (_stencils, _cpml, _reference_step, _cpu_rows, _points, _flat_cells, _gpu_step, _psi_adjoint, _adjoint_terms,
-                    _adjoint_step, _flat_adjoint, _model_ops):
+                    _adjoint_step, _flat_adjoint, _pre_adjoint, _model_ops):
         vars(ns).update(builder(ns))
     return Kernels(
         Axis=ns.Axis, step=ns.step, step_core=functools.lru_cache(maxsize=None)(functools.partial(_step_core, ns)), step_rows=ns.step_rows,
@@ -969,6 +969,7 @@ def _psi_adjoint(ns):
         return psi_adjoint_cell, psi_adjoint
 
     psi_adjoints = [make_psi_adjoint(a) for a in range(3)]
+
     @unique_kernel(grid_stride=False, enable_backward=False)
     def post_adjoint(adj: arr4, residual: arr3, idx: wp.array3d(dtype=wp.vec3i), w: arr3, n: int, clock: iarr1):
         # What a 2D adjoint step does after adjoint_core: the adjoint of record_fixed, adj += the receiver points'
@@ -1164,13 +1165,11 @@ def _adjoint_step(ns):
 
 
 def _flat_adjoint(ns):
-    """The 2D adjoint step's cells by flat offsets (flat_access), CPU and GPU: pre_adjoint (the CPML strips' adjoints,
-    gathered) and flat_adjoint_cell (_adjoint_core's frame cells: adjoint_cell's terms in its order, the strips' read
-    from pre_adjoint's output). adjoint_cell scatters the strips' adjoints with atomics; gathering them instead took
-    the 2D GPU adjoint step from 119 to 103 us on S600x16 (docs/benchmarks.md) and leaves only the receivers' atomics."""
-    dtype, R, A, B, fs, arr3, arr4, Axis = ns.dtype, ns.R, ns.A, ns.B, ns.fs, ns.arr3, ns.arr4, ns.Axis
+    """adjoint_cell by flat offsets (flat_access): the 2D adjoint step's frame cells (_adjoint_core, CPU and GPU). Same terms in
+    the same order as adjoint_cell (gather, weight, strip_adjoint), but the CPML strips' adjoints: gathered from
+    _pre_adjoint's output where adjoint_cell scatters them with atomics."""
+    dtype, R, A, fs, arr3, arr4, Axis = ns.dtype, ns.R, ns.A, ns.fs, ns.arr3, ns.arr4, ns.Axis
     d2w, d1w, line, zline, weighted, strip_total = ns.d2w, ns.d1w, ns.line, ns.zline, ns.weighted, ns.strip_total
-    strip_cell = ns.strip_cell
     load3, load4, store4, _ = flat_access(dtype)
 
     @wp.func
@@ -1225,6 +1224,49 @@ def _flat_adjoint(ns):
         return dtype(0.0)
 
     @wp.func
+    def flat_adjoint_cell(
+        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
+        lam: arr4, adj: arr4, g: arr4, adj_out: arr4, g_out: arr4,
+        adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
+        adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
+        adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
+        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, s: int, z: int, y: int, x: int,
+    ):  # fmt: skip
+        lz, ly, lx = u.shape[1], u.shape[2], u.shape[3]
+        n = ly * lx
+        c = (z * ly + y) * lx + x
+        o = s * lz * n + c
+        bz = (s * psi_z.shape[1] * ly + y) * lx + x  # strip offsets: base + j stride
+        bx = ((s * lz + z) * ly + y) * psi_x.shape[3]
+        lo_z = wp.static(R)
+        if wp.static(fs):
+            lo_z = top + 1
+        inv_dx2 = inv_dx * inv_dx
+        acc = gather_z(lam, v, adj_zeta_z_new, az, dt2, o, c, z, n, bz, n, lo_z, lz - wp.static(R), top)
+        acc += gather_x(lam, v, adj_zeta_x_new, ax, dt2, o, c, x, 1, bx, 1, wp.static(R), lx - wp.static(R), top)
+        acc = acc * inv_dx2
+        acc += psi_term(adj_psi_z, az, z, bz, n) + psi_term(adj_psi_x, ax, x, bx, 1)
+        if z >= lo_z:
+            lc = load4(lam, o)
+            acc += dtype(2.0) * lc
+            acc -= load4(adj, o)
+            total = strip_adjoint(d2w(zline(u, o, n, z, top)) * inv_dx2, z, psi_z, zeta_z, az, inv_dx, bz, n)
+            total += strip_adjoint(d2w(line(u, o, 1)) * inv_dx2, x, psi_x, zeta_x, ax, inv_dx, bx, 1)
+            store4(g_out, o, load4(g, o) + lc * total)
+        store4(adj_out, o, acc)
+
+    return dict(flat_adjoint_cell=flat_adjoint_cell, flat_weight=weight)
+
+
+def _pre_adjoint(ns):
+    """pre_adjoint, a 2D adjoint step's first launch (CPU and GPU): the CPML strips' adjoints, each strip cell gathering
+    what adjoint_cell's strip terms scatter with atomics. Gathering them took the 2D GPU adjoint step from 119 to 103 us
+    on S600x16 (docs/benchmarks.md) and leaves only the receivers' atomics."""
+    dtype, R, B, fs, arr3, arr4, Axis = ns.dtype, ns.R, ns.B, ns.fs, ns.arr3, ns.arr4, ns.Axis
+    strip_cell, weight = ns.strip_cell, ns.flat_weight
+    load3, load4, store4, _ = flat_access(dtype)
+
+    @wp.func
     def strip_cell_adjoint(lam: arr4, v: arr3, adj_psi_new: arr4, adj_psi: arr4, adj_zeta_new: arr4, adj_zeta: arr4, ca: Axis, dt2: dtype,
                            inv_dx: dtype, o: int, c: int, p: int, d: int, k: int, qd: int, lo: int, hi: int, inside: bool):  # fmt: skip
         # pre_adjoint at strip cell k: index p along the axis of stride d in the fields and the model and qd in the
@@ -1236,17 +1278,14 @@ def _flat_adjoint(ns):
         # adj_zeta = b adj_zn (that of zeta[n]), each 0 where it is (outside the PML, or not updated)
         a = ca.a[p]
         lp = load4(adj_psi_new, k)
+        qb = k - ca.store[p] * qd  # the strip's base offset: a strip cell's neighbours in the PML are strip cells
         if a != dtype(0.0) and inside:
             for m in range(wp.static(R)):
                 e = wp.static(m + 1)
                 if p - e >= lo and p - e < hi:
-                    vv = load3(v, c - e * d)
-                    q = vv * vv * dt2 * load4(lam, o - e * d)
-                    lp += dtype(wp.static(B[m])) * ((q + ca.a[p - e] * (q + load4(adj_zeta_new, k - e * qd))) * inv_dx)
+                    lp += dtype(wp.static(B[m])) * (weight(lam, v, adj_zeta_new, ca, dt2, o - e * d, c - e * d, p - e, qb, qd) * inv_dx)
                 if p + e >= lo and p + e < hi:
-                    vv = load3(v, c + e * d)
-                    q = vv * vv * dt2 * load4(lam, o + e * d)
-                    lp -= dtype(wp.static(B[m])) * ((q + ca.a[p + e] * (q + load4(adj_zeta_new, k + e * qd))) * inv_dx)
+                    lp -= dtype(wp.static(B[m])) * (weight(lam, v, adj_zeta_new, ca, dt2, o + e * d, c + e * d, p + e, qb, qd) * inv_dx)
         zn = dtype(0.0)
         if inside and p >= lo and p < hi and ca.store[p] >= 0:
             vv = load3(v, c)
@@ -1286,39 +1325,7 @@ def _flat_adjoint(ns):
             strip_cell_adjoint(lam, v, adj_psi_x_new, adj_psi_x, adj_zeta_x_new, adj_zeta_x, ax, dt2, inv_dx, sc[0] * lz * lx + c, c, p, 1,
                                t - z_cells, 1, wp.static(R), lx - wp.static(R), inside)  # fmt: skip
 
-    @wp.func
-    def flat_adjoint_cell(
-        u: arr4, v: arr3, psi_z: arr4, psi_y: arr4, psi_x: arr4, zeta_z: arr4, zeta_y: arr4, zeta_x: arr4,
-        lam: arr4, adj: arr4, g: arr4, adj_out: arr4, g_out: arr4,
-        adj_psi_z: arr4, adj_psi_y: arr4, adj_psi_x: arr4,
-        adj_zeta_z: arr4, adj_zeta_y: arr4, adj_zeta_x: arr4,
-        adj_zeta_z_new: arr4, adj_zeta_y_new: arr4, adj_zeta_x_new: arr4,
-        az: Axis, ay: Axis, ax: Axis, dt2: dtype, inv_dx: dtype, top: int, s: int, z: int, y: int, x: int,
-    ):  # fmt: skip
-        lz, ly, lx = u.shape[1], u.shape[2], u.shape[3]
-        n = ly * lx
-        c = (z * ly + y) * lx + x
-        o = s * lz * n + c
-        bz = (s * psi_z.shape[1] * ly + y) * lx + x  # strip offsets: base + j stride
-        bx = ((s * lz + z) * ly + y) * psi_x.shape[3]
-        lo_z = wp.static(R)
-        if wp.static(fs):
-            lo_z = top + 1
-        inv_dx2 = inv_dx * inv_dx
-        acc = gather_z(lam, v, adj_zeta_z_new, az, dt2, o, c, z, n, bz, n, lo_z, lz - wp.static(R), top)
-        acc += gather_x(lam, v, adj_zeta_x_new, ax, dt2, o, c, x, 1, bx, 1, wp.static(R), lx - wp.static(R), top)
-        acc = acc * inv_dx2
-        acc += psi_term(adj_psi_z, az, z, bz, n) + psi_term(adj_psi_x, ax, x, bx, 1)
-        if z >= lo_z:
-            lc = load4(lam, o)
-            acc += dtype(2.0) * lc
-            acc -= load4(adj, o)
-            total = strip_adjoint(d2w(zline(u, o, n, z, top)) * inv_dx2, z, psi_z, zeta_z, az, inv_dx, bz, n)
-            total += strip_adjoint(d2w(line(u, o, 1)) * inv_dx2, x, psi_x, zeta_x, ax, inv_dx, bx, 1)
-            store4(g_out, o, load4(g, o) + lc * total)
-        store4(adj_out, o, acc)
-
-    return dict(flat_adjoint_cell=flat_adjoint_cell, pre_adjoint=pre_adjoint)
+    return dict(pre_adjoint=pre_adjoint)
 
 
 def _adjoint_core(ns, rows: int, V: int):
