@@ -8,7 +8,9 @@ compared with the plain one. Prints the efficiency of N devices against the plai
 overhead of each pool on one device against it, and the seconds spent inside solve.acoustic.gradient per device
 (the rest of an evaluation is the path's own: dispatch, transfers, reduction). The pools' task (batch_gradient) also
 runs in the plain loop, on the main thread without a pool, which separates the task's own cost from the pool's. The
-plain path runs again last, so a drift of the device's speed over the run shows beside the pools' overheads.
+plain path runs again last, so a drift of the device's speed over the run shows beside the pools' overheads. The
+batches are fwi's defaults (all shots at once in one process, one batch per device in a pool: solve.pools.pool_shots_per_batch)
+unless --per-batch sets one size for every path.
 
     python benchmarks/parallel_devices.py                       # every GPU of this host (32 shots, < 3 min on H100s)
     python benchmarks/parallel_devices.py --device cpu --cpus 2 --shots 4 --n 150 --nt 800   # CPU threads
@@ -48,7 +50,8 @@ def main():
     ap.add_argument("--device", default=None, help="cuda (every GPU; the default where there is one) or cpu")
     ap.add_argument("--gpus", type=int, default=None, help="use the first GPUS GPUs (default all)")
     ap.add_argument("--cpus", type=int, default=2, help="--device cpu: the CPU device threads / Dask workers")
-    ap.add_argument("--per-batch", type=int, default=1, help="shots per batch (inversion.shots_per_batch)")
+    ap.add_argument("--per-batch", type=int, default=None, help="shots per batch (inversion.shots_per_batch) of every path; default: "
+                    "each path's own, all shots at once in one process and one batch per device in a pool")
     ap.add_argument("--precision", default="float32")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--no-dask", action="store_true", help="skip the Dask rows")
@@ -74,11 +77,17 @@ def main():
     t = time.perf_counter()
     obs = forward(v_true, dx, dt, amp, src, rec, **kw).receiver_amplitudes.astype(float)
     w = np.ones_like(obs)
-    print(f"{S} shots, {n} x {n} cells, {nt} steps, {args.precision}, {args.per_batch} shot(s) per batch; devices "
+    per = f"{args.per_batch} shot(s) per batch" if args.per_batch else "one batch in one process, one batch per device in a pool"
+    print(f"{S} shots, {n} x {n} cells, {nt} steps, {args.precision}, {per}; devices "
           f"{', '.join(devices)}; observed data simulated in {time.perf_counter() - t:.1f} s")  # fmt: skip
-    slices = shot_slices(S, args.per_batch)
-    batches = [{"amplitudes": amp[sl], "sources": src[sl], "receivers": rec[sl], "weights": w[sl], "observed": obs[sl],
-                "first": sl.start} for sl in slices]  # fmt: skip
+    def slices_for(nd):  # the shot batches of a pool of nd devices (0: the single-process loop)
+        return shot_slices(S, args.per_batch or (-(-S // nd) if nd else None))
+
+    def batches_for(nd):
+        return [{"amplitudes": amp[sl], "sources": src[sl], "receivers": rec[sl], "weights": w[sl], "observed": obs[sl],
+                 "first": sl.start} for sl in slices_for(nd)]  # fmt: skip
+
+    slices = slices_for(0)
     params = {"dx": dx, "dt": dt, "misfit": "l2", "illumination": False, "kw": kw}
     resident = [tuple(wp.array(a[sl], dtype=wp.float64, device=devices[0]) for a in (obs, w)) for sl in slices]
 
@@ -107,7 +116,7 @@ def main():
     rows = [("one process, one device (plain)", 1, t1, 0.0, inside["plain"])]
 
     def direct():  # the pools' task (batch_gradient) in the plain loop: on the main thread, no pool, no stream of its own
-        rs = [distributed.batch_gradient(v0, dict(b, key=f"direct-{k}"), dict(params, device=devices[0])) for k, b in enumerate(batches)]
+        rs = [distributed.batch_gradient(v0, dict(b, key=f"direct-{k}"), dict(params, device=devices[0])) for k, b in enumerate(batches_for(1))]
         inside["direct"] = sum(r["seconds"] for r in rs)
         return distributed.reduce_in_order(rs, v0.shape)[:2]
 
@@ -121,7 +130,7 @@ def main():
             return distributed.reduce_in_order(rs, v0.shape)
 
         with pool:
-            pool.keep(batches)
+            pool.keep(batches_for(nd))
             tn, (loss, grad, _) = best(evaluate)
         rows.append((name, nd, tn, float(np.linalg.norm(grad - grad1) / np.linalg.norm(grad1)), inside[name]))
 
@@ -141,7 +150,7 @@ def main():
 
     if dask and args.fault:
         with distributed.ShotPool(ParallelConfig(devices=devices, workers=max(2, len(devices))), devices[0], S) as pool:
-            pool.keep(batches)
+            pool.keep(batches_for(len(devices)))
             fault(pool, lambda: pool.evaluate(v0, params), v0.shape)
 
     print("| path | devices | s an evaluation | efficiency T1 / (N TN) | gradient vs plain (rel. L2) | s inside gradient() a device |")

@@ -198,15 +198,17 @@ def test_kept_graph_loops_are_per_device():
         graphs.release()
 
 
-def assert_fwi_iterates_do_not_depend_on(parallel: dict, tmp_path, rtol: float) -> str:
-    """A tiny FWI in one process and with the `parallel` section: the same iterates, misfits and final model (to
-    rtol; 0 asks for bitwise); returns the parallel run's fwi.log."""
-    cfg = dict(TINY, inversion=dict(TINY["inversion"], iterations=2, bands=[4.0], shots_per_batch=1))
+def assert_fwi_iterates_do_not_depend_on(parallel: dict, tmp_path, rtol: float, per_batch: int | None = 1) -> str:
+    """A tiny FWI (3 shots) in one process and with the `parallel` section (2 workers), shots_per_batch = per_batch (None:
+    unset): the same iterates, misfits and final model (to rtol; 0 asks for bitwise); returns the parallel run's fwi.log."""
+    inversion = dict(TINY["inversion"], iterations=2, bands=[4.0], **({} if per_batch is None else {"shots_per_batch": per_batch}))
+    cfg = dict(TINY, inversion=inversion)
     one, two = tmp_path / "one", tmp_path / "two"
     assert main(["fwi", str(write(tmp_path, cfg, "one.yaml")), "-o", str(one), "-q"]) == 0
     assert main(["fwi", str(write(tmp_path, dict(cfg, parallel=parallel), "two.yaml")), "-o", str(two), "-q"]) == 0
     log = (two / "fwi.log").read_text()
-    assert "evaluation 1: 3 shot batch(es) on 2 worker(s) in" in log  # progress over the workers, in fwi.log
+    batches = 3 if per_batch == 1 else 2  # unset: one batch per worker, 2 + 1 shots
+    assert f"evaluation 1: {batches} shot batch(es) on 2 worker(s) in" in log  # progress over the workers, in fwi.log
     with h5py.File(one / "history.h5") as a, h5py.File(two / "history.h5") as b:
         assert sorted(a["band0"]) == sorted(b["band0"]) == ["iter0001", "iter0002"]
         for it in a["band0"]:
@@ -221,6 +223,14 @@ def test_fwi_iterates_do_not_depend_on_the_device_threads(tmp_path):
     """The same batches and sums in the same order: the same iterates, bit for bit."""
     log = assert_fwi_iterates_do_not_depend_on(THREADS, tmp_path, rtol=0.0)
     assert "parallel: 2 thread(s) in this process on cpu, cpu" in log
+
+
+def test_a_pool_runs_one_batch_per_worker_unless_shots_per_batch_is_set(tmp_path):
+    """Without inversion.shots_per_batch a pool runs one batch per worker (solve.pools.pool_shots_per_batch), as one
+    process runs all shots at once: the one-process iterates to float64 round-off (the shots' gradients summed in
+    other groups: the iterates of float64 runs differ by ~1e-16 relative, far below 1e-12)."""
+    log = assert_fwi_iterates_do_not_depend_on(THREADS, tmp_path, rtol=1e-12, per_batch=None)
+    assert "inversion.shots_per_batch: 2 (one batch per worker of the pool" in log
 
 
 FORWARD = {

@@ -578,7 +578,7 @@ class Inversion(_Section):
     wavelet_estimation: Annotated[bool | None, Bool] = F(
         False, "least-squares wavelet estimate per band from the start model's synthetics")
     shots_per_batch: Annotated[int | None, Int(1, "give at least 1 shot per batch")] = F(
-        None, "shots simulated together (memory); null: all", minimum=1)
+        None, "shots simulated together (memory); null: all, or one batch per worker with a parallel section", minimum=1)
     memory_budget_gb: Annotated[float | None, Pos("GB")] = F(
         None, "memory for checkpoints + one taped segment per gradient (trades recomputation for memory)", "GB",
         exclusiveMinimum=0)

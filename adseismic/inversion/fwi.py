@@ -52,7 +52,7 @@ from adseismic.scene import attenuation_check, build_scene, p_speeds, plan_scene
 from adseismic.solve.acoustic import forward, gradient
 from adseismic.solve.batch import shot_slices
 from adseismic.solve.distributed import reduce_in_order
-from adseismic.solve.pools import check_pool, open_pool
+from adseismic.solve.pools import check_pool, open_pool, pool_shots_per_batch
 from adseismic.solve.acoustic_vd import MODELS as ACOUSTIC_VD_MODELS
 from adseismic.solve.acoustic_vd import forward_acoustic_vd, gradient_acoustic_vd
 from adseismic.solve.elastic import forward_elastic, gradient_elastic
@@ -716,7 +716,7 @@ def run_fwi(cfg, rundir, progress=True, prepared: Prepared | None = None) -> FWI
     (config.load_fwi_config), writing model.h5, history.h5, the log and PNGs into the folder rundir. Returns the
     FWIResult: the inverted model (nz, [ny,] nx) in m/s on the simulation grid (spacing dx m, origin m).
     With a `parallel:` section (cfg.parallel) the shots of every evaluation run on Dask workers or on the threads of
-    several devices (solve.pools.open_pool, one shot per batch unless inversion.shots_per_batch says otherwise)."""
+    several devices (solve.pools.open_pool, one batch per worker unless inversion.shots_per_batch says otherwise)."""
     t_start = time.perf_counter()
     prep = prepared or prepare_fwi(cfg)
     if getattr(cfg, "parallel", None) is None:
@@ -889,7 +889,12 @@ def _run_fwi(cfg, rundir, progress, prep: Prepared, t_start, pool) -> FWIResult:
     obs = obs if isinstance(obs, dict) else {"data": obs}
     region_mask, _ = _masks(p, inv, fwd)  # (the model errors': on the plan's grid)
     history = _History(rundir / "history.h5", p.dx, p.origin, units=_history_units(space))
-    batches = shot_slices(len(scene.source_amplitudes), inv.shots_per_batch or (1 if pool is not None else None))
+    per_batch = inv.shots_per_batch
+    if per_batch is None and pool is not None:
+        per_batch = pool_shots_per_batch(len(scene.source_amplitudes), pool)
+        log.info("inversion.shots_per_batch: %d (one batch per worker of the pool; set it for a result that does not depend on "
+                 "the number of workers, bit for bit)", per_batch)
+    batches = shot_slices(len(scene.source_amplitudes), per_batch)
     x = space.x0()
     start = space.point(x).physical
     results = []

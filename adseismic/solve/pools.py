@@ -36,6 +36,16 @@ def open_pool(par, sim_device: str, n_shots: int, progress: bool = False):
     return distributed.ShotPool(par, sim_device, n_shots, progress)
 
 
+def pool_shots_per_batch(n_shots: int, pool) -> int:
+    """Shots per batch of a pool's evaluations when inversion.shots_per_batch is unset: one batch per worker, as the
+    single-process loop runs all shots at once. A batch of many shots is what keeps a GPU busy: one 2D evaluation of
+    32 shots on one H200 took 1.40 s in batches of one shot, 0.325 s in batches of 8 and 0.240 s in one batch
+    (docs/benchmarks.md). The batches then depend on the number of workers, and the sum over them differs by the
+    rounding of the devices' sums (float32 ~1e-7, float64 ~1e-16); a fixed inversion.shots_per_batch gives the
+    same result, bit for bit, on any number of workers."""
+    return -(-int(n_shots) // max(len(pool.workers()), 1))
+
+
 def forward_on_workers(scene, par, snapshot_every: int = 0, progress: bool = False):
     """scene.run_forward(scene, snapshot_every) with the shots partitioned over the workers of the parallel section
     `par` and gathered in shot order: the same ForwardResult (acoustic), ElasticResult or AcousticVDResult, bit for
