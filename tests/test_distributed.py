@@ -70,8 +70,11 @@ def resident_keys(pool) -> dict:
     return dict(pool.client.run(lambda: (os.getpid(), sorted(at[0] for at in residency.RESIDENT))).values())
 
 
-def test_a_worker_killed_during_an_evaluation_still_gives_the_gradient(problem, pool):
-    pool.keep(problem.batches())
+@pytest.mark.parametrize("per_batch", [1, 2], ids=["model broadcast first", "model in each task"])
+def test_a_worker_killed_during_an_evaluation_still_gives_the_gradient(problem, pool, per_batch):
+    # 3 shots on 2 workers: in 3 batches the model goes to every worker before the tasks, in 2 (one a worker, fwi's
+    # default) each task carries it (ShotPool.evaluate); either way the re-run tasks need nothing of the dead worker
+    pool.keep(problem.batches(per_batch=per_batch))
     assert not [k for keys in resident_keys(pool).values() for k in keys]  # the previous band's device arrays freed
     clean = distributed.reduce_in_order(pool.evaluate(problem.model, problem.params()), problem.model.shape)
     pids = pool.client.run(os.getpid)  # {worker address: pid}, processes this test's pool started

@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 
 CONNECT_TIMEOUT = 5.0  # s to reach a scheduler address before the run is refused
 WORKER_WAIT = 60.0  # s for the workers asked for (parallel.workers) to join a remote scheduler
+TASK_MODEL_BYTES = 10e6  # largest model an evaluation's tasks carry (distributed.admin.large-graph-warning-threshold)
 
 
 def _import_dask(key="parallel.engine"):
@@ -219,7 +220,7 @@ def batch_gradient(model, data, params) -> dict:
     if data["first"] == 0:
         syn0 = r.synthetic[0].numpy() if isinstance(r.synthetic, wp.array) else r.synthetic[0]
     return {"loss": r.loss, "velocity": r.velocity, "illumination": r.illumination, "first": data["first"],
-            "synthetic0": None if syn0 is None else np.asarray(syn0, float), "seconds": time.perf_counter() - t,
+            "synthetic0": None if syn0 is None else np.asarray(syn0), "seconds": time.perf_counter() - t,
             "misfit_seconds": spent[0], "pid": os.getpid()}  # fmt: skip
 
 
@@ -299,17 +300,21 @@ class ShotPool:
 
     def __init__(self, par, sim_device: str, n_shots: int, progress: bool = False):
         distributed = _import_dask()
+        import dask
         self.par, self.cluster, self.token, self.progress = par, None, uuid.uuid4().hex[:12], progress
         # distributed's nanny writes its workers' settings (OMP/MKL/OPENBLAS_NUM_THREADS=1, MALLOC_TRIM_THRESHOLD_) into
         # this process's os.environ and leaves them there: every process started later (a forward, a resumed fwi in a
         # subprocess) would then run one BLAS thread where it ran several, and its sums would differ in the last bit.
         # close() puts the environment back.
         self.environ = dict(os.environ)
-        self.generation, self.evaluations, self.futures = 0, 0, []
+        self.generation, self.evaluations, self.futures, self.last = 0, 0, [], None
         if par.scheduler == "local":
             devices = local_devices(par, sim_device, n_shots)
-            self.cluster = distributed.LocalCluster(n_workers=len(devices), threads_per_worker=1, processes=True,
-                                                    dashboard_address=":0", silence_logs=logging.WARNING)  # fmt: skip
+            # without the workers' sampling profiler: every 10 ms it takes the GIL from the task's thread, whose Python
+            # launches the kernels and graphs
+            with dask.config.set({"distributed.worker.profile.enabled": False}):
+                self.cluster = distributed.LocalCluster(n_workers=len(devices), threads_per_worker=1, processes=True,
+                                                        dashboard_address=":0", silence_logs=logging.WARNING)  # fmt: skip
             self.client = distributed.Client(self.cluster, set_as_default=False)
             info = self.client.scheduler_info(n_workers=-1)["workers"]
             names = sorted(info[a]["name"] for a in info)  # LocalCluster names its workers 0, 1, ... (kept across restarts)
@@ -328,7 +333,7 @@ class ShotPool:
         self.close()
 
     def close(self):
-        self.futures = []
+        self.futures, self.last = [], None
         if self.cluster is None:  # a remote cluster's workers outlive the run: free their device arrays of it
             with contextlib.suppress(OSError, TimeoutError):
                 self.client.run(_evict, self.token, on_error="ignore")
@@ -347,7 +352,7 @@ class ShotPool:
         releases them, and the workers' resident device arrays of them): the data of every later evaluate. The
         first evaluation of a batch on a worker uploads its observed data and weights to the worker's device
         (solve.residency.resident), where they stay."""
-        self.futures = []  # releases the previous band's data
+        self.futures, self.last = [], None  # releases the previous band's data and results
         self.client.run(_evict, self.token)
         self.generation += 1
         addrs = self.workers()
@@ -363,10 +368,19 @@ class ShotPool:
         self.evaluations += 1
         tag = f"{self.token}-{self.generation}-{self.evaluations}"
         params = dict(params, devices=self.devices, device=params.get("device", self.default_device))
-        # the model on every worker (broadcast): no task fetches it from a peer, so a worker lost mid-evaluation takes
-        # no input of the others with it (fetching from a dead peer waits out distributed.comm.timeouts.connect, 30 s)
-        [model] = self.client.scatter([model], broadcast=True, hash=False)
+        # No task fetches the model from a peer, so a worker lost mid-evaluation takes no input of the others with it
+        # (fetching from a dead peer waits out distributed.comm.timeouts.connect, 30 s): with at most one batch per
+        # worker (fwi's default) each task carries its own copy through the scheduler, unless the model is larger
+        # than Dask's large-graph threshold; else it is first sent to every worker (broadcast)
+        arrays = model.values() if isinstance(model, dict) else [model]
+        if len(self.futures) > len(self.devices) or sum(np.asarray(a).nbytes for a in arrays) > TASK_MODEL_BYTES:
+            [model] = self.client.scatter([model], broadcast=True, hash=False)
         futures = [self.client.submit(fn, model, d, params, key=f"adseismic-eval-{tag}-{k}") for k, d in enumerate(self.futures)]
+        # the last evaluation's futures are released now, after this one's tasks went out: Dask batches the messages
+        # of each connection (a message waits up to 10 ms after the previous one from a client, 5 ms from the
+        # scheduler), so releasing them at the end of an evaluation delayed the next one's tasks. With the model in
+        # the task, a task started 5.5 ms after the call on one H200, 13.7 ms before (docs/benchmarks.md, 2026-12-02)
+        self.last = (futures, model)
         results = {}
 
         def completions(pending):  # each result fetched as its batch ends, beside the batches still running
@@ -374,11 +388,8 @@ class ShotPool:
                 results[fut.key] = result
                 yield
 
-        try:
-            count_batches(completions(futures), len(futures), desc or f"evaluation {self.evaluations}", len(self.devices), self.progress)
-            return [results[f.key] for f in futures]
-        finally:
-            del futures, model
+        count_batches(completions(futures), len(futures), desc or f"evaluation {self.evaluations}", len(self.devices), self.progress)
+        return [results[f.key] for f in futures]
 
 
 def gather_forward(results: list[dict]):
