@@ -33,7 +33,8 @@ from adseismic.scene import build_scene, check_memory, gradient_memory_bytes, pl
 from adseismic.solve import distributed
 from adseismic.solve.acoustic import forward
 from adseismic.solve.common import dominant_frequency
-from adseismic.solve.pools import check_pool, open_pool
+from adseismic.solve.batch import shot_slices
+from adseismic.solve.pools import check_pool, open_pool, pool_shots_per_batch
 
 log = logging.getLogger(__name__)
 
@@ -143,8 +144,8 @@ def rtm_elastic(cfg, prep: PreparedImage, observed: dict) -> ImageResult:
 
 
 class PooledBorn:
-    """The Born operator `op` with its shots over the workers of a parallel section (solve.pools; one shot a task,
-    solve.distributed.batch_born / batch_born_adjoint), data joined and images summed in shot order: apply, adjoint
+    """The Born operator `op` with its shots over the workers of a parallel section (solve.pools; one batch of shots a
+    worker, solve.distributed.batch_born / batch_born_adjoint), data joined and images summed in shot order: apply, adjoint
     and migrate as op's, the one-process results to rounding, so rtm and lsrtm run on it unchanged. The background
     and dm go to every worker per call; each call's shot data (geometry, observed data or the residual) are kept on
     the workers for that call. A context manager: it opens and closes the pool."""
@@ -165,9 +166,10 @@ class PooledBorn:
 
     def _run(self, model, fn, per_shot: dict, desc: str, illumination: bool = False) -> list:
         op = self.op
-        self.pool.keep([{"amplitudes": op.source_amplitudes[k:k + 1], "sources": op.source_locations[k:k + 1],
-                         "receivers": op.receiver_locations[k:k + 1], "first": k, **{n: a[k:k + 1] for n, a in per_shot.items()}}
-                        for k in range(len(op.source_amplitudes))])  # fmt: skip
+        n = len(op.source_amplitudes)
+        self.pool.keep([{"amplitudes": op.source_amplitudes[sl], "sources": op.source_locations[sl], "receivers": op.receiver_locations[sl],
+                         "first": sl.start, **{k: a[sl] for k, a in per_shot.items()}}
+                        for sl in shot_slices(n, pool_shots_per_batch(n, self.pool))])  # fmt: skip
         return self.pool.evaluate(model, dict(self.params, illumination=illumination), fn=fn, desc=desc)
 
     def _summed(self, results, illumination):
