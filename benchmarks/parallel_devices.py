@@ -116,7 +116,8 @@ def main():
     rows = [("one process, one device (plain)", 1, t1, 0.0, inside["plain"])]
 
     def direct():  # the pools' task (batch_gradient) in the plain loop: on the main thread, no pool, no stream of its own
-        rs = [distributed.batch_gradient(v0, dict(b, key=f"direct-{k}"), dict(params, device=devices[0])) for k, b in enumerate(batches_for(1))]
+        rs = [distributed.batch_gradient(v0, dict(b, key=f"direct-{k}"), dict(params, device=devices[0]))
+              for k, b in enumerate(batches_for(1))]
         inside["direct"] = sum(r["seconds"] for r in rs)
         return distributed.reduce_in_order(rs, v0.shape)[:2]
 
