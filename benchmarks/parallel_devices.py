@@ -180,7 +180,7 @@ def fault(pool, evaluate, shape):
     runner.start()
     victim = None
     while victim is None and runner.is_alive():
-        victim = next((a for a, tasks in pool.client.processing().items() if tasks and a in pids), None)
+        victim = next((a for a in pool.busy() if a in pids), None)
     if victim is None:
         sys.exit("fault: the evaluation ended before a worker could be killed")
     os.kill(pids[victim], signal.SIGKILL)

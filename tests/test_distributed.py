@@ -45,6 +45,7 @@ def test_two_workers_give_the_gradient_of_one_process(problem, pool):
     pool.keep(problem.batches())
     rs = pool.evaluate(problem.model, problem.params())
     assert [r["first"] for r in rs] == [0, 1, 2]  # batch order
+    assert pool.reruns == 0  # every batch ran through its worker's caller, none as a task
     assert len({r["pid"] for r in rs}) == 2 and os.getpid() not in {r["pid"] for r in rs}  # both workers, not this process
     loss, grad, _ = distributed.reduce_in_order(rs, problem.model.shape)
     one_loss, one_grad = problem.one_process()  # one batch of all shots, misfit on the host: equal to round-off
@@ -83,18 +84,21 @@ def test_a_worker_killed_during_an_evaluation_still_gives_the_gradient(problem, 
     runner = threading.Thread(target=lambda: out.setdefault("rs", pool.evaluate(problem.model, problem.params())))
     runner.start()
     deadline = time.time() + 30
-    while not pool.client.processing().get(victim) and time.time() < deadline:  # the victim holds a task of this evaluation
+    while victim not in pool.busy() and time.time() < deadline:  # the victim runs batches of this evaluation
         time.sleep(0.002)
-    assert pool.client.processing().get(victim) and runner.is_alive(), "no task reached the worker to kill"
+    assert victim in pool.busy() and runner.is_alive(), "no batch reached the worker to kill"
     os.kill(pids[victim], signal.SIGKILL)
     runner.join(120)
     assert not runner.is_alive() and "rs" in out
+    assert pool.reruns >= 1  # the victim's batches re-ran as tasks
     assert pids[victim] not in {r["pid"] for r in out["rs"]}  # its shots ran elsewhere (or on the restarted worker)
     keys = resident_keys(pool)  # ... which uploaded their data to its device
     assert all(f"{pool.token}-{pool.generation}-{k}" in keys[r["pid"]] for k, r in enumerate(out["rs"])), keys
     loss, grad, _ = distributed.reduce_in_order(out["rs"], problem.model.shape)
     assert loss == clean[0]
     np.testing.assert_array_equal(grad, clean[1])
+    again = distributed.reduce_in_order(pool.evaluate(problem.model, problem.params()), problem.model.shape)
+    assert pool.reruns == 0 and again[0] == loss  # the next evaluation routed to the callers where the data are now
 
 
 @pytest.mark.slow

@@ -6,15 +6,19 @@ cluster, docs/parallel.md). The workflow hands it, once per band, each shot batc
 evaluation, only the model (`evaluate`):
 
 - resident data: each batch's arrays (wavelets, geometry, weights, observed data: NumPy) are the result of a task
-  `keep` submits once, placed round-robin on the workers; the evaluation tasks that need them run where they are
-  (Dask's data locality), so an evaluation moves the model out (one task, fetched by the workers) and the
-  (misfit, gradient) of each batch back, nothing else. The first evaluation of a batch on a worker also uploads its
-  observed data and weights to the worker's device, where they stay until the next keep or close
-  (solve.residency.resident and evict, the threads engine's code). The scheduler keeps the batch tasks' inputs, so a
-  batch whose worker is lost is rebuilt on another worker (whose first run of it uploads it there);
-- faults: a worker lost mid-evaluation (killed, out of memory) has its tasks re-run by the scheduler elsewhere
-  (or on the worker its nanny restarts); the evaluation then completes with the fault-free result, as every task
-  is a pure function of the model and its batch's data;
+  `keep` submits once, placed round-robin on the workers. An evaluation runs the batches through one Dask actor
+  (`_Caller`) on each worker that holds some: one call a worker, from the client straight to the worker (past the
+  scheduler), which runs them on the data it holds and answers with their results. So an evaluation moves the model
+  out and the (misfit, gradient) of each batch back, nothing else, and pays one round trip a worker instead of a
+  task's way through the scheduler (a one-GPU evaluation ~8 ms shorter, docs/benchmarks.md). The first evaluation
+  of a batch on a worker also uploads its observed data and weights to the worker's device, where they stay until
+  the next keep or close (solve.residency.resident and evict, the threads engine's code). The scheduler keeps the
+  batch tasks' inputs, so a batch whose worker is lost is rebuilt on another worker (whose first run of it uploads
+  it there);
+- faults: a worker lost mid-evaluation (killed, out of memory) fails its actor's call; its batches then run as
+  ordinary Dask tasks, which the scheduler places on the workers left (or on the worker its nanny restarts), with
+  their data rebuilt there; the evaluation completes with the fault-free result, as every batch is a pure function
+  of the model and its data. The next evaluation routes the batches afresh to wherever their data now are;
 - reduction: `evaluate` returns the batches' results in batch order and the caller sums them on the client in
   float64 in that order (as the single-process loop does), so the result does not depend on the number of workers
   or on which worker ran what.
@@ -37,6 +41,7 @@ import dataclasses
 import logging
 import os
 import sys
+import threading
 import time
 import uuid
 
@@ -160,6 +165,28 @@ def _resident(data):
     """A batch's data, kept on the worker that ran this task (rebuilt from the scheduler's copy of the input if that
     worker is lost)."""
     return data
+
+
+# one batch at a time in a worker process: a caller's batches and a task re-run there after a fault share its kept graphs
+_RUN = threading.Lock()
+
+
+def _run(fn, model, data, params):
+    """fn(model, data, params), one at a time in this process."""
+    with _RUN:
+        return fn(model, data, params)
+
+
+class _Caller:
+    """A ShotPool's actor on one worker: runs an evaluation's batches on the data this worker holds (the results of
+    their `_resident` tasks, by key), in one call that the client sends to the worker directly."""
+
+    def evaluate(self, fn, model, params, keys):
+        """[fn's result, or None where the worker does not hold that batch's data] in the order of keys."""
+        from distributed import get_worker
+
+        data = get_worker().data
+        return [_run(fn, model, data[k], params) if k in data else None for k in keys]
 
 
 def _evict(token):
@@ -307,7 +334,10 @@ class ShotPool:
         # subprocess) would then run one BLAS thread where it ran several, and its sums would differ in the last bit.
         # close() puts the environment back.
         self.environ = dict(os.environ)
-        self.generation, self.evaluations, self.futures, self.last = 0, 0, [], None
+        self.generation, self.evaluations, self.futures = 0, 0, []
+        # worker address -> (its _Caller's future, the actor); worker -> its batches; the running calls; how many batches
+        # the last evaluation ran as tasks
+        self.callers, self.route, self.calls, self.reruns = {}, None, {}, 0
         if par.scheduler == "local":
             devices = local_devices(par, sim_device, n_shots)
             # without the workers' sampling profiler: every 10 ms it takes the GIL from the task's thread, whose Python
@@ -315,7 +345,8 @@ class ShotPool:
             with dask.config.set({"distributed.worker.profile.enabled": False}):
                 self.cluster = distributed.LocalCluster(n_workers=len(devices), threads_per_worker=1, processes=True,
                                                         dashboard_address=":0", silence_logs=logging.WARNING)  # fmt: skip
-            self.client = distributed.Client(self.cluster, set_as_default=False)
+            # a caller's calls and the results go between this process and the workers directly (all on this host)
+            self.client = distributed.Client(self.cluster, set_as_default=False, direct_to_workers=True)
             info = self.client.scheduler_info(n_workers=-1)["workers"]
             names = sorted(info[a]["name"] for a in info)  # LocalCluster names its workers 0, 1, ... (kept across restarts)
             self.devices = dict(zip(names, devices))
@@ -333,7 +364,7 @@ class ShotPool:
         self.close()
 
     def close(self):
-        self.futures, self.last = [], None
+        self.futures, self.callers, self.route, self.calls = [], {}, None, {}
         if self.cluster is None:  # a remote cluster's workers outlive the run: free their device arrays of it
             with contextlib.suppress(OSError, TimeoutError):
                 self.client.run(_evict, self.token, on_error="ignore")
@@ -352,7 +383,7 @@ class ShotPool:
         releases them, and the workers' resident device arrays of them): the data of every later evaluate. The
         first evaluation of a batch on a worker uploads its observed data and weights to the worker's device
         (solve.residency.resident), where they stay."""
-        self.futures, self.last = [], None  # releases the previous band's data and results
+        self.futures = []  # releases the previous band's data
         self.client.run(_evict, self.token)
         self.generation += 1
         addrs = self.workers()
@@ -360,36 +391,88 @@ class ShotPool:
         self.futures = [self.client.submit(_resident, dict(d, key=key), key=f"adseismic-data-{key}",
                                            workers=[addrs[k % len(addrs)]], allow_other_workers=True)
                         for k, (d, key) in enumerate(zip(batches, keys))]  # fmt: skip
+        with self.client.as_current():
+            _import_dask().wait(self.futures)
+        self.route = self._route()
+
+    def _route(self) -> dict:
+        """{worker address: [batch index]}: each kept batch on the worker that holds its data, given a caller there
+        (made for a worker that has none); a batch whose data no worker holds now (being rebuilt) is left out."""
+        holders = self.client.who_has(self.futures)
+        route = {}
+        for k, f in enumerate(self.futures):
+            if holders.get(f.key):
+                route.setdefault(holders[f.key][0], []).append(k)
+        self.callers = {a: c for a, c in self.callers.items() if c[0].status == "finished"}  # those of lost workers gone
+        with self.client.as_current():  # an actor binds to the current client
+            for addr in route:
+                if addr not in self.callers:
+                    fut = self.client.submit(_Caller, actor=True, workers=[addr], allow_other_workers=False,
+                                             key=f"adseismic-caller-{self.token}-{uuid.uuid4().hex[:8]}")  # fmt: skip
+                    self.callers[addr] = (fut, fut.result())
+        return route
+
+    def busy(self) -> set[str]:
+        """The workers running batches of the evaluation in progress (a caller's call not answered, a task
+        processing)."""
+        return {a for a, (_, call) in self.calls.items() if not call.done()} | {a for a, ts in self.client.processing().items() if ts}
 
     def evaluate(self, model, params: dict, fn=batch_gradient, desc: str | None = None) -> list[dict]:
         """fn(model, batch data, params) for every kept batch on the workers; the results in batch order. model: an
-        array or a dict of arrays, sent once; desc: the progress's name (default "evaluation K")."""
-        distributed = _import_dask()
+        array or a dict of arrays; desc: the progress's name (default "evaluation K"). Each worker's batches go in one
+        call to its caller; the batches of a lost worker, or whose data moved, run as Dask tasks."""
         self.evaluations += 1
         tag = f"{self.token}-{self.generation}-{self.evaluations}"
         params = dict(params, devices=self.devices, device=params.get("device", self.default_device))
-        # No task fetches the model from a peer, so a worker lost mid-evaluation takes no input of the others with it
-        # (fetching from a dead peer waits out distributed.comm.timeouts.connect, 30 s): with at most one batch per
-        # worker (fwi's default) each task carries its own copy through the scheduler, unless the model is larger
-        # than Dask's large-graph threshold; else it is first sent to every worker (broadcast)
-        arrays = model.values() if isinstance(model, dict) else [model]
-        if len(self.futures) > len(self.devices) or sum(np.asarray(a).nbytes for a in arrays) > TASK_MODEL_BYTES:
-            [model] = self.client.scatter([model], broadcast=True, hash=False)
-        futures = [self.client.submit(fn, model, d, params, key=f"adseismic-eval-{tag}-{k}") for k, d in enumerate(self.futures)]
-        # the last evaluation's futures are released now, after this one's tasks went out: Dask batches the messages
-        # of each connection (a message waits up to 10 ms after the previous one from a client, 5 ms from the
-        # scheduler), so releasing them at the end of an evaluation delayed the next one's tasks. With the model in
-        # the task, a task started 5.5 ms after the call on one H200, 13.7 ms before (docs/benchmarks.md, 2026-12-02)
-        self.last = (futures, model)
+        if self.route is None:
+            self.route = self._route()
+        self.calls, rest = {}, []
+        with self.client.as_current():
+            for addr, ks in self.route.items():
+                fut, caller = self.callers[addr]
+                try:
+                    self.calls[addr] = (ks, caller.evaluate(fn, model, params, [self.futures[k].key for k in ks]))
+                except RuntimeError:  # "Worker holding Actor was lost"
+                    rest += ks
+        routed = {k for ks in self.route.values() for k in ks}
+        rest += [k for k in range(len(self.futures)) if k not in routed]
         results = {}
 
-        def completions(pending):  # each result fetched as its batch ends, beside the batches still running
-            for fut, result in distributed.as_completed(pending, with_results=True, loop=self.client.loop):
-                results[fut.key] = result
-                yield
+        def completions():  # each worker's results as its call returns, then those of the batches run as tasks
+            for addr, (ks, call) in self.calls.items():
+                try:
+                    out = call.result()
+                except OSError:  # the worker was lost during the call (fn's own OSError: raised again by its task)
+                    out = [None] * len(ks)
+                for k, r in zip(ks, out):
+                    if r is None:
+                        rest.append(k)
+                    else:
+                        results[k] = r
+                        yield
+            self.reruns = len(rest)
+            if rest:
+                log.info("%d shot batch(es) run as Dask tasks: their worker was lost or their data moved", len(rest))
+                self.route = None  # routed afresh next time, to where the data are then
+                yield from self._tasks(sorted(rest), model, params, tag, fn, results)
 
-        count_batches(completions(futures), len(futures), desc or f"evaluation {self.evaluations}", len(self.devices), self.progress)
-        return [results[f.key] for f in futures]
+        count_batches(completions(), len(self.futures), desc or f"evaluation {self.evaluations}", len(self.devices), self.progress)
+        return [results[k] for k in range(len(self.futures))]
+
+    def _tasks(self, ks: list, model, params, tag, fn, results):
+        """Batches ks as Dask tasks (after a fault): results[k] set as each ends; yields once per batch."""
+        distributed = _import_dask()
+        # No task fetches the model from a peer, so a worker lost now takes no input of the others with it (fetching
+        # from a dead peer waits out distributed.comm.timeouts.connect, 30 s): with at most one batch per worker each
+        # task carries its own copy, unless the model is larger than Dask's large-graph threshold; else it is first
+        # sent to every worker (broadcast)
+        arrays = model.values() if isinstance(model, dict) else [model]
+        if len(ks) > len(self.devices) or sum(np.asarray(a).nbytes for a in arrays) > TASK_MODEL_BYTES:
+            [model] = self.client.scatter([model], broadcast=True, hash=False)
+        futures = {self.client.submit(_run, fn, model, self.futures[k], params, key=f"adseismic-eval-{tag}-{k}"): k for k in ks}
+        for fut, result in distributed.as_completed(list(futures), with_results=True, loop=self.client.loop):
+            results[futures[fut]] = result
+            yield
 
 
 def gather_forward(results: list[dict]):
