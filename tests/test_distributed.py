@@ -101,6 +101,31 @@ def test_a_worker_killed_during_an_evaluation_still_gives_the_gradient(problem, 
     assert pool.reruns == 0 and again[0] == loss  # the next evaluation routed to the callers where the data are now
 
 
+def test_a_running_scheduler_gives_the_gradient_of_one_process(problem):
+    # a scheduler this run did not start (as a dask-jobqueue cluster's): the client reaches the workers only through
+    # it, so the callers' calls go by the scheduler; the result is the one-process one
+    import logging
+
+    from distributed import LocalCluster
+
+    environ = dict(os.environ)  # (the nanny leaves its workers' thread settings in os.environ; see `pool`)
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.WARNING)
+    try:
+        par = ParallelConfig(scheduler=cluster.scheduler_address, workers=2, devices=["cpu"])
+        with distributed.ShotPool(par, "cpu", problem.n_shots) as pool:
+            pool.keep(problem.batches())
+            rs = pool.evaluate(problem.model, problem.params())
+            assert pool.reruns == 0 and len(pool.callers) == 2 and not pool.client.direct_to_workers
+            loss, grad, _ = distributed.reduce_in_order(rs, problem.model.shape)
+    finally:
+        cluster.close()
+        os.environ.clear()
+        os.environ.update(environ)
+    one_loss, one_grad = problem.one_process()
+    assert abs(loss - one_loss) <= 1e-12 * abs(one_loss)
+    assert np.linalg.norm(grad - one_grad) <= 1e-12 * np.linalg.norm(one_grad)
+
+
 @pytest.mark.slow
 def test_fwi_iterates_do_not_depend_on_the_workers(tmp_path):
     assert "2 Dask worker(s)" in assert_fwi_iterates_do_not_depend_on(PARALLEL, tmp_path, rtol=0.0)
