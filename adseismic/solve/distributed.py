@@ -426,20 +426,20 @@ class ShotPool:
         params = dict(params, devices=self.devices, device=params.get("device", self.default_device))
         if self.route is None:
             self.route = self._route()
-        self.calls, rest = {}, []
+        calls, rest = {}, []
         with self.client.as_current():
             for addr, ks in self.route.items():
-                fut, caller = self.callers[addr]
                 try:
-                    self.calls[addr] = (ks, caller.evaluate(fn, model, params, [self.futures[k].key for k in ks]))
+                    calls[addr] = (ks, self.callers[addr][1].evaluate(fn, model, params, [self.futures[k].key for k in ks]))
                 except RuntimeError:  # "Worker holding Actor was lost"
                     rest += ks
+        self.calls = calls  # whole, for busy() from another thread
         routed = {k for ks in self.route.values() for k in ks}
         rest += [k for k in range(len(self.futures)) if k not in routed]
         results = {}
 
         def completions():  # each worker's results as its call returns, then those of the batches run as tasks
-            for addr, (ks, call) in self.calls.items():
+            for ks, call in calls.values():
                 try:
                     out = call.result()
                 except OSError:  # the worker was lost during the call (fn's own OSError: raised again by its task)
