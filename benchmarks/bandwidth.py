@@ -50,7 +50,8 @@ def main():
         wp.synchronize_device(dev)
         us = (time.perf_counter() - t0) * 1e6 / a.repeats
         moved = (k + 1) * 4 * a.n
-        print(json.dumps(dict(kernel=kernel.key, device=dev.name, arrays_read=k, bytes=moved, us=round(us, 1), GB_s=round(moved / us / 1e3, 1))))
+        row = dict(kernel=kernel.key, device=dev.name, arrays_read=k, bytes=moved, us=round(us, 1), GB_s=round(moved / us / 1e3, 1))
+        print(json.dumps(row))
 
 
 if __name__ == "__main__":
