@@ -31,6 +31,17 @@ def sum4(a: wp.array(dtype=float), b: wp.array(dtype=float), c: wp.array(dtype=f
     o[i] = (a[i] + b[i]) + (c[i] + d[i])
 
 
+def timed(launch, dev, repeats: int) -> float:
+    """Microseconds a call of launch() takes on dev: one warm call, then the mean of `repeats` calls between syncs."""
+    launch()
+    wp.synchronize_device(dev)
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        launch()
+    wp.synchronize_device(dev)
+    return (time.perf_counter() - t0) * 1e6 / repeats
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cuda:0")
@@ -42,13 +53,7 @@ def main():
     arrays = [wp.full(a.n, 1.0, dtype=float, device=dev) for _ in range(5)]
     for kernel, k in ((copy1, 1), (sum2, 2), (sum4, 4)):
         inputs = [*arrays[:k], arrays[4]]
-        wp.launch(kernel, dim=a.n, inputs=inputs, device=dev)  # compile and warm
-        wp.synchronize_device(dev)
-        t0 = time.perf_counter()
-        for _ in range(a.repeats):
-            wp.launch(kernel, dim=a.n, inputs=inputs, device=dev)
-        wp.synchronize_device(dev)
-        us = (time.perf_counter() - t0) * 1e6 / a.repeats
+        us = timed(lambda: wp.launch(kernel, dim=a.n, inputs=inputs, device=dev), dev, a.repeats)
         moved = (k + 1) * 4 * a.n
         row = dict(kernel=kernel.key, device=dev.name, arrays_read=k, bytes=moved, us=round(us, 1), GB_s=round(moved / us / 1e3, 1))
         print(json.dumps(row))

@@ -4,7 +4,8 @@ padded (S, Lz, Lx) grid but its halo), timed three ways on one device: one cell 
 its halo loaded into shared memory (`wp.tile_load(storage="shared")`), each thread reading its cells' neighbours
 there; and the same tile loaded then its cells computed as whole-tile operations on shifted views
 (`wp.tile_view`). The three outputs are compared, and each rate is set against the 12 bytes a cell the step must
-move (u, u_prev read, u_next written; w is one shot's model, read from L2). The probe of the kernel redesign that
+move (u, u_prev read, u_next written; w, the model, is shared by the shots and read from L2 when there are several;
+with one shot on a large grid it adds 4 B a cell, which the 12 B leave out). The probe of the kernel redesign that
 docs/benchmarks.md's "open speed targets" section ends with; it is not the adseismic propagator.
 
     python benchmarks/tile_probe.py --device cuda:0 [--shots 16] [--n 640]
@@ -12,10 +13,14 @@ docs/benchmarks.md's "open speed targets" section ends with; it is not the adsei
 
 import argparse
 import json
-import time
+import sys
+from pathlib import Path
 
 import numpy as np
 import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bandwidth import timed  # noqa: E402
 
 R = 2  # order 4
 A0, A1, A2 = -2.5, 4.0 / 3.0, -1.0 / 12.0  # second-derivative weights, per axis
@@ -81,16 +86,6 @@ def whole_tile(u: wp.array3d(dtype=float), up: wp.array3d(dtype=float), w: wp.ar
     m = wp.tile_load(w, shape=(TZ, TX), offset=(z0 + R, x0 + R))
     out = c * 2.0 - p + wp.tile_map(wp.mul, wp.tile_reshape(m, shape=(1, TZ, TX)), lap)
     wp.tile_store(un, out, offset=(s, z0 + R, x0 + R))
-
-
-def timed(launch, dev, repeats):
-    launch()
-    wp.synchronize_device(dev)
-    t0 = time.perf_counter()
-    for _ in range(repeats):
-        launch()
-    wp.synchronize_device(dev)
-    return (time.perf_counter() - t0) * 1e6 / repeats
 
 
 def main():
