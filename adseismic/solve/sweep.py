@@ -8,8 +8,9 @@ the cost is one extra forward run (none when every step fits in one segment).
 
 Two ways through a segment:
 - taped_sweep: Warp's generated adjoints of every kernel, recorded on a wp.Tape with the arrays of every level
-  (the reference), for any setup that run_levels drives (solve/loop.py); on a GPU its full segments are captured
-  as CUDA graphs too (the tape's launches each way) and kept with their arrays for the next call with the same key;
+  (the reference), for any setup that run_levels drives (solve/loop.py); on a GPU its full segments (the last one
+  too, when nt is a multiple of the segment length) are captured as CUDA graphs (the tape's launches each way) and
+  kept with their arrays for the next call with the same key;
 - Sweep: the physics' hand-written adjoint time loop (a physics' "levels" object: its arrays and its two segment
   functions, solve/<name>.py), on a GPU captured once per direction as CUDA graphs (accel.graphs.Segments) and
   kept with its arrays for the next call with the same key.
@@ -84,8 +85,12 @@ def taped_sweep(su, seg: int, n_seg: int, loss, bar, on_level=None):
 
         st = run_levels(ts.su, prop.new_state(), ts.model, data, range(last), ts.src, callback=keep)
         _copy(ts.start.arrays(), st.arrays())
-    ts.clock.fill_(last)
-    tape, _ = ts.taped(range(last, nt), on_level)
+    tape = None
+    if on_level is None and nt - last == seg:  # a full last segment: its taped levels and their backward as captured
+        ts.run(1, last)
+    else:
+        ts.clock.fill_(last)
+        tape, _ = ts.taped(range(last, nt), on_level)
     bar.update(n_seg)
     synthetic = tuple(np.array(d.numpy()) for d in data)  # (a copy: the re-runs record into data again)
     J, adjoints = loss(synthetic)
@@ -94,13 +99,17 @@ def taped_sweep(su, seg: int, n_seg: int, loss, bar, on_level=None):
             d.grad.assign(wp.array(np.ascontiguousarray(a), dtype=prop.dtype, device=prop.device))
     for a in ts.start.arrays():
         a.grad.zero_()
-    tape.backward()
-    del tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
+    if tape is None:
+        ts.run(2, last)
+    else:
+        tape.backward()
+        del tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
     bar.update()
     for k in reversed(range(n_seg - 1)):
         _copy(ts.start.arrays(), checkpoints[k])
         checkpoints[k] = None
         ts.run(1, k * seg)
+        ts.run(2, k * seg)
         bar.update()
     ts.unload(su, model, src)
     setup_tape.backward()
@@ -108,12 +117,14 @@ def taped_sweep(su, seg: int, n_seg: int, loss, bar, on_level=None):
 
 
 class _TapedSegments:
-    """taped_sweep's arrays and its two directions of a full segment (seg levels from `start`, the time indices read
+    """taped_sweep's arrays and its three passes over a full segment (seg levels from `start`, the time indices read
     from `clock`; graphs.Segments, made at the first run, which loads the kernels launch by launch): forward_segment,
-    untaped, leaves the end state in start; adjoint_segment re-runs the levels from start under a tape and
-    back-propagates them, seeded with the adjoint state that start's .grad carries from the later segment, leaving the
-    earlier one there. A kept one serves a later Setup with the same key: load copies that call's inputs (model,
-    sources, operators, CPML) into the arrays the graphs read, unload its gradients back."""
+    untaped, leaves the end state in start; taped_segment runs the levels from start under a tape (recording the data),
+    and backward_segment back-propagates that tape, seeded with the adjoint state that start's .grad carries from the
+    later segment, leaving the earlier one there. The two halves of the adjoint are apart so that the last segment's
+    data, recorded by taped_segment, give the misfit and its residual before backward_segment runs, all captured. A
+    kept one serves a later Setup with the same key: load copies that call's inputs (model, sources, operators, CPML)
+    into the arrays the graphs read, unload its gradients back."""
 
     def __init__(self, su, seg, model, src):
         self.key = _taped_key(su, seg, src)
@@ -123,7 +134,7 @@ class _TapedSegments:
         self.start = su.prop.new_state(requires_grad=True)
         self.carry = [wp.empty_like(a) for a in self.start.arrays()]
         self.clock = wp.zeros(1, dtype=wp.int32, device=su.prop.device)
-        self.segments = self.tape = None
+        self.segments = self.tape = self.end = None
 
     def _inputs(self, su, model, src):
         return [*_warp_arrays(model), *_warp_arrays(src), *su.inputs(src)]
@@ -145,11 +156,12 @@ class _TapedSegments:
                 wp.copy(b.grad, a.grad)
 
     def run(self, which: int, n0: int):
-        """One full segment from level n0 (which: 0 forward, 1 adjoint)."""
+        """One pass over the full segment from level n0 (which: 0 forward, 1 taped, 2 backward, after a taped one)."""
+        passes = (self.forward_segment, self.taped_segment, self.backward_segment)
         if self.segments is None:
             self.clock.fill_(n0)
-            (self.forward_segment, self.adjoint_segment)[which]()
-            self.segments = graphs.Segments(self.su.prop.device, self.clock, [], (self.forward_segment, self.adjoint_segment))
+            passes[which]()
+            self.segments = graphs.Segments(self.su.prop.device, self.clock, [], passes)
         else:
             self.segments.run(which, n0)
 
@@ -170,15 +182,16 @@ class _TapedSegments:
             end = self._levels(steps, callback)
         return tape, end
 
-    def adjoint_segment(self):
-        tape, end = self.taped(range(self.seg))
+    def taped_segment(self):
+        self.tape, self.end = self.taped(range(self.seg))  # kept: a captured graph's launches read the arrays the tape holds
+
+    def backward_segment(self):
         _copy(self.carry, [a.grad for a in self.start.arrays()])
         for a in self.start.arrays():
             a.grad.zero_()
-        for a, c in zip(end.arrays(), self.carry):
+        for a, c in zip(self.end.arrays(), self.carry):
             wp.copy(a.grad, c)
-        tape.backward()
-        self.tape = tape  # a captured graph's launches read the arrays the tape holds
+        self.tape.backward()
 
 
 def _keeps(prop) -> bool:
