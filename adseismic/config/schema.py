@@ -580,8 +580,8 @@ class Inversion(_Section):
     shots_per_batch: Annotated[int | None, Int(1, "give at least 1 shot per batch")] = F(
         None, "shots simulated together (memory); null: all, or one batch per worker with a parallel section", minimum=1)
     memory_budget_gb: Annotated[float | None, Pos("GB")] = F(
-        None, "memory for checkpoints + one taped segment per gradient (trades recomputation for memory)", "GB",
-        exclusiveMinimum=0)
+        None, "memory for checkpoints + one taped segment per gradient (trades recomputation for memory; null: the minimum, "
+              "~sqrt(nt) segments; one that holds every step skips the recomputation)", "GB", exclusiveMinimum=0)
     step: Annotated[float | None, Pos()] = F(
         1.0, "gd: first trial step, in units of v / 1000 m/s", exclusiveMinimum=0)
     lr: Annotated[float | None, Pos()] = F(0.01, "adam: learning rate, in units of v / 1000 m/s", exclusiveMinimum=0)
