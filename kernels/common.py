@@ -392,6 +392,31 @@ def vector_access(V: int, dtype):
     return load_vector, store_vector
 
 
+@functools.lru_cache(maxsize=None)
+def frame_map(R: int):
+    """frame_cell(f, lz, lx, box) -> (z, x): the f-th interior cell of a 2D padded grid (lz, lx) with a halo of R cells
+    outside the box of rows [box[0], box[1]) x columns [box[2], box[3]) (padded indices): first the full rows above and
+    below the box, then the left and right parts of its rows (a core-and-frame launch's frame threads)."""
+
+    @wp.func
+    def frame_cell(f: int, lz: int, lx: int, box: wp.vec4i) -> wp.vec2i:
+        nx = lx - wp.static(2 * R)
+        above = (box[0] - wp.static(R)) * nx
+        below = (lz - wp.static(R) - box[1]) * nx
+        if f < above:
+            return wp.vec2i(wp.static(R) + f // nx, wp.static(R) + f % nx)
+        if f < above + below:
+            return wp.vec2i(box[1] + (f - above) // nx, wp.static(R) + (f - above) % nx)
+        g = f - above - below
+        sides = box[2] - wp.static(R) + lx - wp.static(R) - box[3]
+        x = wp.static(R) + g % sides
+        if x >= box[2]:
+            x = x - box[2] + box[3]
+        return wp.vec2i(box[0] + g // sides, x)
+
+    return frame_cell
+
+
 def aligned(z0: int, z1: int, x0: int, x1: int, V: int) -> wp.vec4i:
     """The box of rows [z0, z1) and of the columns of [x0, x1) from and to a multiple of V."""
     return wp.vec4i(z0, z1, -(-x0 // V) * V, x1 // V * V)

@@ -372,3 +372,59 @@ def test_a_fixed_operator_is_computed_once_per_geometry():
     c = prop.operator(wp.array(np.array([[[55.0, 124.0], [80.0, 201.0]]]), dtype=wp.float32))
     assert c[1] is not a[1] and not np.array_equal(c[1].numpy()[:, 0, 0], a[1].numpy()[:, 0, 0])
     np.testing.assert_array_equal(c[1].numpy()[:, 0, 1], a[1].numpy()[:, 0, 1])  # the shared receiver's weights
+
+
+# --------------------------------------------------------------------------- the untaped step's register tiles
+
+
+def assert_tiles_equal_the_taped_kernels(prop, mat, dtype: str, steps=5):
+    """Five steps of a 2D staggered launch helper (acoustic_vd, viscoacoustic) from one random state with its CPML and
+    relaxation memory, untaped (its register tiles: kernels/viscoacoustic _velocity_tiles, kernels/acoustic_vd
+    _pressure_tiles) and under a wp.Tape (the per-cell kernels that Warp differentiates): the same arithmetic, so
+    equal bit for bit on a CPU, and to rounding on a GPU (1e-15 of a field's largest value in float64, 1e-6 in
+    float32: its compiler may fuse multiply-adds differently). Every field and memory variable compared."""
+    import warp as wp
+
+    rng = np.random.default_rng(3)
+    R, full = prop.k.halo, (prop.n_shots, *prop.padded)
+    start, fields = None, []
+    for taped in (False, True):
+        st = prop.new_state()
+        if start is None:
+            start = [rng.standard_normal(a.shape) for a in st.arrays()]
+            for a in start:
+                if a.shape == full:  # halo cells stay zero
+                    a[:, :R], a[:, -R:], a[:, :, :R], a[:, :, -R:] = 0, 0, 0, 0
+        for a, s in zip(st.arrays(), start):
+            a.assign(s)
+        for n in range(steps):
+            if taped:
+                with wp.Tape():
+                    prop.step(st, mat, None, n)
+            else:
+                prop.step(st, mat, None, n)
+        fields.append([a.numpy() for a in st.arrays()])
+    tol = 0.0 if DEVICE == "cpu" else 1e-15 if dtype == "float64" else 1e-6
+    for got, want in zip(*fields):
+        assert np.abs(got - want).max() <= tol * np.abs(want).max()
+
+
+@pytest.mark.parametrize(
+    "dtype, order, free_surface, shape, lanes",
+    [("float64", 4, False, (30, 44), 4), ("float64", 8, True, (30, 44), 4), ("float32", 2, True, (37, 41), 1),
+     ("float64", 4, False, (21, 42), 2)],
+)  # fmt: skip
+def test_tiled_step_equals_the_per_cell_kernels(dtype, order, free_surface, shape, lanes):
+    """acoustic_vd's 2D untaped step (register tiles over the core, V lanes, and cells over the frame) against its taped
+    per-cell kernels (assert_tiles_equal_the_taped_kernels), two shots, each lane count the padded width allows."""
+    import warp as wp
+
+    from adseismic.kernels.acoustic_vd import AcousticVD
+
+    wdtype = getattr(wp, dtype)
+    prop = AcousticVD(shape, 10.0, 1e-3, order, 2, 6, 1e-3, 15.0, 2500.0, free_surface=free_surface, dtype=wdtype, device=DEVICE)
+    assert prop.tiles[0] == lanes and prop.tiles[2] > 0  # the lanes the padded width allows, and a core to tile
+    lz, lx = prop.padded
+    rng = np.random.default_rng(4)
+    vp, rho = (wp.array(2000.0 + rng.uniform(0, 500, (lz, lx)), dtype=wdtype, device=DEVICE) for _ in range(2))
+    assert_tiles_equal_the_taped_kernels(prop, prop.materials(vp, rho), dtype)

@@ -251,3 +251,22 @@ def test_unrelaxed_velocity_is_the_mechanisms_high_frequency_limit():
     np.testing.assert_allclose(unrelaxed_velocity(vp, q, mech, 10.0), direct, rtol=1e-14)
     assert unrelaxed_velocity(vp, q, mech, 10.0)[-1] == vp[-1]
     assert np.all(np.diff(unrelaxed_velocity(np.full(4, 2000.0), q[:4], mech, 10.0)) < 0)  # more loss, faster at high f
+
+
+@pytest.mark.parametrize("dtype, free_surface, shape", [("float64", True, (30, 44)), ("float32", False, (33, 38))])
+def test_tiled_velocity_equals_the_per_cell_kernel(dtype, free_surface, shape):
+    """The untaped step's velocity half step as register tiles (kernels/viscoacoustic _velocity_tiles; four and two
+    lanes here) against the taped per-cell kernels: tests.test_acoustic_vd.assert_tiles_equal_the_taped_kernels."""
+    import warp as wp
+
+    from tests.test_acoustic_vd import assert_tiles_equal_the_taped_kernels
+
+    wdtype = getattr(wp, dtype)
+    prop = Viscoacoustic(shape, 10.0, 1e-3, 4, 2, fit_mechanisms(*BAND, 3), F_PEAK, 6, 1e-3, F_PEAK, 2500.0, free_surface=free_surface,
+                         dtype=wdtype, device=DEVICE)  # fmt: skip
+    assert prop.tiles[2] > 0
+    lz, lx = prop.padded
+    rng = np.random.default_rng(5)
+    vp, rho = (wp.array(2000.0 + rng.uniform(0, 500, (lz, lx)), dtype=wdtype, device=DEVICE) for _ in range(2))
+    q = wp.array(30.0 + rng.uniform(0, 50, (lz, lx)), dtype=wdtype, device=DEVICE)
+    assert_tiles_equal_the_taped_kernels(prop, prop.materials(vp, q, rho), dtype)

@@ -47,6 +47,7 @@ from adseismic.kernels.common import (
     as_vectors,
     block_rows,
     flat_access,
+    frame_map,
     hicks_axis,
     unique_kernel,
     vector_access,
@@ -659,24 +660,7 @@ def _gpu_step(ns):
     dtype, R, arr3, arr4, iarr1, Axis, record_point = ns.dtype, ns.R, ns.arr3, ns.arr4, ns.iarr1, ns.Axis, ns.record_point
     psi_flat_z, psi_flat_x = ns.psi_flat_z, ns.psi_flat_x
 
-    @wp.func
-    def frame_cell(f: int, lz: int, lx: int, box: wp.vec4i) -> wp.vec2i:
-        # (z, x) of the f-th interior cell outside the rows [box[0], box[1]) x columns [box[2], box[3])
-        # (padded indices) of a 2D grid (lz, lx): first the full rows above and below the box, then the
-        # left and right parts of its rows
-        nx = lx - wp.static(2 * R)
-        above = (box[0] - wp.static(R)) * nx
-        below = (lz - wp.static(R) - box[1]) * nx
-        if f < above:
-            return wp.vec2i(wp.static(R) + f // nx, wp.static(R) + f % nx)
-        if f < above + below:
-            return wp.vec2i(box[1] + (f - above) // nx, wp.static(R) + (f - above) % nx)
-        g = f - above - below
-        sides = box[2] - wp.static(R) + lx - wp.static(R) - box[3]
-        x = wp.static(R) + g % sides
-        if x >= box[2]:
-            x = x - box[2] + box[3]
-        return wp.vec2i(box[0] + g // sides, x)
+    frame_cell = frame_map(R)
 
     @wp.func
     def strip_cell(t: int, a: arr4) -> wp.vec3i:

@@ -31,7 +31,11 @@ position, folded across a free surface (odd for p, vx, vy; even for vz); weights
 Kernels, plain per-cell Warp kernels that Warp differentiates (Tape): `velocity`, `pressure` (a half step each, in
 place or out of place), `inject`, `record`, `weights`, `materials` (vp, rho -> MATERIALS), `pad_model`. The field
 kernels take flat views (State.flat, Materials.flat) and a 1D launch with int32 flat offsets (2D: kernels/viscoacoustic's
-Grid and stencils; 3D: kernels/elastic3d's flat stencils, Grid and strips).
+Grid and stencils; 3D: kernels/elastic3d's flat stencils, Grid and strips). A 2D step outside a tape runs `tiled[V]`
+instead, never differentiated: each half step as one launch of register tiles (V adjacent cells a load, rows along z
+in a sliding window) over the core, where no CPML strip or free-surface image is in reach, and of the per-cell
+arithmetic over the frame around it (kernels/viscoacoustic's _velocity_tiles and tile_plan, _pressure_tiles here; equal
+to the per-cell kernels bit for bit on a CPU).
 """
 
 import functools
@@ -40,14 +44,34 @@ from types import SimpleNamespace
 
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, flat_cpml, hicks_axis, host_operator, unique_kernel
+from adseismic.kernels.common import (
+    HICKS_RADIUS,
+    Kernels,
+    as_vectors,
+    check_flat_cells,
+    flat_cpml,
+    hicks_axis,
+    host_operator,
+    unique_kernel,
+)
 from adseismic.kernels.elastic.propagator import build as elastic_build
 from adseismic.kernels.elastic.propagator import cpml_axes
 from adseismic.kernels.elastic3d.propagator import build as elastic3d_build
 from adseismic.kernels.elastic3d.propagator import Grid as Flat3
 from adseismic.kernels.elastic3d.propagator import flat_cell, flat_grid, flat_strips, make_flat_derivative, make_point
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
-from adseismic.kernels.viscoacoustic.propagator import Grid, Materials, _derivatives, _points, _velocity, field_grid
+from adseismic.kernels.viscoacoustic.propagator import (
+    TILE_LANES,
+    TILE_ROWS,
+    TILE_THREADS,
+    Grid,
+    Materials,
+    _derivatives,
+    _points,
+    _velocity,
+    field_grid,
+    tile_plan,
+)
 
 # per ndim: the velocities, the CPML memory variables (name -> axis of its derivative and strips) of the velocity and
 # the pressure half steps, the materials (buoyancy at each velocity's nodes, K = rho vp^2 at the p nodes)
@@ -57,16 +81,39 @@ MATERIALS = {2: ("bx", "bz", "k"), 3: ("bx", "by", "bz", "k")}
 
 
 def _kernels_2d(ns):
-    """The 2D velocity (kernels/viscoacoustic's), pressure, materials and point kernels."""
+    """The 2D velocity (kernels/viscoacoustic's), pressure, materials and point kernels, and the tiled half steps."""
     M, fs, dtype, arr1, arr2, Axis = ns.M, ns.fs, ns.dtype, ns.arr1, ns.arr2, ns.Axis
-    velocity, cell = _velocity(ns)
+    velocity, velocity_cell, cell, lanes, velocity_tiles = _velocity(ns)
     cpml_psi, store_psi = flat_cpml(dtype)
     dvx_dx, dvz_dz = _derivatives(ns)[2:]
+
+    @wp.func
+    def pressure_cell(vx: arr1, vz: arr1, p: arr1, k: arr1, o_p_x: arr1, o_p_z: arr1, n_p_x: arr1, n_p_z: arr1, p_new: arr1, az: Axis,
+                      ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid, s: int, z: int, x: int, m: int, c: int):  # fmt: skip
+        # p_new = p - dt K div v at cell (s, z, x) (m: its model cell, c: its field cell); 0 on a free surface's row; for
+        # untaped kernels (pressure's own is written out)
+        jz = az.store[z]
+        jx = ax.store[x]
+        kx = (s * grid.lz + z) * grid.wx + jx
+        kz = (s * grid.wz + jz) * grid.lx + x
+        ex = dvx_dx(vx, c) * inv_dx
+        ez = dvz_dz(vz, c, z, grid.lx, top) * inv_dx
+        qx = cpml_psi(ex, jx, x, ax.a, ax.b, o_p_x, kx)
+        qz = cpml_psi(ez, jz, z, az.a, az.b, o_p_z, kz)
+        keep = dtype(1.0)
+        if wp.static(fs):
+            if z == top:
+                keep = dtype(0.0)
+        pc = p[c]
+        km = k[m]
+        store_psi(jx, n_p_x, kx, qx)
+        store_psi(jz, n_p_z, kz, qz)
+        p_new[c] = keep * (pc - dt * km * ((ex + qx) + (ez + qz)))
 
     @unique_kernel(grid_stride=False)
     def pressure(vx: arr1, vz: arr1, p: arr1, k: arr1, o_p_x: arr1, o_p_z: arr1, n_p_x: arr1, n_p_z: arr1, p_new: arr1, az: Axis,
                  ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid):  # fmt: skip
-        # p_new = p - dt K div v; 0 on a free surface's row
+        # p_new = p - dt K div v; 0 on a free surface's row: pressure_cell written out, as velocity's (kernels/viscoacoustic)
         s, z, x, m, c = cell(grid, wp.tid())
         jz = az.store[z]
         jx = ax.store[x]
@@ -86,6 +133,8 @@ def _kernels_2d(ns):
         store_psi(jz, n_p_z, kz, qz)
         p_new[c] = keep * (pc - dt * km * ((ex + qx) + (ez + qz)))
 
+    tiled = {V: (velocity_tiles[V], _pressure_tiles(ns, lanes[V], pressure_cell)) for V in TILE_LANES}
+
     @unique_kernel
     def materials(vp: arr2, rho: arr2, bx: arr2, bz: arr2, k: arr2):
         # MATERIALS at the interior nodes from the padded vp (m/s) and rho (kg/m^3)
@@ -99,7 +148,61 @@ def _kernels_2d(ns):
 
     weights, inject, record = _points(ns)
     return dict(velocity=velocity, pressure=pressure, materials=materials, weights=weights, inject=inject, record=record,
-                pad_model=elastic_build(ns.order, dtype, fs).pad_model, operator_points=ns.W**2)  # fmt: skip
+                pad_model=elastic_build(ns.order, dtype, fs).pad_model, operator_points=ns.W**2, tiled=tiled)  # fmt: skip
+
+
+def _pressure_tiles(ns, L, pressure_cell):
+    """The pressure half step untaped, as kernels/viscoacoustic's _velocity_tiles does the velocity one (L: its
+    _lanes): core tiles with the rows of vz in a sliding window, frame cells by pressure_cell."""
+    M, C, dtype, arr1, Axis, rows = ns.M, ns.C, ns.dtype, ns.arr1, ns.Axis, TILE_ROWS
+    V, NB, vec, arrv, load, put = L.V, L.NB, L.vec, L.arrv, L.load, L.put
+    row_line, window, slide, tile, frame_cell = L.row_line, L.window, L.slide, L.tile, L.frame_cell
+
+    @wp.func
+    def pressure_tile(t: int, vx: arrv, vz: arrv, p: arrv, k: arrv, p_new: arrv, dt: dtype, inv_dx: dtype, box: wp.vec4i, lz: int,
+                      lx: int):  # fmt: skip
+        tl = tile(t, box, lz, lx)
+        n = lx // wp.static(V)
+        c = tl[1] // wp.static(V)
+        i = tl[2] // wp.static(V)
+        w = window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1
+        for r in range(wp.static(rows)):
+            if tl[0] + r < box[1]:
+                xl = row_line(vx, i, load(vx, i))
+                pc = load(p, i)
+                km = load(k, c)
+                o = vec()
+                for j in range(wp.static(V)):
+                    ex = dtype(0.0)
+                    ez = dtype(0.0)
+                    for m in range(wp.static(M)):
+                        ex += dtype(wp.static(C[m])) * (xl[wp.static(NB * V + m) + j] - xl[wp.static(NB * V - m - 1) + j])
+                        ez += dtype(wp.static(C[m])) * (w[wp.static(M + m), j] - w[wp.static(M - 1 - m), j])
+                    o[j] = pc[j] - dt * km[j] * ((ex * inv_dx) + (ez * inv_dx))
+                put(p_new, i, o)
+                if wp.static(r + 1 < rows):
+                    w = slide(w, load(vz, i + wp.static(M) * n))
+                i += n
+                c += n
+
+    @unique_kernel(grid_stride=False, enable_backward=False)
+    def pressure_tiles(
+        vx: arr1, vz: arr1, p: arr1, k: arr1, o_p_x: arr1, o_p_z: arr1, n_p_x: arr1, n_p_z: arr1, p_new: arr1, az: Axis, ax: Axis,
+        dt: dtype, inv_dx: dtype, top: int, grid: Grid, vxv: arrv, vzv: arrv, pv: arrv, kv: arrv, p_newv: arrv, box: wp.vec4i,
+        tiles: int, frame: int, cells: int,
+    ):  # fmt: skip
+        t = wp.tid()
+        if t < frame:
+            if t < tiles:
+                pressure_tile(t, vxv, vzv, pv, kv, p_newv, dt, inv_dx, box, grid.lz, grid.lx)
+        else:
+            s = (t - frame) // cells
+            zx = frame_cell(t - frame - s * cells, grid.lz, grid.lx, box)
+            m = zx[0] * grid.lx + zx[1]
+            pressure_cell(vx, vz, p, k, o_p_x, o_p_z, n_p_x, n_p_z, p_new, az, ax, dt, inv_dx, top, grid, s, zx[0], zx[1], m,
+                          s * grid.lz * grid.lx + m)  # fmt: skip
+
+    return pressure_tiles
 
 
 def _field_kernels_3d(ns):
@@ -281,6 +384,14 @@ class State:
     def __init__(self, v: dict, p, psi: dict):
         self.v, self.p, self.psi = v, p, psi
         self._flat = None
+        self._vectors = {}
+
+    def vectors(self, V: int) -> tuple:
+        """The velocities' and p's flat views as vector(V) (kernels/common.as_vectors), the tiled half steps' inputs;
+        made once per V."""
+        if V not in self._vectors:
+            self._vectors[V] = tuple(as_vectors(a, V) for a in (*self.v.values(), self.p))
+        return self._vectors[V]
 
     def flat(self) -> "State":
         """The State of the arrays' flat (1D) views, the 2D field kernels' inputs; made once, they share memory and
@@ -331,6 +442,7 @@ class AcousticVD:
         self.dt_device = dtype(dt)
         self.cuda = wp.get_device(device).is_cuda
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
+        self.tiles = tile_plan(self.axes, self.padded, R, self.n_shots, self.free_surface, self.top) if nd == 2 else None
 
     def psi_shape(self, name):
         axis = PSI[self.ndim][name]
@@ -375,10 +487,18 @@ class AcousticVD:
         ppsi = [f"p_{v[1]}" for v in names]
         common = [*self.axes, self.dt_device, self.inv_dx, self.top]
         f, o, m, common, dim = st.flat(), out.flat(), mat.flat, [*common, self.grid], math.prod(self.interior)  # flat views, a 1D launch
-        wp.launch(self.k.velocity, dim=dim, device=self.device,
-                  inputs=[*f.v.values(), f.p, *m[:-1], *(f.psi[k] for k in vpsi), *(o.psi[k] for k in vpsi), *o.v.values(), *common])
-        wp.launch(self.k.pressure, dim=dim, device=self.device,
-                  inputs=[*o.v.values(), f.p, m[-1], *(f.psi[k] for k in ppsi), *(o.psi[k] for k in ppsi), o.p, *common])
+        vel = [*f.v.values(), f.p, *m[:-1], *(f.psi[k] for k in vpsi), *(o.psi[k] for k in vpsi), *o.v.values(), *common]
+        pre = [*o.v.values(), f.p, m[-1], *(f.psi[k] for k in ppsi), *(o.psi[k] for k in ppsi), o.p, *common]
+        if self.tiles is None or wp._src.context.runtime.tape is not None:  # 3D, or under a tape: the per-cell kernels
+            wp.launch(self.k.velocity, dim=dim, inputs=vel, device=self.device)
+            wp.launch(self.k.pressure, dim=dim, inputs=pre, device=self.device)
+        else:
+            V, box, tiles, frame, cells = self.tiles
+            velocity, pressure = self.k.tiled[V]
+            (fx, fz, fp), (ox, oz, op), mv = st.vectors(V), out.vectors(V), mat.vectors(V)
+            dim, rest = frame + self.n_shots * cells, [box, tiles, frame, cells]
+            wp.launch(velocity, dim=dim, inputs=[*vel, fx, fz, fp, *mv[:2], ox, oz, *rest], device=self.device, block_dim=TILE_THREADS)
+            wp.launch(pressure, dim=dim, inputs=[*pre, ox, oz, fp, mv[2], op, *rest], device=self.device, block_dim=TILE_THREADS)
         if sources is not None:
             amplitudes, (idx, w) = sources
             wp.launch(self.k.inject, dim=idx.shape[1:], inputs=[out.p, amplitudes, idx, w, n, clock, self.dtype(self.dx**-self.ndim)],

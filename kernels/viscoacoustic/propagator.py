@@ -43,6 +43,11 @@ in place or out of place: a cell reads only its own old value of a field it writ
 `weights`, `materials` (vp, q, rho -> b_x, b_z, M_U, g_l; Warp's adjoint is the chain rule to vp, q, rho).
 `velocity` and `pressure` take the arrays' flat views (State.flat, Materials.flat: same memory and .grad) and a 1D
 launch over the interior cells, indexing with int32 flat offsets (Grid), not 3D arrays' 64-bit, bounds-checked ones.
+A step outside a tape runs the velocity half step as `velocity_tiles[V]` instead, never differentiated: register
+tiles (V adjacent cells a load, rows of p along z in a sliding window) over the core box where no CPML strip or
+free-surface image is in reach (tile_plan), the per-cell arithmetic (velocity_cell) over the frame around it, in one
+launch (_velocity_tiles; equal to `velocity` bit for bit on a CPU). kernels/acoustic_vd tiles its pressure half step
+the same way.
 """
 
 import functools
@@ -52,7 +57,19 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from adseismic.kernels.common import HICKS_RADIUS, Kernels, check_flat_cells, flat_cpml, hicks_axis, host_operator, unique_kernel
+from adseismic.kernels.common import (
+    HICKS_RADIUS,
+    Kernels,
+    aligned,
+    as_vectors,
+    check_flat_cells,
+    flat_cpml,
+    frame_map,
+    hicks_axis,
+    host_operator,
+    unique_kernel,
+    vector_access,
+)
 from adseismic.kernels.elastic.propagator import build as elastic_build
 from adseismic.kernels.elastic.propagator import cpml_axes, make_point
 from adseismic.kernels.numerics import STAGGERED_DERIVATIVE
@@ -63,6 +80,10 @@ from adseismic.kernels.viscoacoustic.relaxation import SERIES_TERMS, Mechanisms
 PSI = {"vx_x": 1, "vz_z": 0, "p_x": 1, "p_z": 0}
 MATERIALS = ("bx", "bz", "mu", "g")  # buoyancy at vx and vz nodes, M_U, g_l = M_R y_l (L, Lz, Lx)
 
+# the 2D untaped half steps' core tiles (this velocity half step, kernels/acoustic_vd's pressure one): adjacent
+# columns a thread (the widest that divides the padded row), rows a thread, threads per block (docs/benchmarks.md,
+# "The staggered half steps as register tiles")
+TILE_LANES, TILE_ROWS, TILE_THREADS = (4, 2, 1), 2, 128
 
 @wp.struct
 class Grid:
@@ -152,18 +173,46 @@ def _derivatives(ns):
 
 def _velocity(ns):
     """The lossless velocity half step v_new = v - dt b grad p (velocity, flat arrays, a 1D launch over the interior
-    cells; every load before the first store), shared with kernels/acoustic_vd, and its cell decoder."""
+    cells; every load before the first store; velocity_cell: one cell's), shared with kernels/acoustic_vd, and its
+    cell decoder."""
     dtype, arr1, Axis = ns.dtype, ns.arr1, ns.Axis
     dp_dx, dp_dz = _derivatives(ns)[:2]
     cell = _cell(ns)
     cpml_psi, store_psi = flat_cpml(dtype)
+
+    @wp.func
+    def velocity_cell(
+        vx: arr1, vz: arr1, p: arr1, bx: arr1, bz: arr1, o_vx_x: arr1, o_vz_z: arr1, n_vx_x: arr1, n_vz_z: arr1,
+        vx_new: arr1, vz_new: arr1, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid,
+        s: int, z: int, x: int, m: int, c: int,
+    ):  # fmt: skip
+        # v_new = v - dt b grad p at the velocity nodes of cell (s, z, x) (m: its model cell, c: its field cell), for
+        # untaped kernels (velocity's own is written out)
+        jz = az.store[z]
+        jx = ax.store[x]
+        kx = (s * grid.lz + z) * grid.wx + jx
+        kz = (s * grid.wz + jz) * grid.lx + x
+        gx = dp_dx(p, c) * inv_dx
+        gz = dp_dz(p, c, z, grid.lx, top) * inv_dx
+        qx = cpml_psi(gx, jx, x, ax.ah, ax.bh, o_vx_x, kx)
+        qz = cpml_psi(gz, jz, z, az.ah, az.bh, o_vz_z, kz)
+        ux = vx[c]
+        uz = vz[c]
+        bxm = bx[m]
+        bzm = bz[m]
+        store_psi(jx, n_vx_x, kx, qx)
+        store_psi(jz, n_vz_z, kz, qz)
+        vx_new[c] = ux - dt * bxm * (gx + qx)
+        vz_new[c] = uz - dt * bzm * (gz + qz)
 
     @unique_kernel(grid_stride=False)
     def velocity(
         vx: arr1, vz: arr1, p: arr1, bx: arr1, bz: arr1, o_vx_x: arr1, o_vz_z: arr1, n_vx_x: arr1, n_vz_z: arr1,
         vx_new: arr1, vz_new: arr1, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid,
     ):  # fmt: skip
-        # v_new = v - dt b grad p at every interior velocity node
+        # v_new = v - dt b grad p at every interior velocity node: velocity_cell's arithmetic written out, since Warp's
+        # generated adjoint of a kernel that calls a func computes the func's forward twice (the taped VD1000 gradient
+        # 15% slower; docs/benchmarks.md, "The staggered half steps as register tiles")
         s, z, x, m, c = cell(grid, wp.tid())
         jz = az.store[z]
         jx = ax.store[x]
@@ -182,7 +231,158 @@ def _velocity(ns):
         vx_new[c] = ux - dt * bxm * (gx + qx)
         vz_new[c] = uz - dt * bzm * (gz + qz)
 
-    return velocity, cell
+    lanes = {V: _lanes(ns, V) for V in TILE_LANES}
+    return velocity, velocity_cell, cell, lanes, {V: _velocity_tiles(ns, lanes[V], velocity_cell) for V in TILE_LANES}
+
+
+def _lanes(ns, V: int):
+    """What a 2D core tile reads with (TILE_ROWS rows x V adjacent columns a thread, on flat fields viewed as
+    V-vectors: kernels/common.as_vectors, vector_access's one load of V cells): the vector and its array types, load
+    and put, row_line (a row's vectors around one), window and slide (2M rows along z, moved down a row), tile (a
+    thread's first row and cells) and frame_cell (kernels/common.frame_map)."""
+    M, dtype, rows = ns.M, ns.dtype, TILE_ROWS
+    NB = -(-M // V)  # vectors each side that hold a row's M neighbours
+    vec = wp.types.vector(length=V, dtype=dtype)
+    arrv = wp.array(dtype=vec)
+    line = wp.types.vector(length=(2 * NB + 1) * V, dtype=dtype)
+    win = wp.types.matrix(shape=(2 * M, V), dtype=dtype)
+    load, put = vector_access(V, dtype)
+
+    @wp.func
+    def row_line(a: arrv, i: int, centre: vec) -> line:
+        # the NB vectors left and right of vector i along its row around `centre` (a's vector i)
+        r = line()
+        for b in range(wp.static(2 * NB + 1)):
+            q = centre
+            if wp.static(b != NB):
+                q = load(a, i + wp.static(b - NB))
+            for j in range(wp.static(V)):
+                r[wp.static(b * V) + j] = q[j]
+        return r
+
+    @wp.func
+    def window(a: arrv, i: int, n: int, first: int) -> win:
+        # the 2M vectors of a at rows first .. first + 2M - 1 relative to vector i (row stride n)
+        w = win()
+        for k in range(wp.static(2 * M)):
+            q = load(a, i + (k + first) * n)
+            for j in range(wp.static(V)):
+                w[k, j] = q[j]
+        return w
+
+    @wp.func
+    def slide(w: win, q: vec) -> win:
+        # the window one row down: its rows shifted up, q the new last row
+        out = win()
+        for j in range(wp.static(V)):
+            for k in range(wp.static(2 * M - 1)):
+                out[k, j] = w[k + 1, j]
+            out[wp.static(2 * M - 1), j] = q[j]
+        return out
+
+    @wp.func
+    def tile(t: int, box: wp.vec4i, lz: int, lx: int) -> wp.vec3i:
+        # thread t's first row z, its first cell's flat index in a model (z lx + x) and in the fields (shot s)
+        nxc = (box[3] - box[2]) // wp.static(V)
+        blocks = (box[1] - box[0] + wp.static(rows - 1)) // wp.static(rows)
+        q = t // nxc
+        x = box[2] + (t - q * nxc) * wp.static(V)
+        s = q // blocks
+        z = box[0] + (q - s * blocks) * wp.static(rows)
+        return wp.vec3i(z, z * lx + x, s * lz * lx + z * lx + x)
+
+    return SimpleNamespace(V=V, NB=NB, vec=vec, arrv=arrv, load=load, put=put, row_line=row_line, window=window, slide=slide, tile=tile,
+                           frame_cell=frame_map(M))  # fmt: skip
+
+
+def tile_plan(axes, padded, halo: int, n_shots: int, free_surface: bool, top: int):
+    """(V, box, tiles, frame, cells) of a 2D tiled half step (_velocity_tiles, kernels/acoustic_vd): the lanes (the
+    widest of TILE_LANES that divides the padded row), the core box (rows and columns outside the CPML strips of axes
+    (z, x), below a free surface's images; columns from and to a multiple of V), its tiles over the shots, the first
+    frame thread (a block boundary) and the frame cells a shot."""
+    R, (lz, lx) = halo, padded
+    ends = []
+    for a, n in zip(axes, padded):
+        free = np.flatnonzero(a.store.numpy()[R:n - R] < 0) + R  # outside the CPML strips, which lie at the ends
+        ends.append((int(free[0]), int(free[-1]) + 1) if free.size else (R, R))
+    (z0, z1), (x0, x1) = ends
+    if free_surface:
+        z0 = max(z0, top + R)  # no stencil reaches the surface's images
+    V = next(v for v in TILE_LANES if lx % v == 0)
+    box = aligned(z0, z1, x0, x1, V)
+    if box[1] <= box[0] or box[3] <= box[2]:
+        box = wp.vec4i(z0, z0, x0, x0)
+    h, w = box[1] - box[0], box[3] - box[2]
+    tiles = n_shots * -(-h // TILE_ROWS) * (w // V)
+    frame = -(-tiles // TILE_THREADS) * TILE_THREADS
+    return V, box, tiles, frame, (lz - 2 * R) * (lx - 2 * R) - h * w
+
+
+def _velocity_tiles(ns, L, velocity_cell):
+    """The velocity half step untaped (never differentiated), in place or out of place, as a core and a frame in one
+    1D launch: a thread t < tiles updates TILE_ROWS rows x V adjacent columns of the core box (tile_plan; L: _lanes),
+    the rows of p along z in a sliding window; from `frame` (a block boundary, so that no warp mixes the two) one frame
+    cell (an interior cell outside the box; `cells` a shot) by velocity_cell. The core's arithmetic is the cell's
+    without its CPML and image terms: equal bit for bit on a CPU (docs/benchmarks.md, "The staggered half steps as
+    register tiles")."""
+    M, C, dtype, arr1, Axis, rows = ns.M, ns.C, ns.dtype, ns.arr1, ns.Axis, TILE_ROWS
+    V, NB, vec, arrv, load, put = L.V, L.NB, L.vec, L.arrv, L.load, L.put
+    row_line, window, slide, tile, frame_cell = L.row_line, L.window, L.slide, L.tile, L.frame_cell
+
+    @wp.func
+    def velocity_tile(t: int, vx: arrv, vz: arrv, p: arrv, bx: arrv, bz: arrv, vx_new: arrv, vz_new: arrv, dt: dtype, inv_dx: dtype,
+                      box: wp.vec4i, lz: int, lx: int):  # fmt: skip
+        tl = tile(t, box, lz, lx)
+        n = lx // wp.static(V)
+        c = tl[1] // wp.static(V)
+        i = tl[2] // wp.static(V)
+        w = window(p, i, n, wp.static(1 - M))  # p at rows z - M + 1 .. z + M
+        for r in range(wp.static(rows)):
+            if tl[0] + r < box[1]:
+                centre = vec()
+                for j in range(wp.static(V)):
+                    centre[j] = w[wp.static(M - 1), j]
+                pl = row_line(p, i, centre)
+                ux = load(vx, i)
+                uz = load(vz, i)
+                bxm = load(bx, c)
+                bzm = load(bz, c)
+                ox = vec()
+                oz = vec()
+                for j in range(wp.static(V)):
+                    gx = dtype(0.0)
+                    gz = dtype(0.0)
+                    for m in range(wp.static(M)):
+                        gx += dtype(wp.static(C[m])) * (pl[wp.static(NB * V + m + 1) + j] - pl[wp.static(NB * V - m) + j])
+                        gz += dtype(wp.static(C[m])) * (w[wp.static(M + m), j] - w[wp.static(M - 1 - m), j])
+                    ox[j] = ux[j] - dt * bxm[j] * (gx * inv_dx)
+                    oz[j] = uz[j] - dt * bzm[j] * (gz * inv_dx)
+                put(vx_new, i, ox)
+                put(vz_new, i, oz)
+                if wp.static(r + 1 < rows):
+                    w = slide(w, load(p, i + wp.static(M + 1) * n))
+                i += n
+                c += n
+
+    @unique_kernel(grid_stride=False, enable_backward=False)
+    def velocity_tiles(
+        vx: arr1, vz: arr1, p: arr1, bx: arr1, bz: arr1, o_vx_x: arr1, o_vz_z: arr1, n_vx_x: arr1, n_vz_z: arr1,
+        vx_new: arr1, vz_new: arr1, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid,
+        vxv: arrv, vzv: arrv, pv: arrv, bxv: arrv, bzv: arrv, vx_newv: arrv, vz_newv: arrv, box: wp.vec4i, tiles: int, frame: int,
+        cells: int,
+    ):  # fmt: skip
+        t = wp.tid()
+        if t < frame:
+            if t < tiles:
+                velocity_tile(t, vxv, vzv, pv, bxv, bzv, vx_newv, vz_newv, dt, inv_dx, box, grid.lz, grid.lx)
+        else:
+            s = (t - frame) // cells
+            zx = frame_cell(t - frame - s * cells, grid.lz, grid.lx, box)
+            m = zx[0] * grid.lx + zx[1]
+            velocity_cell(vx, vz, p, bx, bz, o_vx_x, o_vz_z, n_vx_x, n_vz_z, vx_new, vz_new, az, ax, dt, inv_dx, top, grid, s, zx[0], zx[1],
+                          m, s * grid.lz * grid.lx + m)  # fmt: skip
+
+    return velocity_tiles
 
 
 def _points(ns):
@@ -265,7 +465,7 @@ def build(order: int, dtype, free_surface: bool, mechanisms: int):
 
     ns.Axis, ns.arr1, ns.arr2 = Axis, arr1, arr2
     dvx_dx, dvz_dz = _derivatives(ns)[2:]
-    velocity, cell = _velocity(ns)
+    velocity, _, cell, _, velocity_tiles = _velocity(ns)
     cpml_psi, store_psi = flat_cpml(dtype)
 
     @unique_kernel(grid_stride=False)
@@ -343,7 +543,8 @@ def build(order: int, dtype, free_surface: bool, mechanisms: int):
     weights, inject, record = _points(ns)
 
     return Kernels(Axis=Axis, velocity=velocity, pressure=pressure, materials=materials, weights=weights, inject=inject,
-                   record=record, pad_model=elastic_build(order, dtype, fs).pad_model, halo=M, operator_points=W * W)  # fmt: skip
+                   record=record, pad_model=elastic_build(order, dtype, fs).pad_model, halo=M, operator_points=W * W,
+                   velocity_tiles=velocity_tiles)  # fmt: skip
 
 
 class State:
@@ -353,6 +554,14 @@ class State:
     def __init__(self, vx, vz, p, r, psi):
         self.vx, self.vz, self.p, self.r, self.psi = vx, vz, p, r, psi
         self._flat = None
+        self._vectors = {}
+
+    def vectors(self, V: int) -> tuple:
+        """vx, vz and p's flat views as vector(V) (kernels/common.as_vectors), the tiled velocity half step's inputs;
+        made once per V."""
+        if V not in self._vectors:
+            self._vectors[V] = tuple(as_vectors(a, V) for a in (self.vx, self.vz, self.p))
+        return self._vectors[V]
 
     def arrays(self):
         return [self.vx, self.vz, self.p, self.r, *(self.psi[k] for k in PSI)]
@@ -372,7 +581,14 @@ class Materials(tuple):
     def __new__(cls, arrays):
         mat = super().__new__(cls, arrays)
         mat.flat = tuple(a.flatten() for a in arrays)
+        mat._vectors = {}
         return mat
+
+    def vectors(self, V: int) -> tuple:
+        """The arrays' flat views as vector(V) (kernels/common.as_vectors), made once per V."""
+        if V not in self._vectors:
+            self._vectors[V] = tuple(as_vectors(a, V) for a in self)
+        return self._vectors[V]
 
 
 def field_grid(padded: tuple, halo: int, strip_width: tuple, size: int) -> Grid:
@@ -418,6 +634,7 @@ class Viscoacoustic:
         self.dt_device = dtype(dt)
         self.cuda = wp.get_device(device).is_cuda
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
+        self.tiles = tile_plan(self.axes, self.padded, R, self.n_shots, self.free_surface, self.top)
 
     def psi_shape(self, name):
         axis = PSI[name]
@@ -466,8 +683,14 @@ class Viscoacoustic:
         bx, bz, mu, g = mat.flat
         common = [*self.axes, self.dt_device, self.inv_dx, self.top, self.grid]
         cells = math.prod(self.interior)
-        wp.launch(self.k.velocity, dim=cells, device=self.device,
-                  inputs=[f.vx, f.vz, f.p, bx, bz, f.psi["vx_x"], f.psi["vz_z"], o.psi["vx_x"], o.psi["vz_z"], o.vx, o.vz, *common])
+        vel = [f.vx, f.vz, f.p, bx, bz, f.psi["vx_x"], f.psi["vz_z"], o.psi["vx_x"], o.psi["vz_z"], o.vx, o.vz, *common]
+        if wp._src.context.runtime.tape is not None:  # under a tape: the per-cell kernel, which Warp differentiates
+            wp.launch(self.k.velocity, dim=cells, inputs=vel, device=self.device)
+        else:
+            V, box, tiles, frame, n_frame = self.tiles
+            (fx, fz, fp), (ox, oz, _), mv = st.vectors(V), out.vectors(V), mat.vectors(V)
+            wp.launch(self.k.velocity_tiles[V], dim=frame + self.n_shots * n_frame, device=self.device, block_dim=TILE_THREADS,
+                      inputs=[*vel, fx, fz, fp, *mv[:2], ox, oz, box, tiles, frame, n_frame])  # fmt: skip
         wp.launch(self.k.pressure, dim=cells, device=self.device,
                   inputs=[o.vx, o.vz, f.p, f.r, mu, g, self.c1, self.c2, f.psi["p_x"], f.psi["p_z"], o.psi["p_x"], o.psi["p_z"], o.p,
                           o.r, *common])  # fmt: skip
