@@ -382,14 +382,25 @@ def assert_tiles_equal_the_taped_kernels(prop, mat, dtype: str, steps=5):
     relaxation memory, untaped (its register tiles: kernels/viscoacoustic _velocity_tiles, kernels/acoustic_vd
     _pressure_tiles) and under a wp.Tape (the per-cell kernels that Warp differentiates): the same arithmetic, so
     equal bit for bit on a CPU, and to rounding on a GPU (1e-15 of a field's largest value in float64, 1e-6 in
-    float32: its compiler may fuse multiply-adds differently). Every field and memory variable compared."""
+    float32: its compiler may fuse multiply-adds differently and its atomics add in any order). Two explosive sources a
+    shot at random points (anywhere: across a free surface too), added by acoustic_vd's tiled pressure half step
+    itself and by inject after the taped one. Every field and memory variable compared. Where the step records (acoustic_vd: records_in_step), three receivers a shot at random
+    points too: untaped by the step's launches (record=: p of level n, the velocities of level n + 1), taped by
+    record's own launch before each step; every sample compared but the velocities of level 0, which the step leaves
+    unrecorded (zero)."""
     import warp as wp
 
     rng = np.random.default_rng(3)
-    R, full = prop.k.halo, (prop.n_shots, *prop.padded)
+    R, full, S = prop.k.halo, (prop.n_shots, *prop.padded), prop.n_shots
+    recording = hasattr(prop, "records_in_step")
+    extent = (np.array(prop.shape) - 1) * prop.dx
+    op = prop.operator(wp.array(rng.uniform(0, 1, (S, 3, 2)) * extent, dtype=prop.dtype, device=DEVICE))
+    sources = (wp.array(rng.standard_normal((S, 2, steps + 1)), dtype=prop.dtype, device=DEVICE),
+               prop.operator(wp.array(rng.uniform(0, 1, (S, 2, 2)) * extent, dtype=prop.dtype, device=DEVICE)))  # fmt: skip
     start, fields = None, []
     for taped in (False, True):
         st = prop.new_state()
+        data = tuple(wp.zeros((S, 3, steps), dtype=prop.dtype, device=DEVICE) for _ in range(3))  # vx, vz, p
         if start is None:
             start = [rng.standard_normal(a.shape) for a in st.arrays()]
             for a in start:
@@ -400,13 +411,18 @@ def assert_tiles_equal_the_taped_kernels(prop, mat, dtype: str, steps=5):
         for n in range(steps):
             if taped:
                 with wp.Tape():
-                    prop.step(st, mat, None, n)
+                    if recording:
+                        prop.record(st, data, op, n)
+                    prop.step(st, mat, sources, n)
             else:
-                prop.step(st, mat, None, n)
-        fields.append([a.numpy() for a in st.arrays()])
+                assert not recording or prop.records_in_step()
+                prop.step(st, mat, sources, n, **(dict(record=(data, op, n)) if recording else {}))
+        fields.append([a.numpy() for a in st.arrays()] + ([d.numpy()[..., 1 if i < 2 else 0:] for i, d in enumerate(data)] if recording else []))
+        if recording and not taped:
+            assert not np.any(data[0].numpy()[..., 0]) and not np.any(data[1].numpy()[..., 0])
     tol = 0.0 if DEVICE == "cpu" else 1e-15 if dtype == "float64" else 1e-6
     for got, want in zip(*fields):
-        assert np.abs(got - want).max() <= tol * np.abs(want).max()
+        assert np.abs(want).max() > 0 and np.abs(got - want).max() <= tol * np.abs(want).max()
 
 
 @pytest.mark.parametrize(
@@ -428,3 +444,29 @@ def test_tiled_step_equals_the_per_cell_kernels(dtype, order, free_surface, shap
     rng = np.random.default_rng(4)
     vp, rho = (wp.array(2000.0 + rng.uniform(0, 500, (lz, lx)), dtype=wdtype, device=DEVICE) for _ in range(2))
     assert_tiles_equal_the_taped_kernels(prop, prop.materials(vp, rho), dtype)
+
+
+@pytest.mark.skipif(not DEVICE.startswith("cuda"), reason="a captured time loop runs on a GPU only")
+@pytest.mark.parametrize("free_surface", [False, True])
+def test_captured_loop_equals_level_by_level(free_surface):
+    """On a GPU the 2D forward's captured loop steps in place, its launches recording the receivers (AcousticVDSetup.
+    advance: p of level n and the velocities of level n + 1); level by level (a callback forces it) record is a launch
+    of its own before each step: every component of the data equal to 1e-6 of its largest value (float32; the
+    record's atomics add in any order). Two shots, a source near a free surface."""
+    from adseismic.solve import acoustic_vd as api
+    from adseismic.solve import common, loop
+
+    rng = np.random.default_rng(6)
+    vp, rho = 2000.0 + rng.uniform(0, 500, (60, 70)), 1800.0 + rng.uniform(0, 500, (60, 70))
+    amp = np.stack([ricker(15.0, 300, 1e-3), 0.5 * ricker(20.0, 300, 1e-3)])[:, None]
+    src = np.array([[[30.0, 300.0]], [[5.0, 420.0]]])
+    rec = np.stack([np.stack([rng.uniform(0, 590, 9), rng.uniform(0, 690, 9)], -1)] * 2)
+    data = []
+    for callback in (None, lambda st, n: None):
+        su = api.setup_acoustic_vd(vp, rho, 10.0, 1e-3, amp, src, rec, free_surface=free_surface, device=DEVICE)
+        guard = common.BlowupGuard(su.prop, api.DESCRIPTION, su.fields, common.source_end(amp, lag=2, rate=True), 25, "p")
+        d, kept = loop.run(su, guard, callback=callback)
+        assert kept == (callback is None)
+        data.append([loop.traces(a, su.nt, False, kept) for a in d])
+    for got, want in zip(*data):
+        assert np.abs(want).max() > 0 and np.abs(got - want).max() <= 1e-6 * np.abs(want).max()

@@ -89,6 +89,27 @@ class AcousticVDSetup(StaggeredSetup):
         k = self.prop.k
         return [k.velocity, k.pressure, k.inject, k.record]
 
+    # A captured loop of the 2D tiled step steps in place and records in the step's own launches (AcousticVD.step's
+    # record=), not round two states with the record beside the step: one VD1000 step 15.2 + ~0.6 us against 19.3 us
+    # on an H200 (docs/benchmarks.md, "The record in the step's launches").
+    @property
+    def period(self):
+        return 1 if self.prop.tiles is not None else 2
+
+    def spare(self, st):
+        return None if self.prop.tiles is not None else super().spare(st)
+
+    def out_state(self, st, spare):
+        return None if self.prop.tiles is not None else spare
+
+    def freed(self, st):
+        return None if self.prop.tiles is not None else st
+
+    def advance(self, st, mat, src, data, k, n, out, clock, side=None):
+        if side is not None and self.prop.tiles is not None:  # in a captured loop
+            return self.prop.step(st, mat, src, n, out, clock, record=(data, self.receiver_op, k))
+        return super().advance(st, mat, src, data, k, n, out, clock, side)
+
 
 def setup_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4, pml_width=None,
                       pml_reflection=None, pml_frequency=None, pml_velocity=None, free_surface=False, device="cpu",

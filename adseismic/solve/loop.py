@@ -14,8 +14,8 @@ A physics hands the solver a setup (solve/<name>.py) that maps its propagator on
     su.fields(st)     the arrays the blow-up guard watches
     su.period, su.spare(st), su.out_state(st, spare), su.freed(st)   the buffer ring of a captured loop (period
                       steps to come round): advance st into
-                      out_state(st, spare); freed(st) is the next spare (a GPU writes a fresh array faster than
-                      it updates one in place)
+                      out_state(st, spare) (None: in place); freed(st) is the next spare (a GPU writes a fresh
+                      array faster than it updates one in place, except where a step's fields fit its L2 cache)
     su.lookahead      source samples read past a level (a moment source reads n + 1)
     su.key(), su.loop_kernels(), su.inputs(src), su.fill_model(model)   what a kept loop bakes in, loads, and
                       refills from a later call with the same key
@@ -100,7 +100,7 @@ def kept_loop(su, every: int) -> graphs.Loop:
 
 
 def _arrays(x):
-    return x.arrays() if hasattr(x, "arrays") else [x]
+    return x.arrays() if hasattr(x, "arrays") else [] if x is None else [x]
 
 
 def run(su, guard, progress=False, callback=None):

@@ -171,10 +171,10 @@ def _derivatives(ns):
     return dp_dx, dp_dz, dvx_dx, dvz_dz
 
 
-def _velocity(ns):
+def _velocity(ns, record_thread):
     """The lossless velocity half step v_new = v - dt b grad p (velocity, flat arrays, a 1D launch over the interior
     cells; every load before the first store; velocity_cell: one cell's), shared with kernels/acoustic_vd, and its
-    cell decoder."""
+    cell decoder; the tiled velocity half step records p by record_thread (_points)."""
     dtype, arr1, Axis = ns.dtype, ns.arr1, ns.Axis
     dp_dx, dp_dz = _derivatives(ns)[:2]
     cell = _cell(ns)
@@ -232,7 +232,7 @@ def _velocity(ns):
         vz_new[c] = uz - dt * bzm * (gz + qz)
 
     lanes = {V: _lanes(ns, V) for V in TILE_LANES}
-    return velocity, velocity_cell, cell, lanes, {V: _velocity_tiles(ns, lanes[V], velocity_cell) for V in TILE_LANES}
+    return velocity, velocity_cell, cell, lanes, {V: _velocity_tiles(ns, lanes[V], velocity_cell, record_thread) for V in TILE_LANES}
 
 
 def _lanes(ns, V: int):
@@ -318,14 +318,27 @@ def tile_plan(axes, padded, halo: int, n_shots: int, free_surface: bool, top: in
     return V, box, tiles, frame, (lz - 2 * R) * (lx - 2 * R) - h * w
 
 
-def _velocity_tiles(ns, L, velocity_cell):
+def tiled_recording(st, record, clock) -> tuple:
+    """(a tiled half step's last arguments, its recording threads) for record = (data (vx, vz, pressure arrays (S,
+    n_rec, n)), receiver_op (idx, w), k): st's fields into samples k (+ clock[0]; none past n); None: no recording."""
+    if record is None:
+        return [None] * 8 + [0, clock, 0], 0
+    data, (idx, w), k = record
+    threads = -(-math.prod(idx.shape[1:]) // TILE_THREADS) * TILE_THREADS
+    return [st.vx, st.vz, st.p, *data, idx, w, k, clock, threads], threads
+
+
+def _velocity_tiles(ns, L, velocity_cell, record_thread):
     """The velocity half step untaped (never differentiated), in place or out of place, as a core and a frame in one
-    1D launch: a thread t < tiles updates TILE_ROWS rows x V adjacent columns of the core box (tile_plan; L: _lanes),
-    the rows of p along z in a sliding window; from `frame` (a block boundary, so that no warp mixes the two) one frame
-    cell (an interior cell outside the box; `cells` a shot) by velocity_cell. The core's arithmetic is the cell's
-    without its CPML and image terms: equal bit for bit on a CPU (docs/benchmarks.md, "The staggered half steps as
-    register tiles")."""
-    M, C, dtype, arr1, Axis, rows = ns.M, ns.C, ns.dtype, ns.arr1, ns.Axis, TILE_ROWS
+    1D launch, after `records` threads (a multiple of TILE_THREADS, or 0) that record the receivers' p of the level
+    stepped from into `sample` (+ clock[0]) (record_thread of fp, the array p is: the launch writes only velocities).
+    From thread `records` on, thread t < tiles updates TILE_ROWS rows x V
+    adjacent columns of the core box (tile_plan; L: _lanes), the rows of p along z in a sliding window; from `frame`
+    (a block boundary, so that no warp mixes the two) one frame cell (an interior cell outside the box; `cells` a
+    shot) by velocity_cell. The core's arithmetic is the cell's without its CPML and image terms: equal bit for bit on
+    a CPU (docs/benchmarks.md, "The staggered half steps as register tiles")."""
+    M, C, dtype, arr1, arr3, Axis, rows = ns.M, ns.C, ns.dtype, ns.arr1, ns.arr3, ns.Axis, TILE_ROWS
+    arr4, iarr1, idx4 = ns.arr4, ns.iarr1, ns.idx4
     V, NB, vec, arrv, load, put = L.V, L.NB, L.vec, L.arrv, L.load, L.put
     row_line, window, slide, tile, frame_cell = L.row_line, L.window, L.slide, L.tile, L.frame_cell
 
@@ -369,9 +382,14 @@ def _velocity_tiles(ns, L, velocity_cell):
         vx: arr1, vz: arr1, p: arr1, bx: arr1, bz: arr1, o_vx_x: arr1, o_vz_z: arr1, n_vx_x: arr1, n_vz_z: arr1,
         vx_new: arr1, vz_new: arr1, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid,
         vxv: arrv, vzv: arrv, pv: arrv, bxv: arrv, bzv: arrv, vx_newv: arrv, vz_newv: arrv, box: wp.vec4i, tiles: int, frame: int,
-        cells: int,
+        cells: int, fvx: arr3, fvz: arr3, fp: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4, sample: int, clock: iarr1,
+        records: int,
     ):  # fmt: skip
         t = wp.tid()
+        if t < records:
+            record_thread(t, fvx, fvz, fp, d_vx, d_vz, d_p, idx, w, sample + clock[0], 1)
+            return
+        t -= records
         if t < frame:
             if t < tiles:
                 velocity_tile(t, vxv, vzv, pv, bxv, bzv, vx_newv, vz_newv, dt, inv_dx, box, grid.lz, grid.lx)
@@ -387,7 +405,8 @@ def _velocity_tiles(ns, L, velocity_cell):
 
 def _points(ns):
     """The sources' and receivers' kernels of build: the fixed operator's weights at the p, vx and vz nodes (make_point,
-    folded across a free surface), the explosive source's injection into p, and the recording of p, vx and vz."""
+    folded across a free surface), the explosive source's injection into p, and the recording of p, vx and vz (a
+    kernel, and record_thread: a tiled launch's thread recording p or the velocities at one point)."""
     dtype, arr3, arr4, iarr1, idx4 = ns.dtype, ns.arr3, ns.arr4, ns.iarr1, ns.idx4
     hicks = hicks_axis(dtype)
     pt_p = make_point(ns, hicks, 0.0, 0.0, True)
@@ -420,25 +439,43 @@ def _points(ns):
             i = idx[0, s, src, q]
             wp.atomic_add(p, s, i[0], i[1], scale * (amp[s, src, t + 1] - amp[s, src, t]) * wq)
 
+    @wp.func
+    def record_point(vx: arr3, vz: arr3, p: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4, s: int, r: int, q: int,
+                     t: int, parts: int):  # fmt: skip
+        # sample t of receiver r's p (parts bit 1) and vx, vz (bit 2): its operator's point q
+        if (parts & 1) != 0:
+            wq = w[0, s, r, q]
+            if wq != dtype(0.0):
+                i = idx[0, s, r, q]
+                wp.atomic_add(d_p, s, r, t, wq * p[s, i[0], i[1]])
+        if (parts & 2) != 0:
+            wq = w[1, s, r, q]
+            if wq != dtype(0.0):
+                i = idx[1, s, r, q]
+                wp.atomic_add(d_vx, s, r, t, wq * vx[s, i[0], i[1]])
+            wq = w[2, s, r, q]
+            if wq != dtype(0.0):
+                i = idx[2, s, r, q]
+                wp.atomic_add(d_vz, s, r, t, wq * vz[s, i[0], i[1]])
+
     @unique_kernel
     def record(vx: arr3, vz: arr3, p: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4, n: int, clock: iarr1):
         # sample n of each receiver's p, vx, vz through its operator
         s, r, q = wp.tid()
-        t = n + clock[0]
-        wq = w[0, s, r, q]
-        if wq != dtype(0.0):
-            i = idx[0, s, r, q]
-            wp.atomic_add(d_p, s, r, t, wq * p[s, i[0], i[1]])
-        wq = w[1, s, r, q]
-        if wq != dtype(0.0):
-            i = idx[1, s, r, q]
-            wp.atomic_add(d_vx, s, r, t, wq * vx[s, i[0], i[1]])
-        wq = w[2, s, r, q]
-        if wq != dtype(0.0):
-            i = idx[2, s, r, q]
-            wp.atomic_add(d_vz, s, r, t, wq * vz[s, i[0], i[1]])
+        record_point(vx, vz, p, d_vx, d_vz, d_p, idx, w, s, r, q, n + clock[0], 3)
 
-    return weights, inject, record
+    @wp.func
+    def record_thread(t: int, vx: arr3, vz: arr3, p: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4, sample: int,
+                      parts: int):  # fmt: skip
+        # a tiled launch's recording thread t: record_point of point t (in (S, n_rec, points) order) where data hold the sample
+        points = idx.shape[3]
+        n_rec = idx.shape[2]
+        if t < idx.shape[1] * n_rec * points and sample < d_p.shape[2]:
+            sr = t // points
+            s = sr // n_rec
+            record_point(vx, vz, p, d_vx, d_vz, d_p, idx, w, s, sr - s * n_rec, t - sr * points, sample, parts)
+
+    return weights, inject, record, record_thread
 
 
 @functools.lru_cache(maxsize=None)
@@ -465,7 +502,8 @@ def build(order: int, dtype, free_surface: bool, mechanisms: int):
 
     ns.Axis, ns.arr1, ns.arr2 = Axis, arr1, arr2
     dvx_dx, dvz_dz = _derivatives(ns)[2:]
-    velocity, _, cell, _, velocity_tiles = _velocity(ns)
+    weights, inject, record, record_point = _points(ns)
+    velocity, _, cell, _, velocity_tiles = _velocity(ns, record_point)
     cpml_psi, store_psi = flat_cpml(dtype)
 
     @unique_kernel(grid_stride=False)
@@ -539,8 +577,6 @@ def build(order: int, dtype, free_surface: bool, mechanisms: int):
         mu[z, x] = relaxed * (dtype(1.0) + ysum)
         for l in range(wp.static(L)):
             g[l, z, x] = relaxed * weight(series, l, iq)
-
-    weights, inject, record = _points(ns)
 
     return Kernels(Axis=Axis, velocity=velocity, pressure=pressure, materials=materials, weights=weights, inject=inject,
                    record=record, pad_model=elastic_build(order, dtype, fs).pad_model, halo=M, operator_points=W * W,
@@ -690,7 +726,7 @@ class Viscoacoustic:
             V, box, tiles, frame, n_frame = self.tiles
             (fx, fz, fp), (ox, oz, _), mv = st.vectors(V), out.vectors(V), mat.vectors(V)
             wp.launch(self.k.velocity_tiles[V], dim=frame + self.n_shots * n_frame, device=self.device, block_dim=TILE_THREADS,
-                      inputs=[*vel, fx, fz, fp, *mv[:2], ox, oz, box, tiles, frame, n_frame])  # fmt: skip
+                      inputs=[*vel, fx, fz, fp, *mv[:2], ox, oz, box, tiles, frame, n_frame, *tiled_recording(st, None, clock)[0]])  # fmt: skip
         wp.launch(self.k.pressure, dim=cells, device=self.device,
                   inputs=[o.vx, o.vz, f.p, f.r, mu, g, self.c1, self.c2, f.psi["p_x"], f.psi["p_z"], o.psi["p_x"], o.psi["p_z"], o.p,
                           o.r, *common])  # fmt: skip
