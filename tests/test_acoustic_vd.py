@@ -383,8 +383,7 @@ def assert_tiles_equal_the_taped_kernels(prop, mat, dtype: str, steps=5):
     _pressure_tiles) and under a wp.Tape (the per-cell kernels that Warp differentiates): the same arithmetic, so
     equal bit for bit on a CPU, and to rounding on a GPU (1e-15 of a field's largest value in float64, 1e-6 in
     float32: its compiler may fuse multiply-adds differently and its atomics add in any order). Two explosive sources a
-    shot at random points (anywhere: across a free surface too), added by acoustic_vd's tiled pressure half step
-    itself and by inject after the taped one. Every field and memory variable compared. Where the step records (acoustic_vd: records_in_step), three receivers a shot at random
+    shot at random points (anywhere: across a free surface too). Every field and memory variable compared. Where the step records (acoustic_vd: records_in_step), three receivers a shot at random
     points too: untaped by the step's launches (record=: p of level n, the velocities of level n + 1), taped by
     record's own launch before each step; every sample compared but the velocities of level 0, which the step leaves
     unrecorded (zero)."""

@@ -90,8 +90,8 @@ class AcousticVDSetup(StaggeredSetup):
         return [k.velocity, k.pressure, k.inject, k.record]
 
     # A captured loop of the 2D tiled step steps in place and records in the step's own launches (AcousticVD.step's
-    # record=), not round two states with the record beside the step: one VD1000 step 15.2 + ~0.6 us against 19.3 us
-    # on an H200 (docs/benchmarks.md, "The record in the step's launches").
+    # record=), not round two states with the record beside the step: a VD1000 step with its source 16.2 against 20.2 us
+    # on an H200 (docs/benchmarks.md, "acoustic_vd's captured loop in place").
     @property
     def period(self):
         return 1 if self.prop.tiles is not None else 2

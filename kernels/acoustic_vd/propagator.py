@@ -35,9 +35,8 @@ Grid and stencils; 3D: kernels/elastic3d's flat stencils, Grid and strips). A 2D
 instead, never differentiated: each half step as one launch of register tiles (V adjacent cells a load, rows along z
 in a sliding window) over the core, where no CPML strip or free-surface image is in reach, and of the per-cell
 arithmetic over the frame around it (kernels/viscoacoustic's _velocity_tiles and tile_plan, _pressure_tiles here; equal
-to the per-cell kernels bit for bit on a CPU). Its pressure launch adds the sources' terms itself (up to FUSED_SOURCES a
-shot), and in a captured time loop its launches record the receivers too (AcousticVD.step's record=): a step is then
-two launches.
+to the per-cell kernels bit for bit on a CPU). In a captured time loop its launches record the receivers too
+(AcousticVD.step's record=).
 """
 
 import functools
@@ -81,9 +80,6 @@ from adseismic.kernels.viscoacoustic.propagator import (
 VELOCITIES = {2: ("vx", "vz"), 3: ("vx", "vy", "vz")}
 PSI = {2: {"vx_x": 1, "vz_z": 0, "p_x": 1, "p_z": 0}, 3: {"vx_x": 2, "vy_y": 1, "vz_z": 0, "p_x": 2, "p_y": 1, "p_z": 0}}
 MATERIALS = {2: ("bx", "bz", "k"), 3: ("bx", "by", "bz", "k")}
-# a 2D tiled pressure half step adds the sources' terms itself (no inject launch) where a shot has at most this many
-# sources: each of its threads tests each source's reach
-FUSED_SOURCES = 4
 
 
 def _kernels_2d(ns):
@@ -93,40 +89,12 @@ def _kernels_2d(ns):
     velocity, velocity_cell, cell, lanes, velocity_tiles = _velocity(ns, record_thread)
     cpml_psi, store_psi = flat_cpml(dtype)
     dvx_dx, dvz_dz = _derivatives(ns)[2:]
-    arr3, arr4, idx4, W = ns.arr3, ns.arr4, ns.idx4, ns.W
-
-    @wp.func
-    def near_source(z0: int, z1: int, x0: int, x1: int, s: int, idx: idx4) -> bool:
-        # whether a source's p operator of shot s reaches rows z0 .. z1 - 1 and columns x0 .. x1 - 1: its W x W points lie
-        # in the W rows up to the larger row of its first and last point (a free surface folds rows above it below it)
-        # and the W columns from its first point's
-        hit = bool(False)
-        for src in range(idx.shape[2]):
-            first = idx[0, s, src, 0]
-            low = wp.max(first[0], idx[0, s, src, idx.shape[3] - 1][0])
-            if z0 <= low and z1 > low - wp.static(W - 1) and x0 < first[1] + wp.static(W) and x1 > first[1]:
-                hit = True
-        return hit
-
-    @wp.func
-    def with_sources(v: dtype, z: int, x: int, s: int, amp: arr3, idx: idx4, w: arr4, t: int, scale: dtype) -> dtype:
-        # v plus the explosive sources' terms at p node (z, x) of shot s, each added as inject adds it, in its order
-        for src in range(idx.shape[2]):
-            rate = scale * (amp[s, src, t + 1] - amp[s, src, t])
-            for q in range(idx.shape[3]):
-                wq = w[0, s, src, q]
-                if wq != dtype(0.0):
-                    i = idx[0, s, src, q]
-                    if i[0] == z and i[1] == x:
-                        v += rate * wq
-        return v
 
     @wp.func
     def pressure_cell(vx: arr1, vz: arr1, p: arr1, k: arr1, o_p_x: arr1, o_p_z: arr1, n_p_x: arr1, n_p_z: arr1, p_new: arr1, az: Axis,
-                      ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid, s: int, z: int, x: int, m: int, c: int, amp: arr3, sidx: idx4,
-                      sw: arr4, t: int, scale: dtype):  # fmt: skip
-        # p_new = p - dt K div v at cell (s, z, x) (m: its model cell, c: its field cell); 0 on a free surface's row; plus
-        # the sources' terms (amp, sidx, sw: inject's, at sample t); for untaped kernels (pressure's own is written out)
+                      ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid, s: int, z: int, x: int, m: int, c: int):  # fmt: skip
+        # p_new = p - dt K div v at cell (s, z, x) (m: its model cell, c: its field cell); 0 on a free surface's row; for
+        # untaped kernels (pressure's own is written out)
         jz = az.store[z]
         jx = ax.store[x]
         kx = (s * grid.lz + z) * grid.wx + jx
@@ -143,10 +111,7 @@ def _kernels_2d(ns):
         km = k[m]
         store_psi(jx, n_p_x, kx, qx)
         store_psi(jz, n_p_z, kz, qz)
-        pn = keep * (pc - dt * km * ((ex + qx) + (ez + qz)))
-        if near_source(z, z + 1, x, x + 1, s, sidx):
-            pn = with_sources(pn, z, x, s, amp, sidx, sw, t, scale)
-        p_new[c] = pn
+        p_new[c] = keep * (pc - dt * km * ((ex + qx) + (ez + qz)))
 
     @unique_kernel(grid_stride=False)
     def pressure(vx: arr1, vz: arr1, p: arr1, k: arr1, o_p_x: arr1, o_p_z: arr1, n_p_x: arr1, n_p_z: arr1, p_new: arr1, az: Axis,
@@ -171,7 +136,7 @@ def _kernels_2d(ns):
         store_psi(jz, n_p_z, kz, qz)
         p_new[c] = keep * (pc - dt * km * ((ex + qx) + (ez + qz)))
 
-    tiled = {V: (velocity_tiles[V], _pressure_tiles(ns, lanes[V], pressure_cell, record_thread, near_source, with_sources)) for V in TILE_LANES}
+    tiled = {V: (velocity_tiles[V], _pressure_tiles(ns, lanes[V], pressure_cell, record_thread)) for V in TILE_LANES}
 
     @unique_kernel
     def materials(vp: arr2, rho: arr2, bx: arr2, bz: arr2, k: arr2):
@@ -188,12 +153,11 @@ def _kernels_2d(ns):
                 pad_model=elastic_build(ns.order, dtype, fs).pad_model, operator_points=ns.W**2, tiled=tiled)  # fmt: skip
 
 
-def _pressure_tiles(ns, L, pressure_cell, record_thread, near_source, with_sources):
+def _pressure_tiles(ns, L, pressure_cell, record_thread):
     """The pressure half step untaped, as kernels/viscoacoustic's _velocity_tiles does the velocity one (L: its
     _lanes): `records` threads recording the receivers' velocities (fvx, fvz: the arrays vx, vz are, which the launch
     only reads) into `sample` (+ clock[0]), core tiles with the rows of vz in a sliding window, frame cells by
-    pressure_cell; each cell adds the explosive sources' terms (amp, sidx, sw, sample t + clock[0], scale: inject's)
-    where their operators reach it (near_source), as inject would after the step (one launch fewer a step)."""
+    pressure_cell."""
     M, C, dtype, arr1, arr3, Axis, rows = ns.M, ns.C, ns.dtype, ns.arr1, ns.arr3, ns.Axis, TILE_ROWS
     arr4, iarr1, idx4 = ns.arr4, ns.iarr1, ns.idx4
     V, NB, vec, arrv, load, put = L.V, L.NB, L.vec, L.arrv, L.load, L.put
@@ -201,14 +165,11 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread, near_source, with_sourc
 
     @wp.func
     def pressure_tile(t: int, vx: arrv, vz: arrv, p: arrv, k: arrv, p_new: arrv, dt: dtype, inv_dx: dtype, box: wp.vec4i, lz: int,
-                      lx: int, amp: arr3, sidx: idx4, sw: arr4, ts: int, scale: dtype):  # fmt: skip
+                      lx: int):  # fmt: skip
         tl = tile(t, box, lz, lx)
         n = lx // wp.static(V)
         c = tl[1] // wp.static(V)
         i = tl[2] // wp.static(V)
-        s = tl[2] // (lz * lx)
-        x = tl[1] - tl[0] * lx
-        sources = near_source(tl[0], tl[0] + wp.static(rows), x, x + wp.static(V), s, sidx)
         w = window(vz, i, n, wp.static(-M))  # vz at rows z - M .. z + M - 1
         for r in range(wp.static(rows)):
             if tl[0] + r < box[1]:
@@ -223,9 +184,6 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread, near_source, with_sourc
                         ex += dtype(wp.static(C[m])) * (xl[wp.static(NB * V + m) + j] - xl[wp.static(NB * V - m - 1) + j])
                         ez += dtype(wp.static(C[m])) * (w[wp.static(M + m), j] - w[wp.static(M - 1 - m), j])
                     o[j] = pc[j] - dt * km[j] * ((ex * inv_dx) + (ez * inv_dx))
-                if sources:
-                    for j in range(wp.static(V)):
-                        o[j] = with_sources(o[j], tl[0] + r, x + j, s, amp, sidx, sw, ts, scale)
                 put(p_new, i, o)
                 if wp.static(r + 1 < rows):
                     w = slide(w, load(vz, i + wp.static(M) * n))
@@ -237,7 +195,7 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread, near_source, with_sourc
         vx: arr1, vz: arr1, p: arr1, k: arr1, o_p_x: arr1, o_p_z: arr1, n_p_x: arr1, n_p_z: arr1, p_new: arr1, az: Axis, ax: Axis,
         dt: dtype, inv_dx: dtype, top: int, grid: Grid, vxv: arrv, vzv: arrv, pv: arrv, kv: arrv, p_newv: arrv, box: wp.vec4i,
         tiles: int, frame: int, cells: int, fvx: arr3, fvz: arr3, fp: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4,
-        sample: int, clock: iarr1, records: int, amp: arr3, sidx: idx4, sw: arr4, ts: int, scale: dtype,
+        sample: int, clock: iarr1, records: int,
     ):  # fmt: skip
         t = wp.tid()
         if t < records:
@@ -246,13 +204,13 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread, near_source, with_sourc
         t -= records
         if t < frame:
             if t < tiles:
-                pressure_tile(t, vxv, vzv, pv, kv, p_newv, dt, inv_dx, box, grid.lz, grid.lx, amp, sidx, sw, ts + clock[0], scale)
+                pressure_tile(t, vxv, vzv, pv, kv, p_newv, dt, inv_dx, box, grid.lz, grid.lx)
         else:
             s = (t - frame) // cells
             zx = frame_cell(t - frame - s * cells, grid.lz, grid.lx, box)
             m = zx[0] * grid.lx + zx[1]
             pressure_cell(vx, vz, p, k, o_p_x, o_p_z, n_p_x, n_p_z, p_new, az, ax, dt, inv_dx, top, grid, s, zx[0], zx[1], m,
-                          s * grid.lz * grid.lx + m, amp, sidx, sw, ts + clock[0], scale)  # fmt: skip
+                          s * grid.lz * grid.lx + m)  # fmt: skip
 
     return pressure_tiles
 
@@ -564,12 +522,8 @@ class AcousticVD:
             wp.launch(velocity, dim=threads + dim, inputs=[*vel, fx, fz, fp, *mv[:2], ox, oz, *rest, *rec], device=self.device,
                       block_dim=TILE_THREADS)  # fmt: skip
             rec, threads = tiled_recording(out, None if record is None else (*record[:2], record[2] + 1), clock)
-            fused = sources is not None and sources[1][0].shape[2] <= FUSED_SOURCES
-            src = [*sources[0:1], *sources[1]] if fused else [None] * 3
-            wp.launch(pressure, dim=threads + dim, inputs=[*pre, ox, oz, fp, mv[2], op, *rest, *rec, *src, n, self.dtype(self.dx**-2)],
-                      device=self.device, block_dim=TILE_THREADS)  # fmt: skip
-            if fused:
-                return out
+            wp.launch(pressure, dim=threads + dim, inputs=[*pre, ox, oz, fp, mv[2], op, *rest, *rec], device=self.device,
+                      block_dim=TILE_THREADS)  # fmt: skip
         if sources is not None:
             amplitudes, (idx, w) = sources
             wp.launch(self.k.inject, dim=idx.shape[1:], inputs=[out.p, amplitudes, idx, w, n, clock, self.dtype(self.dx**-self.ndim)],
