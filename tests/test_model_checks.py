@@ -1,7 +1,8 @@
 """The staggered physics' model checks (common.checked_models): the device check (fast_check: value ranges of the
 models and of derived arrays) clears only valid models and finds the CFL speed the host finds; what it does not
-clear, the NumPy check decides with its own message. On the CPU the setups run the NumPy check only; these tests run
-the device kernels and decisions on DEVICE (cpu, or ADSEISMIC_TEST_DEVICE=cuda:0)."""
+clear, the NumPy check decides with its own message. Models given on the device keep the traces there. On the CPU
+the setups run the NumPy check only; these tests run the device kernels and decisions on DEVICE (cpu, or
+ADSEISMIC_TEST_DEVICE=cuda:0)."""
 
 import re
 
@@ -124,14 +125,14 @@ def test_unclear_models_fall_back_to_the_numpy_check():
     assert vmax == pytest.approx(float(vti.horizontal_speed(m[0], m[1]).max()), rel=2e-7)
 
 
-def test_upload_copies_warp_arrays_of_dtype_and_rounds_the_rest():
+def test_upload_keeps_or_copies_warp_arrays_of_dtype_and_rounds_the_rest():
     vp = wp.array(np.full((3, 4), 2000.0, dtype=np.float32), device=DEVICE)
     rho = np.full((3, 4), 1000.1)
     arrays, host, exact = common.upload_models({"vp": vp, "rho": rho}, wp.float32, DEVICE, requires_grad=("vp",))
     assert host[0] is None and arrays[0].ptr != vp.ptr and arrays[0].requires_grad and not arrays[1].requires_grad
     assert host[1] is not None and host[1].dtype == np.float64 and not exact  # 1000.1 is not a float32
-    _, _, exact = common.upload_models({"vp": vp, "rho": rho.astype(np.float32)}, wp.float32, DEVICE)
-    assert exact
+    arrays, _, exact = common.upload_models({"vp": vp, "rho": rho.astype(np.float32)}, wp.float32, DEVICE)
+    assert exact and arrays[0] is vp  # not differentiated: read where it is
 
 
 SETUPS = {"acoustic_vd": acoustic_vd.setup_acoustic_vd, "viscoacoustic": viscoacoustic.setup_viscoacoustic,
@@ -153,3 +154,31 @@ def test_setup_on_the_device_finds_the_cpu_speed(physics, monkeypatch):
         assert all(a.device == wp.get_device(device) for a in su.models)
     assert speeds[1] == pytest.approx(speeds[0], rel=1e-14, abs=0)
     assert physics not in ("acoustic_vd", "elastic3d") or speeds[1] == speeds[0]
+
+
+FORWARDS = {"acoustic_vd": acoustic_vd.forward_acoustic_vd, "viscoacoustic": viscoacoustic.forward_viscoacoustic,
+            "vti": vti.forward_vti, "elastic3d": elastic3d.forward_elastic3d}  # fmt: skip
+
+
+@pytest.mark.parametrize("physics", list(FORWARDS))
+def test_models_on_the_device_keep_the_traces_there(physics):
+    # forward_elastic's convention over the staggered family: Warp models give Warp traces on their device (no copy
+    # to the host), of the values NumPy models of the same float32 values give (equal on the CPU; on a GPU to the
+    # order of float32 atomic adds)
+    shape = (14, 12, 12) if physics == "elastic3d" else (24, 20)
+    ndim = len(shape)
+    m = [np.asarray(a, dtype=np.float32).astype(float) for a in models(physics, shape)]
+    t = np.arange(60) * 2e-4
+    amp = ((1 - 2 * (np.pi * 25 * (t - 0.04)) ** 2) * np.exp(-((np.pi * 25 * (t - 0.04)) ** 2)))[None, None]
+    src, rec = np.full((1, 1, ndim), 40.0), np.array([[[30.0] * (ndim - 1) + [50.0], [60.0] * (ndim - 1) + [70.0]]])
+    kw = dict(pml_width=4, pml_velocity=4600.0, pml_frequency=25.0, device=DEVICE)
+    if physics == "viscoacoustic":
+        kw.update(f_ref=F_REF, q_band=(10.0, 80.0))
+    host = FORWARDS[physics](*m, 10.0, 2e-4, amp, src, rec, **kw)
+    dev = FORWARDS[physics](*on_device(m), 10.0, 2e-4, amp, src, rec, **kw)
+    names = ("vx", "vz", "pressure") + (("vy",) if ndim == 3 else ())
+    limit = 0.0 if DEVICE == "cpu" else 1e-5
+    for name in names:
+        ref, got = getattr(host, name), getattr(dev, name)
+        assert isinstance(ref, np.ndarray) and isinstance(got, wp.array) and got.device == wp.get_device(DEVICE), name
+        assert np.abs(ref).max() > 0 and np.abs(got.numpy() - ref).max() <= limit * np.abs(ref).max(), name

@@ -40,12 +40,13 @@ MODEL_CHECKS = common.ModelChecks(
 @dataclass
 class AcousticVDResult:
     """Output of :func:`forward_acoustic_vd`: pressure (Pa), vx, vz, vy (m/s; vy None in 2D), each (n_shots,
-    n_receivers, nt) NumPy arrays in the simulation's precision; dt (s)."""
+    n_receivers, nt) in the simulation's precision: Warp arrays on the model's device where vp was given as a Warp
+    array (as forward_elastic's), else NumPy arrays; dt (s)."""
 
-    pressure: np.ndarray
-    vx: np.ndarray
-    vz: np.ndarray
-    vy: np.ndarray | None
+    pressure: np.ndarray | wp.array
+    vx: np.ndarray | wp.array
+    vz: np.ndarray | wp.array
+    vy: np.ndarray | wp.array | None
     dt: float
 
 
@@ -146,14 +147,14 @@ def forward_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, re
     vp (m/s), rho (kg/m^3): (nz, nx) or (nz, ny, nx); dx m; dt s; source_amplitudes (n_shots, n_src, nt) N m/m (2D)
     or N m (3D); source/receiver_locations (n_shots, n, ndim) metres (z, [y,] x); order 2, 4 or 8; PML settings as
     forward_elastic's; free_surface: p = 0 at z = 0. Returns pressure (Pa), vx, vz and in 3D vy (m/s), each
-    (n_shots, n_receivers, nt). Raises ValueError on bad input or a dt above the CFL limit, PropagationError if the run
-    blows up."""
+    (n_shots, n_receivers, nt), on the device where vp is a Warp array (AcousticVDResult). Raises ValueError on bad
+    input or a dt above the CFL limit, PropagationError if the run blows up."""
     su = setup_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, order=order, pml_width=pml_width,
                            pml_reflection=pml_reflection, pml_frequency=pml_frequency, pml_velocity=pml_velocity,
                            free_surface=free_surface, device=device, precision=precision)  # fmt: skip
     guard = common.BlowupGuard(su.prop, DESCRIPTION, su.fields, common.source_end(source_amplitudes, lag=2, rate=True), check_every, "p")
     data, kept = loop.run(su, guard, progress)
-    out = {c: loop.traces(d, su.nt, False, kept) for c, d in zip(su.data_components, data)}
+    out = {c: loop.traces(d, su.nt, isinstance(vp, wp.array), kept) for c, d in zip(su.data_components, data)}
     return AcousticVDResult(pressure=out["pressure"], vx=out["vx"], vz=out["vz"], vy=out.get("vy"), dt=float(dt))
 
 

@@ -56,17 +56,21 @@ def model_shape(models: dict, ndims=(2,)) -> tuple:
 
 
 def upload_models(models: dict, dtype, device: str, requires_grad=()):
-    """models {name: NumPy or Warp array (one shape)} as new Warp arrays of dtype on device, requires_grad for the
-    names in requires_grad. A Warp array of dtype is copied device to device (a model on the GPU never visits the
-    host); anything else is read once into a float64 host copy and uploaded. Returns (arrays, host, exact): host[k]
-    the float64 copy, None where none was made; exact: no value was rounded on its way to dtype (every input of dtype
-    or of a type dtype holds exactly)."""
+    """models {name: NumPy or Warp array (one shape)} as Warp arrays of dtype on device, requires_grad for the names
+    in requires_grad. A Warp array of dtype is used as it is where it is on device and not differentiated (the runs
+    only read their models), else copied device to device (a model on the GPU never visits the host); anything else
+    is read once into a float64 host copy and uploaded. Returns (arrays, host, exact): host[k] the float64 copy, None
+    where none was made; exact: no value was rounded on its way to dtype (every input of dtype or of a type dtype
+    holds exactly)."""
     arrays, host, exact = [], [], True
     for name, a in models.items():
         grad = name in requires_grad
         if isinstance(a, wp.array) and a.dtype == dtype:
-            arrays.append(wp.empty(a.shape, dtype=dtype, device=device, requires_grad=grad))
-            wp.copy(arrays[-1], a)
+            if grad or a.device != wp.get_device(device) or not a.is_contiguous:
+                arrays.append(wp.empty(a.shape, dtype=dtype, device=device, requires_grad=grad))
+                wp.copy(arrays[-1], a)
+            else:
+                arrays.append(a)
             host.append(None)
         else:
             given = a.numpy() if isinstance(a, wp.array) else np.asarray(a)

@@ -158,9 +158,10 @@ class ElasticSetup(StaggeredSetup):
 
     physics = DESCRIPTION
 
-    def model(self, on_tape=False):
-        """The padded model's MATERIALS (kernels/elastic); differentiable under a tape."""
-        return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape)
+    def model(self, on_tape=False, out=None):
+        """The padded model's MATERIALS (kernels/elastic), into out (an earlier call's) if given; differentiable under a
+        tape."""
+        return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape, out=out)
 
     def sources_of(self, amplitudes, fixed=True):
         """The step's sources: samples `amplitudes`, through the fixed operator (no Kaiser-sinc weights evaluated each

@@ -58,13 +58,14 @@ MODEL_CHECKS = common.ModelChecks(
 
 @dataclass
 class Elastic3DResult:
-    """Output of :func:`forward_elastic3d`: vx, vy, vz (m/s) and pressure (Pa), each (n_shots, n_receivers, nt) NumPy
-    arrays in the simulation's precision; dt (s)."""
+    """Output of :func:`forward_elastic3d`: vx, vy, vz (m/s) and pressure (Pa), each (n_shots, n_receivers, nt) in the
+    simulation's precision: Warp arrays on the model's device where vp was given as a Warp array, else NumPy arrays;
+    dt (s)."""
 
-    vx: np.ndarray
-    vy: np.ndarray
-    vz: np.ndarray
-    pressure: np.ndarray
+    vx: np.ndarray | wp.array
+    vy: np.ndarray | wp.array
+    vz: np.ndarray | wp.array
+    pressure: np.ndarray | wp.array
     dt: float
 
 
@@ -184,7 +185,7 @@ def forward_elastic3d(vp, vs, rho, dx, dt, source_amplitudes, source_locations, 
     end = common.source_end(source_amplitudes, lag=2, rate=source_type != "force")
     guard = common.BlowupGuard(su.prop, DESCRIPTION, su.fields, end, check_every, "v")
     data, kept = loop.run(su, guard, progress)
-    vx, vy, vz, p = (loop.traces(d, su.nt, False, kept) for d in data)
+    vx, vy, vz, p = (loop.traces(d, su.nt, isinstance(vp, wp.array), kept) for d in data)
     return Elastic3DResult(vx=vx, vy=vy, vz=vz, pressure=p, dt=float(dt))
 
 

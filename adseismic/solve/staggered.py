@@ -26,9 +26,10 @@ class StaggeredSetup:
     period = 2  # a captured loop steps into a second state and back
     lookahead = 1  # a step reads source sample n + 1
 
-    def model(self, on_tape=False):
-        """The padded model's materials (prop.materials of each padded model); differentiable under a tape."""
-        return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape)
+    def model(self, on_tape=False, out=None):
+        """The padded model's materials (prop.materials of each padded model), into out (an earlier call's) if given;
+        differentiable under a tape."""
+        return self.prop.materials(*(self.prop.pad_model(m, on_tape) for m in self.models), requires_grad=on_tape, out=out)
 
     def sources_of(self, amplitudes, fixed=True):
         return (amplitudes, self.source_op)
@@ -45,8 +46,7 @@ class StaggeredSetup:
         return [*(getattr(ax, f) for ax in self.prop.axes for f in ("a", "b", "ah", "bh")), *src[-1], *self.receiver_op]
 
     def fill_model(self, mat):
-        for a, b in zip(mat, self.model()):
-            wp.copy(a, b)
+        self.model(out=mat)
 
     def advance(self, st, mat, src, data, k, n, out, clock, side=None):
         if side is None:

@@ -35,13 +35,13 @@ DEFAULT_MECHANISMS = 3
 
 @dataclass
 class ViscoacousticResult:
-    """Output of :func:`forward_viscoacoustic`: pressure (Pa), vx, vz (m/s), each (n_shots, n_receivers, nt) NumPy
-    arrays in the simulation's precision; dt (s); vmax_unrelaxed (m/s), the fastest (w -> infinity) speed that set
-    the CFL check."""
+    """Output of :func:`forward_viscoacoustic`: pressure (Pa), vx, vz (m/s), each (n_shots, n_receivers, nt) in the
+    simulation's precision: Warp arrays on the model's device where vp was given as a Warp array, else NumPy arrays;
+    dt (s); vmax_unrelaxed (m/s), the fastest (w -> infinity) speed that set the CFL check."""
 
-    pressure: np.ndarray
-    vx: np.ndarray
-    vz: np.ndarray
+    pressure: np.ndarray | wp.array
+    vx: np.ndarray | wp.array
+    vz: np.ndarray | wp.array
     dt: float
     vmax_unrelaxed: float
 
@@ -221,7 +221,7 @@ def forward_viscoacoustic(vp, q, rho, dx, dt, source_amplitudes, source_location
                              precision=precision)  # fmt: skip
     guard = common.BlowupGuard(su.prop, DESCRIPTION, su.fields, common.source_end(source_amplitudes, lag=2, rate=True), check_every, "p")
     data, kept = loop.run(su, guard, progress)
-    vx, vz, p = (loop.traces(d, su.nt, False, kept) for d in data)
+    vx, vz, p = (loop.traces(d, su.nt, isinstance(vp, wp.array), kept) for d in data)
     return ViscoacousticResult(pressure=p, vx=vx, vz=vz, dt=float(dt), vmax_unrelaxed=su.vmax_unrelaxed)
 
 

@@ -33,12 +33,13 @@ WRT = (*MODELS, "source_amplitudes")
 
 @dataclass
 class VTIResult:
-    """Output of :func:`forward_vti`: vx, vz (m/s) and pressure (Pa), each (n_shots, n_receivers, nt) NumPy arrays in
-    the simulation's precision; dt (s)."""
+    """Output of :func:`forward_vti`: vx, vz (m/s) and pressure (Pa), each (n_shots, n_receivers, nt) in the
+    simulation's precision: Warp arrays on the model's device where vp was given as a Warp array, else NumPy arrays;
+    dt (s)."""
 
-    vx: np.ndarray
-    vz: np.ndarray
-    pressure: np.ndarray
+    vx: np.ndarray | wp.array
+    vz: np.ndarray | wp.array
+    pressure: np.ndarray | wp.array
     dt: float
 
 
@@ -136,9 +137,9 @@ class VTISetup(StaggeredSetup):
 
     physics = DESCRIPTION
 
-    def model(self, on_tape=False):
-        """The padded MATERIALS (kernels/vti); differentiable under a tape."""
-        return self.prop.materials(*self.models, requires_grad=on_tape)
+    def model(self, on_tape=False, out=None):
+        """The padded MATERIALS (kernels/vti), into out (an earlier call's) if given; differentiable under a tape."""
+        return self.prop.materials(*self.models, requires_grad=on_tape, out=out)
 
     def fields(self, st):
         return (st.vx, st.vz)
@@ -190,7 +191,7 @@ def forward_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locat
                    free_surface=free_surface, device=device, precision=precision)  # fmt: skip
     guard = common.BlowupGuard(su.prop, DESCRIPTION, su.fields, common.source_end(source_amplitudes, lag=2, rate=True), check_every, "v")
     data, kept = loop.run(su, guard, progress)
-    return VTIResult(*(loop.traces(d, su.nt, False, kept) for d in data), dt=float(dt))
+    return VTIResult(*(loop.traces(d, su.nt, isinstance(vp, wp.array), kept) for d in data), dt=float(dt))
 
 
 def gradient_vti(vp, epsilon, delta, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, observed=None, *,

@@ -473,11 +473,14 @@ class AcousticVD:
         wp.launch(self.k.pad_model, dim=self.padded, inputs=[m, out, self.origin], device=self.device)
         return out
 
-    def materials(self, vp, rho, requires_grad=False):
-        """MATERIALS[ndim] (padded arrays, interior nodes set) from the padded vp (m/s) and rho (kg/m^3)."""
-        out = [wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS[self.ndim]]
+    def materials(self, vp, rho, requires_grad=False, out=None):
+        """MATERIALS[ndim] (padded arrays, interior nodes set) from the padded vp (m/s) and rho (kg/m^3); into out (an
+        earlier call's Materials) if given."""
+        if out is None:
+            zeros = [wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS[self.ndim]]
+            out = Materials(zeros)
         wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, rho, *out], device=self.device)
-        return Materials(out)
+        return out
 
     def operator(self, loc: wp.array):
         """The fixed operators of locations loc (S, n, ndim) metres: (idx (1 + ndim, S, n, points) vec2i | vec3i, weights

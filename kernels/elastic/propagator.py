@@ -1975,11 +1975,13 @@ class Elastic:
         wp.launch(self.k.pad_model, dim=self.padded, inputs=[m, out, self.origin], device=self.device)
         return out
 
-    def materials(self, vp, vs, rho, requires_grad=False):
-        """MATERIALS (padded (Lz, Lx) arrays, interior nodes set) from the padded vp, vs, rho."""
-        out = [wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS]
+    def materials(self, vp, vs, rho, requires_grad=False, out=None):
+        """MATERIALS (padded (Lz, Lx) arrays, interior nodes set) from the padded vp, vs, rho; into out (an earlier
+        call's) if given."""
+        if out is None:
+            out = tuple(wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS)
         wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, vs, rho, *out], device=self.device)
-        return tuple(out)
+        return out
 
     def _threads(self, box):
         return self.n_shots * -(-(box[1] - box[0]) // self.rows) * (box[3] - box[2])

@@ -602,11 +602,13 @@ class Elastic3D:
         wp.launch(self.k.pad_model, dim=self.padded, inputs=[m, out, self.origin], device=self.device)
         return out
 
-    def materials(self, vp, vs, rho, requires_grad=False):
-        """MATERIALS (padded arrays, interior nodes set) from the padded vp, vs (m/s) and rho (kg/m^3)."""
-        out = [wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS]
+    def materials(self, vp, vs, rho, requires_grad=False, out=None):
+        """MATERIALS (padded arrays, interior nodes set) from the padded vp, vs (m/s) and rho (kg/m^3); into out (an
+        earlier call's) if given."""
+        if out is None:
+            out = tuple(wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS)
         wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, vs, rho, *out], device=self.device)
-        return tuple(out)
+        return out
 
     def operator(self, loc: wp.array):
         """The fixed operators of locations loc (S, n, 3) metres (z, y, x): (idx (8, S, n, points) vec3i, weights (8, S,

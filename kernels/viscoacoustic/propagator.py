@@ -295,11 +295,13 @@ def _lanes(ns, V: int):
                            frame_cell=frame_map(M))  # fmt: skip
 
 
+@functools.lru_cache(maxsize=32)
 def tile_plan(axes, padded, halo: int, n_shots: int, free_surface: bool, top: int):
     """(V, box, tiles, frame, cells) of a 2D tiled half step (_velocity_tiles, kernels/acoustic_vd): the lanes (the
     widest of TILE_LANES that divides the padded row), the core box (rows and columns outside the CPML strips of axes
     (z, x), below a free surface's images; columns from and to a multiple of V), its tiles over the shots, the first
-    frame thread (a block boundary) and the frame cells a shot."""
+    frame thread (a block boundary) and the frame cells a shot. Kept per argument set, as cpml_axes' axes are (its
+    two reads of the strips from the device were a tenth of a VD1000 forward's setup on an H200)."""
     R, (lz, lx) = halo, padded
     ends = []
     for a, n in zip(axes, padded):
@@ -692,16 +694,18 @@ class Viscoacoustic:
         wp.launch(self.k.pad_model, dim=self.padded, inputs=[m, out, self.origin], device=self.device)
         return out
 
-    def materials(self, vp, q, rho, requires_grad=False):
-        """MATERIALS (padded arrays, interior nodes set) from the padded vp (m/s), q and rho (kg/m^3)."""
+    def materials(self, vp, q, rho, requires_grad=False, out=None):
+        """MATERIALS (padded arrays, interior nodes set) from the padded vp (m/s), q and rho (kg/m^3); into out (an
+        earlier call's Materials) if given."""
 
         def zeros(shape):
             return wp.zeros(shape, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
 
-        out = (zeros(self.padded), zeros(self.padded), zeros(self.padded), zeros((self.mechanisms.count, *self.padded)))
+        if out is None:
+            out = Materials((zeros(self.padded), zeros(self.padded), zeros(self.padded), zeros((self.mechanisms.count, *self.padded))))
         w_ref = self.dtype(2.0 * np.pi * self.f_ref)
         wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, q, rho, self.series, self.tau, w_ref, *out], device=self.device)
-        return Materials(out)
+        return out
 
     def operator(self, loc: wp.array):
         """The fixed operator of locations loc (S, n, 2) metres (z, x): (idx (3, S, n, points) vec2i, weights (3, S, n,

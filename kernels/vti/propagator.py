@@ -241,12 +241,13 @@ class VTI:
 
         return State(zeros(), zeros(), zeros(), zeros(), {k: zeros() for k in PSI})
 
-    def materials(self, vp, epsilon, delta, rho, requires_grad=False):
+    def materials(self, vp, epsilon, delta, rho, requires_grad=False, out=None):
         """MATERIALS (padded (Lz, Lx) arrays, interior nodes set; a viscoacoustic Materials, with their flat views) from
-        the physical models (nz, nx) wp.array2d."""
-        out = [wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS]
+        the physical models (nz, nx) wp.array2d; into out (an earlier call's Materials) if given."""
+        if out is None:
+            out = Materials([wp.zeros(self.padded, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for _ in MATERIALS])
         wp.launch(self.k.materials, dim=self.interior[1:], inputs=[vp, epsilon, delta, rho, self.origin, *out], device=self.device)
-        return Materials(out)
+        return out
 
     def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None) -> State:
         """Advance st (level n) to level n + 1 with source sample n (+ clock[0]). mat: MATERIALS; sources: (amplitudes
