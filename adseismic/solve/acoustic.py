@@ -539,7 +539,7 @@ class Levels:
         prop = mine.prop
         for a, b in zip(mine.inputs(), su.inputs()):
             wp.copy(a, b)
-        self.amplitudes.assign(common.padded_samples(su.amplitudes.numpy(), self.amplitudes.shape[2], prop.dtype))
+        wp.copy(self.amplitudes[:, :, : su.amplitudes.shape[2]], su.amplitudes)  # the padding past nt stays zero
         wp.copy(self.vpad, vpad)
         wp.launch(prop.k.squared, dim=prop.padded, inputs=[self.vpad, prop.dt2, self.w], device=prop.device)
         zero = [self.data, *self.g, *self.lam, *(a for r in (self.adj_psi, self.adj_zeta) for p in r for a in p), self.vpad.grad]

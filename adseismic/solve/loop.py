@@ -93,7 +93,7 @@ def kept_loop(su, every: int) -> graphs.Loop:
         if a.ptr != b.ptr:
             wp.copy(a, b)
     su.fill_model(mine.model)
-    mine.amplitudes.assign(padded_samples(su.amplitudes.numpy(), mine.amplitudes.shape[2], prop.dtype))
+    wp.copy(mine.amplitudes[:, :, : su.amplitudes.shape[2]], su.amplitudes)  # device to device: the padding past nt stays zero
     for a in (*mine.st.arrays(), *_arrays(mine.spare), *mine.data, loop.clock):
         a.zero_()
     return loop
