@@ -6,9 +6,12 @@ import json
 
 import numpy as np
 import pytest
+import warp as wp
 
 from adseismic import bench, cli
 from adseismic.bench import SCENES, physics
+
+from .conftest import DEVICE
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +95,9 @@ def test_conventions_arithmetic():
     assert 0.005 * 2000 < drop[0] < drop[1] < 0.03 * 2000 and drop[1] / drop[0] == pytest.approx(2.0, rel=0.02)
     r = np.linspace(-1.0, 1.0, 24).reshape(1, 2, 12)
     assert physics.difference(2 * r, r) == (pytest.approx(0.5), pytest.approx(2.0))
+    # ours on the device (a GPU run's traces: models passed as Warp arrays) is read back (implicit conversion of a GPU
+    # array raises: ADSEISMIC_TEST_DEVICE=cuda:0 checks that)
+    assert physics.difference(wp.array(2 * r, dtype=wp.float32, device=DEVICE), r) == (pytest.approx(0.5), pytest.approx(2.0))
     assert physics.difference(np.zeros_like(r), r) == (None, None)
     with pytest.raises(ValueError, match="shapes"):
         physics.difference(r, r[:, :1])

@@ -203,8 +203,10 @@ def deepwave_call(kind, grad: bool, model, dx, dt, amplitudes, sources, receiver
 def difference(ours, reference) -> tuple:
     """(relative L2 difference ||ours - reference|| / ||ours||, least-squares scale a of ours ~ a reference) of two
     receiver arrays of one shape; (None, None) if ours is all zero. A scale far from 1 flags a convention not aligned
-    (units, sign); the difference then measures the conventions, not the schemes."""
-    o, r = np.asarray(ours, dtype=float), np.asarray(reference, dtype=float)
+    (units, sign); the difference then measures the conventions, not the schemes. ours: NumPy or a Warp array on any device."""
+    import warp as wp
+
+    o, r = np.asarray(ours.numpy() if isinstance(ours, wp.array) else ours, dtype=float), np.asarray(reference, dtype=float)
     if o.shape != r.shape:
         raise ValueError(f"receiver data of shapes {o.shape} (ours) and {r.shape} (Deepwave) differ")
     norm = float(np.linalg.norm(o))
