@@ -311,6 +311,21 @@ def flat_cpml(dtype):
     return cpml_psi, store_psi
 
 
+@wp.kernel(enable_backward=False)
+def lower_bound(keys: wp.array(dtype=wp.int32), first: wp.array(dtype=wp.int32)):
+    """first[t]: the number of the sorted keys below t (where key t starts, or would), by binary search."""
+    t = wp.tid()
+    lo = int(0)
+    hi = keys.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if keys[mid] < t:
+            lo = mid + 1
+        else:
+            hi = mid
+    first[t] = lo
+
+
 def check_flat_cells(cells: int, what: str) -> None:
     """Refuse (ValueError) an array of `cells` cells past the flat field kernels' int32 indices (2^31)."""
     if cells >= 2**31:

@@ -70,7 +70,8 @@ class AcousticVDGradient:
 class AcousticVDSetup(StaggeredSetup):
     """Device-side inputs of one variable-density acoustic simulation (see :func:`setup_acoustic_vd`) and the verbs of
     the shared solver (solve/loop.py). models: physical (vp, rho) wp.arrays; source_op, receiver_op: the sources' and
-    receivers' fixed operators (AcousticVD.operator); data_components: the velocities then "pressure"."""
+    receivers' fixed operators (AcousticVD.source_operator: with the tiled step's plan of the sources' terms;
+    AcousticVD.operator); data_components: the velocities then "pressure"."""
 
     prop: AcousticVD
     nt: int
@@ -134,8 +135,9 @@ def setup_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, rece
         return wp.array(np.ascontiguousarray(x, dtype=float), dtype=dtype, device=prop.device, requires_grad=name in requires_grad)
 
     receivers = put(receiver_locations, "")
-    return AcousticVDSetup(prop, amp.shape[2], models, put(amp, "source_amplitudes"), receivers,
-                           prop.operator(put(source_locations, "")), prop.operator(receivers), (*VELOCITIES[ndim], "pressure"))  # fmt: skip
+    sources = prop.source_operator(put(source_locations, ""))
+    return AcousticVDSetup(prop, amp.shape[2], models, put(amp, "source_amplitudes"), receivers, sources, prop.operator(receivers),
+                           (*VELOCITIES[ndim], "pressure"))  # fmt: skip
 
 
 def forward_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, receiver_locations, *, order=4, pml_width=None,

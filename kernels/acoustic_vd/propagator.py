@@ -35,14 +35,16 @@ Grid and stencils; 3D: kernels/elastic3d's flat stencils, Grid and strips). A 2D
 instead, never differentiated: each half step as one launch of register tiles (V adjacent cells a load, rows along z
 in a sliding window) over the core, where no CPML strip or free-surface image is in reach, and of the per-cell
 arithmetic over the frame around it (kernels/viscoacoustic's _velocity_tiles and tile_plan, _pressure_tiles here; equal
-to the per-cell kernels bit for bit on a CPU). In a captured time loop its launches record the receivers too
-(AcousticVD.step's record=).
+to the per-cell kernels bit for bit on a CPU). Its pressure launch adds the explosive sources' terms too, inject's
+arithmetic without its launch (AcousticVD.source_operator's plan), and in a captured time loop its launches record
+the receivers (AcousticVD.step's record=).
 """
 
 import functools
 import math
 from types import SimpleNamespace
 
+import numpy as np
 import warp as wp
 
 from adseismic.kernels.common import (
@@ -53,6 +55,7 @@ from adseismic.kernels.common import (
     flat_cpml,
     hicks_axis,
     host_operator,
+    lower_bound,
     unique_kernel,
 )
 from adseismic.kernels.elastic.propagator import build as elastic_build
@@ -157,9 +160,11 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread):
     """The pressure half step untaped, as kernels/viscoacoustic's _velocity_tiles does the velocity one (L: its
     _lanes): `records` threads recording the receivers' velocities (fvx, fvz: the arrays vx, vz are, which the launch
     only reads) into `sample` (+ clock[0]), core tiles with the rows of vz in a sliding window, frame cells by
-    pressure_cell."""
+    pressure_cell. Then each thread t adds the explosive sources' terms at the cells it stepped (AcousticVD.source_plan:
+    terms span[t] .. span[t + 1] - 1, in inject's order; none where span has one element): inject's arithmetic on the
+    level's new p, without its launch."""
     M, C, dtype, arr1, arr3, Axis, rows = ns.M, ns.C, ns.dtype, ns.arr1, ns.arr3, ns.Axis, TILE_ROWS
-    arr4, iarr1, idx4 = ns.arr4, ns.iarr1, ns.idx4
+    arr4, iarr1, idx4, idx1 = ns.arr4, ns.iarr1, ns.idx4, wp.array(dtype=wp.vec2i)
     V, NB, vec, arrv, load, put = L.V, L.NB, L.vec, L.arrv, L.load, L.put
     row_line, window, slide, tile, frame_cell = L.row_line, L.window, L.slide, L.tile, L.frame_cell
 
@@ -195,7 +200,8 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread):
         vx: arr1, vz: arr1, p: arr1, k: arr1, o_p_x: arr1, o_p_z: arr1, n_p_x: arr1, n_p_z: arr1, p_new: arr1, az: Axis, ax: Axis,
         dt: dtype, inv_dx: dtype, top: int, grid: Grid, vxv: arrv, vzv: arrv, pv: arrv, kv: arrv, p_newv: arrv, box: wp.vec4i,
         tiles: int, frame: int, cells: int, fvx: arr3, fvz: arr3, fp: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4,
-        sample: int, clock: iarr1, records: int,
+        sample: int, clock: iarr1, records: int, span: iarr1, term_cell: iarr1, term_source: idx1, term_w: arr1, amp: arr3, level: int,
+        scale: dtype,
     ):  # fmt: skip
         t = wp.tid()
         if t < records:
@@ -211,6 +217,12 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread):
             m = zx[0] * grid.lx + zx[1]
             pressure_cell(vx, vz, p, k, o_p_x, o_p_z, n_p_x, n_p_z, p_new, az, ax, dt, inv_dx, top, grid, s, zx[0], zx[1], m,
                           s * grid.lz * grid.lx + m)  # fmt: skip
+        if t + 1 < span.shape[0]:
+            n = level + clock[0]
+            for e in range(span[t], span[t + 1]):
+                c = term_cell[e]
+                sq = term_source[e]
+                p_new[c] = p_new[c] + scale * (amp[sq[0], sq[1], n + 1] - amp[sq[0], sq[1], n]) * term_w[e]
 
     return pressure_tiles
 
@@ -489,13 +501,54 @@ class AcousticVD:
         return host_operator(self.k.weights, loc, [self.origin, self.inv_dx, self.top], shape, wp.vec2i if self.ndim == 2 else wp.vec3i,
                              self.dtype, self.device)  # fmt: skip
 
+    def source_operator(self, loc: wp.array):
+        """operator(loc) for the explosive sources, and where the step is tiled (2D) the plan of adding their terms in
+        the tiled pressure launch (source_plan): (idx, w[, span, term_cell, term_source, term_w]). Every array has a
+        size fixed by the grid, shots and sources, so a kept loop can copy a later call's into its own."""
+        op = self.operator(loc)
+        return op if self.tiles is None else (*op, *self.source_plan(op))
+
+    def source_plan(self, op) -> tuple:
+        """(span, term_cell, term_source, term_w): the p operator's points of op (operator's) as terms of the tiled
+        pressure launch, each given to the thread that steps its cell (a core tile's or a frame cell's; tile_plan's
+        numbering), in inject's order (shot, source, point) within a thread: thread t adds terms span[t] ..
+        span[t + 1] - 1, term e at flat p index term_cell[e] (shot included) from source term_source[e] (shot,
+        source) with weight term_w[e]. Built from the small host copy of op's points; span (one int a thread) by a
+        binary search on the device."""
+        V, box, tiles, frame, cells = self.tiles
+        R, (lz, lx), S = self.k.halo, self.padded, self.n_shots
+        idx, w = op[0].numpy()[0], op[1].numpy()[0]  # (S, n_src, points, 2), (S, n_src, points)
+        s, src = (a.ravel() for a in np.indices(w.shape)[:2])
+        z, x = idx[..., 0].ravel(), idx[..., 1].ravel()
+        z0, z1, x0, x1 = (int(b) for b in box)
+        nxc, blocks = (x1 - x0) // V, -(-(z1 - z0) // TILE_ROWS)
+        core = (z >= z0) & (z < z1) & (x >= x0) & (x < x1)
+        nx = lx - 2 * R
+        above, below, sides = (z0 - R) * nx, (lz - R - z1) * nx, (x0 - R) + (lx - R - x1)
+        f = np.where(z < z0, (z - R) * nx + x - R, np.where(z >= z1, above + (z - z1) * nx + x - R,
+                     above + below + (z - z0) * sides + np.where(x < x0, x - R, x - x1 + x0 - R)))  # fmt: skip
+        owner = np.where(core, (s * blocks + (z - z0) // TILE_ROWS) * nxc + (x - x0) // V, frame + s * cells + f)
+        order = np.argsort(owner, kind="stable")
+        threads = frame + S * cells
+        if owner.min() < 0 or owner.max() >= threads:
+            raise ValueError(f"a source point lies outside the interior of the padded grid {self.padded}")
+
+        def put(a, dtype):
+            return wp.array(np.ascontiguousarray(a[order]), dtype=dtype, device=self.device)
+
+        owners = put(owner, wp.int32)
+        span = wp.empty(threads + 1, dtype=wp.int32, device=self.device)
+        wp.launch(lower_bound, dim=threads + 1, inputs=[owners, span], device=self.device)
+        return span, put(s * lz * lx + z * lx + x, wp.int32), put(np.stack([s, src], axis=1), wp.vec2i), put(w.ravel(), self.dtype)
+
     def records_in_step(self) -> bool:
         """Whether step can record (record=): the 2D tiled half steps, outside a tape."""
         return self.tiles is not None and wp._src.context.runtime.tape is None
 
     def step(self, st: State, mat, sources, n: int, out: State | None = None, clock=None, record=None) -> State:
         """Advance st (level n) to level n + 1 with the explosive sources' samples n and n + 1 (+ clock[0]); sources:
-        (amplitudes (S, n_src, >= n + 2), their operator (operator)) or None. mat: MATERIALS[ndim] (materials' Materials). With
+        (amplitudes (S, n_src, >= n + 2), their operator (operator, or source_operator: the tiled step then adds their
+        terms in its pressure launch, no inject launch)) or None. mat: MATERIALS[ndim] (materials' Materials). With
         out=None in place; else into out's arrays (st unchanged), as under a tape (each level its own arrays).
         record = (data, receiver_op, k) where records_in_step: the receivers' p of level n into sample k (+ clock[0]) by
         threads of the velocity launch, and their velocities of level n + 1 into sample k + 1 (none past data's
@@ -507,12 +560,14 @@ class AcousticVD:
         out = st if out is None else out
         clock = self.clock if clock is None else clock
         names = VELOCITIES[self.ndim]
+        scale = self.dtype(self.dx**-self.ndim)
         vpsi = [f"{v}_{v[1]}" for v in names]
         ppsi = [f"p_{v[1]}" for v in names]
         common = [*self.axes, self.dt_device, self.inv_dx, self.top]
         f, o, m, common, dim = st.flat(), out.flat(), mat.flat, [*common, self.grid], math.prod(self.interior)  # flat views, a 1D launch
         vel = [*f.v.values(), f.p, *m[:-1], *(f.psi[k] for k in vpsi), *(o.psi[k] for k in vpsi), *o.v.values(), *common]
         pre = [*o.v.values(), f.p, m[-1], *(f.psi[k] for k in ppsi), *(o.psi[k] for k in ppsi), o.p, *common]
+        fused = None
         if self.tiles is None or wp._src.context.runtime.tape is not None:  # 3D, or under a tape: the per-cell kernels
             wp.launch(self.k.velocity, dim=dim, inputs=vel, device=self.device)
             wp.launch(self.k.pressure, dim=dim, inputs=pre, device=self.device)
@@ -525,12 +580,13 @@ class AcousticVD:
             wp.launch(velocity, dim=threads + dim, inputs=[*vel, fx, fz, fp, *mv[:2], ox, oz, *rest, *rec], device=self.device,
                       block_dim=TILE_THREADS)  # fmt: skip
             rec, threads = tiled_recording(out, None if record is None else (*record[:2], record[2] + 1), clock)
-            wp.launch(pressure, dim=threads + dim, inputs=[*pre, ox, oz, fp, mv[2], op, *rest, *rec], device=self.device,
+            fused = sources if sources is not None and len(sources[1]) > 2 else None
+            terms = [*fused[1][2:], fused[0]] if fused is not None else [None] * 5
+            wp.launch(pressure, dim=threads + dim, inputs=[*pre, ox, oz, fp, mv[2], op, *rest, *rec, *terms, n, scale], device=self.device,
                       block_dim=TILE_THREADS)  # fmt: skip
-        if sources is not None:
-            amplitudes, (idx, w) = sources
-            wp.launch(self.k.inject, dim=idx.shape[1:], inputs=[out.p, amplitudes, idx, w, n, clock, self.dtype(self.dx**-self.ndim)],
-                      device=self.device)  # fmt: skip
+        if sources is not None and fused is None:
+            amplitudes, (idx, w) = sources[0], sources[1][:2]
+            wp.launch(self.k.inject, dim=idx.shape[1:], inputs=[out.p, amplitudes, idx, w, n, clock, scale], device=self.device)
         return out
 
     def record(self, st: State, data, receiver_op, k: int, clock=None):
