@@ -182,3 +182,25 @@ def test_models_on_the_device_keep_the_traces_there(physics):
         ref, got = getattr(host, name), getattr(dev, name)
         assert isinstance(ref, np.ndarray) and isinstance(got, wp.array) and got.device == wp.get_device(DEVICE), name
         assert np.abs(ref).max() > 0 and np.abs(got.numpy() - ref).max() <= limit * np.abs(ref).max(), name
+
+
+def test_acoustic_vd_gradient_of_device_models_stays_there():
+    # the 2D hand-written gradient's side of that convention: Warp models give the vp and rho gradients and the
+    # synthetic data as Warp arrays on their device, equal to the NumPy models' (the "l2" misfit formed on the device
+    # in both) to float32 rounding on the CPU (the models' gradients meet in other orders) and atomic adds' on a GPU
+    m = [np.asarray(a, dtype=np.float32).astype(float) for a in models("acoustic_vd", (24, 20))]
+    t = np.arange(60) * 2e-4
+    amp = ((1 - 2 * (np.pi * 25 * (t - 0.04)) ** 2) * np.exp(-((np.pi * 25 * (t - 0.04)) ** 2)))[None, None]
+    src, rec = np.full((1, 1, 2), 40.0), np.array([[[30.0, 50.0], [60.0, 70.0]]])
+    kw = dict(pml_width=4, pml_velocity=4600.0, pml_frequency=25.0, device=DEVICE)
+    obs = {"pressure": 0.5 * np.asarray(acoustic_vd.forward_acoustic_vd(*m, 10.0, 2e-4, amp, src, rec, **kw).pressure, dtype=float)}
+    host = acoustic_vd.gradient_acoustic_vd(*m, 10.0, 2e-4, amp, src, rec, obs, **kw)
+    dev = acoustic_vd.gradient_acoustic_vd(*on_device(m), 10.0, 2e-4, amp, src, rec, obs, **kw)
+    limit = 1e-6 if DEVICE == "cpu" else 1e-5
+    assert dev.loss == pytest.approx(host.loss, rel=limit)
+    for name in ("vp", "rho"):
+        ref, got = getattr(host, name), getattr(dev, name)
+        assert isinstance(ref, np.ndarray) and isinstance(got, wp.array) and got.device == wp.get_device(DEVICE), name
+        assert np.abs(ref).max() > 0 and np.abs(got.numpy() - ref).max() <= limit * np.abs(ref).max(), name
+    ref, got = host.synthetic["pressure"], dev.synthetic["pressure"]
+    assert isinstance(got, wp.array) and np.abs(got.numpy() - ref).max() <= limit * np.abs(ref).max()

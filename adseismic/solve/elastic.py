@@ -31,13 +31,13 @@ import numpy as np
 import warp as wp
 
 from adseismic.accel import graphs
-from adseismic.accel.reductions import l2_residual_kernel, value_ranges
+from adseismic.accel.reductions import value_ranges
 from adseismic.kernels.elastic import DESCRIPTION, MATERIALS, PSI, Elastic, shear_ratio
 from adseismic.kernels.numerics import check_order
 from adseismic.runs import progress_bar
 from adseismic.solve import common, loop, sweep
 from adseismic.solve.misfits import misfit as named_misfit
-from adseismic.solve.staggered import COMPONENTS, StaggeredSetup
+from adseismic.solve.staggered import COMPONENTS, StaggeredSetup, l2_on_device, observed_on_device
 
 SOURCE_TYPES = {"force": 2, "moment": 3, "explosive": 3}
 WRT = ("vp", "vs", "rho", "source_amplitudes", "source_components", "source_locations")
@@ -289,9 +289,9 @@ def gradient_elastic(vp, vs, rho, dx, dt, source_amplitudes, source_locations, r
     observed_l2 = None
     if callable(misfit):
         loss_fn = misfit
-    elif misfit == "l2":  # residual and loss formed on the device (_l2_on_device)
+    elif misfit == "l2":  # residual and loss formed on the device (staggered.l2_on_device)
         loss_fn = None
-        observed_l2 = {c: _observed_array(su, observed, c) for c in components}
+        observed_l2 = {c: observed_on_device(su, observed, c) for c in components}
     else:
 
         def loss_fn(syn):
@@ -341,23 +341,12 @@ def _taped_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar, observed_
         else:
             syn = [wp.array(s, dtype=prop.dtype, device=prop.device) for s in synthetic]
             res = [wp.zeros_like(a) for a in syn]
-            J = 0.5 * float(_l2_on_device(syn, res, observed_l2, su.nt, prop.dt).numpy()[0]) * prop.dt
+            J = 0.5 * float(l2_on_device(syn, res, observed_l2, su.nt, prop.dt, COMPONENTS).numpy()[0]) * prop.dt
             adj = {c: r.numpy() for c, r in zip(COMPONENTS, res) if c in observed_l2}
         return J, tuple(adj.get(c) for c in COMPONENTS)
 
     synthetic, J = sweep.taped_sweep(su, seg, n_seg, loss, bar)
     return J, dict(zip(COMPONENTS, synthetic)), _gradients(su, [a.grad for a in (su.amplitudes, su.components, su.sources)])
-
-
-def _observed_array(su: ElasticSetup, observed, name: str) -> wp.array:
-    """observed[name] (n_shots, n_receivers, nt) as a float64 array on the run's device."""
-    if observed is None or name not in observed:
-        raise ValueError(f"observed: no {name!r} data; give observed[{name!r}] (n_shots, n_receivers, nt) for each of `components`")
-    o = np.asarray(observed[name], dtype=float)
-    shape = (su.prop.n_shots, su.receivers.shape[1], su.nt)
-    if o.shape != shape:
-        raise ValueError(f"observed[{name!r}] has shape {o.shape} but the synthetics have {shape} (n_shots, n_receivers, nt)")
-    return wp.array(o, dtype=wp.float64, device=su.prop.device)
 
 
 def _hand_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar, observed_l2=None, on_device=False):
@@ -383,25 +372,13 @@ def _hand_sweep(su: ElasticSetup, seg: int, n_seg: int, loss_fn, bar, observed_l
             if c in adj:
                 r.assign(common.padded_samples(np.asarray(adj[c], dtype=float), seg * n_seg, prop.dtype))
     else:
-        total = _l2_on_device(lv.data, lv.residual, observed_l2, su.nt, prop.dt)
+        total = l2_on_device(lv.data, lv.residual, observed_l2, su.nt, prop.dt, COMPONENTS)
     sw.backward_sweep(bar)
     model_tape.backward(grads=dict(zip(mat[: len(lv.adj_mat)], lv.adj_mat)))
     del model_tape  # (not tape.reset(): that zeroes the gradients it holds, ours included)
     if observed_l2 is not None:  # read after the backward sweep is queued
         loss = 0.5 * float(total.numpy()[0]) * prop.dt
     return loss, synthetic, _gradients(su, lv.adj_sources)
-
-
-def _l2_on_device(data, residual, observed_l2, nt: int, dt: float) -> wp.array:
-    """The "l2" misfit of the synthetic data (vx, vz, pressure arrays (S, n_rec, >= nt)) against observed_l2
-    ({component: observed float64 array (S, n_rec, nt)} on their device): its residuals (misfits._l2's, float64 rounded
-    to the data's precision) into the components' arrays of residual (the others left alone); returns the sum of the
-    squared differences, (1,) float64 on the device (the loss is 0.5 sum dt; reading it waits for the device)."""
-    total = wp.zeros(1, dtype=wp.float64, device=data[0].device)
-    for c, d, r in zip(COMPONENTS, data, residual):
-        if c in observed_l2:
-            wp.launch(l2_residual_kernel(d.dtype), dim=d.shape[:2], inputs=[d, observed_l2[c], nt, dt, r, total], device=d.device)
-    return total
 
 
 class Levels:

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import warp as wp
 
+from adseismic.accel.reductions import l2_residual_kernel
 from adseismic.runs import progress_bar
 from adseismic.solve import sweep
 from adseismic.solve.misfits import misfit as named_misfit
@@ -90,6 +91,27 @@ def taped_gradient(su, state_bytes: int, misfit, components, observed, wrt, arra
     minimum, ~sqrt(nt) steps a segment) or segment_length (steps) sets the segments; arrays: name -> the Setup's
     differentiated wp.array for each name in wrt; result: the physics' result class, filled with loss, synthetic (a
     dict over su.data_components), the segments and a NumPy gradient per name in wrt."""
+    loss = misfit_function(su, misfit, components, observed)
+
+    def total(seg):
+        return (math.ceil(su.nt / seg) - 1) * state_bytes + (seg + 2) * 2 * state_bytes
+
+    seg, peak = sweep.choose_segment(su.nt, 1, total, memory_budget, segment_length)
+    n_seg = math.ceil(su.nt / seg)
+    bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
+    synthetic, J = sweep.taped_sweep(su, seg, n_seg, loss, bar)
+    bar.close()
+    res = result(loss=float(J), synthetic=dict(zip(su.data_components, synthetic)), segment_length=seg, n_segments=n_seg,
+                 peak_bytes_estimate=peak)
+    for name in wrt:
+        setattr(res, name, np.array(arrays[name].grad.numpy()))
+    return res
+
+
+def misfit_function(su, misfit, components, observed):
+    """loss(synthetic) -> (J, adjoints) of a gradient's misfit (taped_gradient's arguments; ValueError naming a bad
+    one): synthetic, a tuple of NumPy arrays (S, n_rec, nt) in su.data_components' order; adjoints, dJ/dsynthetic in the
+    same order (None for a component without)."""
     if not callable(misfit):
         shape = (su.prop.n_shots, su.receivers.shape[1], su.nt)
         for c in components:
@@ -109,16 +131,28 @@ def taped_gradient(su, state_bytes: int, misfit, components, observed, wrt, arra
                 J += j
         return J, tuple(None if adj.get(c) is None else np.asarray(adj[c], dtype=float) for c in su.data_components)
 
-    def total(seg):
-        return (math.ceil(su.nt / seg) - 1) * state_bytes + (seg + 2) * 2 * state_bytes
+    return loss
 
-    seg, peak = sweep.choose_segment(su.nt, 1, total, memory_budget, segment_length)
-    n_seg = math.ceil(su.nt / seg)
-    bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
-    synthetic, J = sweep.taped_sweep(su, seg, n_seg, loss, bar)
-    bar.close()
-    res = result(loss=float(J), synthetic=dict(zip(su.data_components, synthetic)), segment_length=seg, n_segments=n_seg,
-                 peak_bytes_estimate=peak)
-    for name in wrt:
-        setattr(res, name, np.array(arrays[name].grad.numpy()))
-    return res
+
+def observed_on_device(su, observed, name: str) -> wp.array:
+    """observed[name] (n_shots, n_receivers, nt) as a float64 array on the run's device (ValueError if missing or
+    misshapen)."""
+    if observed is None or name not in observed:
+        raise ValueError(f"observed: no {name!r} data; give observed[{name!r}] (n_shots, n_receivers, nt) for each of `components`")
+    o = np.asarray(observed[name], dtype=float)
+    shape = (su.prop.n_shots, su.receivers.shape[1], su.nt)
+    if o.shape != shape:
+        raise ValueError(f"observed[{name!r}] has shape {o.shape} but the synthetics have {shape} (n_shots, n_receivers, nt)")
+    return wp.array(o, dtype=wp.float64, device=su.prop.device)
+
+
+def l2_on_device(data, residual, observed_l2, nt: int, dt: float, components) -> wp.array:
+    """The "l2" misfit of the synthetic data (arrays (S, n_rec, >= nt), named by `components`) against observed_l2
+    ({component: observed float64 array (S, n_rec, nt)} on their device): its residuals (misfits._l2's, float64 rounded
+    to the data's precision) into the components' arrays of residual (the others left alone); returns the sum of the
+    squared differences, (1,) float64 on the device (the loss is 0.5 sum dt; reading it waits for the device)."""
+    total = wp.zeros(1, dtype=wp.float64, device=data[0].device)
+    for c, d, r in zip(components, data, residual):
+        if c in observed_l2:
+            wp.launch(l2_residual_kernel(d.dtype), dim=d.shape[:2], inputs=[d, observed_l2[c], nt, dt, r, total], device=d.device)
+    return total

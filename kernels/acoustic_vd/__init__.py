@@ -7,7 +7,7 @@ staggered scheme's, 1 / (sqrt(ndim) sum |c_m|): 0.707 / 0.606 / 0.548 in 2D, 0.5
 2 / 4 / 8.
 """
 
-from adseismic.kernels.acoustic_vd.propagator import MATERIALS, PSI, VELOCITIES, AcousticVD, State, build
+from adseismic.kernels.acoustic_vd.propagator import MATERIALS, PSI, VELOCITIES, AcousticVD, Materials, State, build
 from adseismic.kernels.common import Description
 from adseismic.kernels.numerics import ORDERS, STAGGERED_DERIVATIVE, staggered_cfl_limit, staggered_dispersion_error
 
@@ -24,4 +24,4 @@ DESCRIPTION = Description(
     dispersion_error=staggered_dispersion_error,
 )
 
-__all__ = ["DESCRIPTION", "MATERIALS", "PSI", "VELOCITIES", "AcousticVD", "State", "build"]
+__all__ = ["DESCRIPTION", "MATERIALS", "PSI", "VELOCITIES", "AcousticVD", "Materials", "State", "build"]

@@ -40,6 +40,7 @@ arithmetic without its launch (AcousticVD.source_operator's plan), and in a capt
 the receivers (AcousticVD.step's record=).
 """
 
+import contextlib
 import functools
 import math
 from types import SimpleNamespace
@@ -73,6 +74,7 @@ from adseismic.kernels.viscoacoustic.propagator import (
     _derivatives,
     _points,
     _velocity,
+    _velocity_tiles,
     field_grid,
     tile_plan,
     tiled_recording,
@@ -140,6 +142,9 @@ def _kernels_2d(ns):
         p_new[c] = keep * (pc - dt * km * ((ex + qx) + (ez + qz)))
 
     tiled = {V: (velocity_tiles[V], _pressure_tiles(ns, lanes[V], pressure_cell, record_thread)) for V in TILE_LANES}
+    adjoint_velocity_cell, adjoint_pressure_cell = _adjoint_cells(ns)
+    adjoint_tiled = {V: (_velocity_tiles(ns, lanes[V], adjoint_velocity_cell, record_thread, image=True),
+                         _pressure_tiles(ns, lanes[V], adjoint_pressure_cell, record_thread, image=True)) for V in TILE_LANES}  # fmt: skip
 
     @unique_kernel
     def materials(vp: arr2, rho: arr2, bx: arr2, bz: arr2, k: arr2):
@@ -153,16 +158,227 @@ def _kernels_2d(ns):
         k[z, x] = r * vp[z, x] * vp[z, x]
 
     return dict(velocity=velocity, pressure=pressure, materials=materials, weights=weights, inject=inject, record=record,
-                pad_model=elastic_build(ns.order, dtype, fs).pad_model, operator_points=ns.W**2, tiled=tiled)  # fmt: skip
+                pad_model=elastic_build(ns.order, dtype, fs).pad_model, operator_points=ns.W**2, tiled=tiled, adjoint_tiled=adjoint_tiled,
+                **_adjoint_kernels(ns))  # fmt: skip
 
 
-def _pressure_tiles(ns, L, pressure_cell, record_thread):
+def _adjoint_cells(ns):
+    """The frame cells of the hand-written adjoint step (AcousticVD.adjoint_step), with the signatures of velocity_cell
+    and pressure_cell so that the tiled launches (_velocity_tiles, _pressure_tiles) run them around a core of the
+    forward's tiles.
+
+    The adjoint state is (nu, mu) = (b lambda_v, K lambda_p) (lambda: the adjoints of v and of p after the free
+    surface's zeroing; b at each velocity's nodes) and the adjoints lambda_psi of the CPML memory variables. Where no
+    CPML or image is in reach it steps as the forward does with dt -> -dt (d = -dt below): nu -= d b grad mu, then mu
+    -= d K div nu. In the frame, with psi_new = b psi_old + a g at a strip cell, the adjoint of the damped derivative
+    g + psi_new whose update's adjoint is u = d f (f: mu or nu) is e = u + a (u + lambda_psi_new), and lambda_psi_old =
+    b (u + lambda_psi_new); the transposed stencils are the forward's (D^T = -G), p's odd and vz's even images above
+    a free surface included (transposed into each other: exact while mu = 0 on the surface row, which its zeroing
+    keeps).
+
+    adjoint_velocity_cell: nu_new = nu - b G(e_p) at the cell's velocity nodes from mu (p) and the p nodes' lambda_psi
+    (o_*: their level n + 1's, n_*: level n's, written at the cell's p node); adjoint_pressure_cell: mu_new = keep (mu
+    - K D(e_v)) from nu and the velocity nodes' lambda_psi likewise."""
+    M, C, fs, dtype, arr1, Axis = ns.M, ns.C, ns.fs, ns.dtype, ns.arr1, ns.Axis
+    store_psi = flat_cpml(dtype)[1]
+
+    @wp.func
+    def damped(u: dtype, j: int, a: dtype, lam: arr1, k: int) -> dtype:
+        # e = u + a (u + lambda_psi[k]) at a strip cell (j >= 0), u elsewhere
+        if j < 0:
+            return u
+        return u + a * (u + lam[k])
+
+    @wp.func
+    def along_x(f: arr1, lam: arr1, a: arr1, ax: Axis, d: dtype, s: int, z: int, x: int, c: int, grid: Grid) -> dtype:
+        # e at column x of row z (field cell c) for the x derivative's memory variable
+        j = ax.store[x]
+        return damped(d * f[c], j, a[x], lam, (s * grid.lz + z) * grid.wx + j)
+
+    @wp.func
+    def along_z(f: arr1, lam: arr1, a: arr1, az: Axis, d: dtype, s: int, z: int, x: int, c: int, grid: Grid) -> dtype:
+        # e at row z of column x (field cell c) for the z derivative's memory variable
+        j = az.store[z]
+        return damped(d * f[c], j, a[z], lam, (s * grid.wz + j) * grid.lx + x)
+
+    @wp.func
+    def p_image(f: arr1, lam: arr1, az: Axis, d: dtype, s: int, z: int, x: int, c: int, grid: Grid, top: int) -> dtype:
+        # e of the p nodes at row z, the odd image of row 2 top - z above a free surface
+        if wp.static(fs):
+            if z < top:
+                return -along_z(f, lam, az.a, az, d, s, 2 * top - z, x, c + 2 * (top - z) * grid.lx, grid)
+        return along_z(f, lam, az.a, az, d, s, z, x, c, grid)
+
+    @wp.func
+    def vz_image(f: arr1, lam: arr1, az: Axis, d: dtype, s: int, z: int, x: int, c: int, grid: Grid, top: int) -> dtype:
+        # e of the vz nodes at row z, the even image of row 2 top - 1 - z above a free surface
+        if wp.static(fs):
+            if z < top:
+                return along_z(f, lam, az.ah, az, d, s, 2 * top - 1 - z, x, c + (2 * (top - z) - 1) * grid.lx, grid)
+        return along_z(f, lam, az.ah, az, d, s, z, x, c, grid)
+
+    @wp.func
+    def adjoint_velocity_cell(
+        vx: arr1, vz: arr1, p: arr1, bx: arr1, bz: arr1, o_vx_x: arr1, o_vz_z: arr1, n_vx_x: arr1, n_vz_z: arr1,
+        vx_new: arr1, vz_new: arr1, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid,
+        s: int, z: int, x: int, m: int, c: int, f1: arr1, f2: arr1, g1: arr1, g2: arr1,
+    ):  # fmt: skip
+        # (vx, vz, p) = (nu_x, nu_z, mu); o_*, n_*: the p nodes' lambda_psi (p_x, p_z) of levels n + 1 and n; dt = d;
+        # g1 += f1 (nu_x_new - nu_x), g2 likewise (the image: _velocity_tiles)
+        gx = dtype(0.0)
+        gz = dtype(0.0)
+        lx = grid.lx
+        for k in range(wp.static(M)):
+            gx += dtype(wp.static(C[k])) * (along_x(p, o_vx_x, ax.a, ax, dt, s, z, x + k + 1, c + k + 1, grid)
+                                             - along_x(p, o_vx_x, ax.a, ax, dt, s, z, x - k, c - k, grid))  # fmt: skip
+            gz += dtype(wp.static(C[k])) * (p_image(p, o_vz_z, az, dt, s, z + k + 1, x, c + (k + 1) * lx, grid, top)
+                                             - p_image(p, o_vz_z, az, dt, s, z - k, x, c - k * lx, grid, top))  # fmt: skip
+        jz = az.store[z]
+        jx = ax.store[x]
+        kx = (s * grid.lz + z) * grid.wx + jx
+        kz = (s * grid.wz + jz) * grid.lx + x
+        u = dt * p[c]
+        qx = dtype(0.0)
+        qz = dtype(0.0)
+        if jx >= 0:
+            qx = ax.b[x] * (u + o_vx_x[kx])
+        if jz >= 0:
+            qz = az.b[z] * (u + o_vz_z[kz])
+        ux = vx[c]
+        uz = vz[c]
+        bxm = bx[m]
+        bzm = bz[m]
+        a1 = f1[c]
+        a2 = f2[c]
+        s1 = g1[c]
+        s2 = g2[c]
+        store_psi(jx, n_vx_x, kx, qx)
+        store_psi(jz, n_vz_z, kz, qz)
+        ox = ux - bxm * (gx * inv_dx)
+        oz = uz - bzm * (gz * inv_dx)
+        vx_new[c] = ox
+        vz_new[c] = oz
+        g1[c] = s1 + a1 * (ox - ux)
+        g2[c] = s2 + a2 * (oz - uz)
+
+    @wp.func
+    def adjoint_pressure_cell(vx: arr1, vz: arr1, p: arr1, k: arr1, o_p_x: arr1, o_p_z: arr1, n_p_x: arr1, n_p_z: arr1, p_new: arr1,
+                              az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid, s: int, z: int, x: int, m: int,
+                              c: int, f1: arr1, g1: arr1):  # fmt: skip
+        # (vx, vz, p) = (nu_x, nu_z, mu); o_*, n_*: the velocity nodes' lambda_psi (vx_x, vz_z) of levels n + 1 and n;
+        # g1 += f1 (mu_new - mu)
+        ex = dtype(0.0)
+        ez = dtype(0.0)
+        lx = grid.lx
+        for i in range(wp.static(M)):
+            ex += dtype(wp.static(C[i])) * (along_x(vx, o_p_x, ax.ah, ax, dt, s, z, x + i, c + i, grid)
+                                             - along_x(vx, o_p_x, ax.ah, ax, dt, s, z, x - i - 1, c - i - 1, grid))  # fmt: skip
+            ez += dtype(wp.static(C[i])) * (vz_image(vz, o_p_z, az, dt, s, z + i, x, c + i * lx, grid, top)
+                                             - vz_image(vz, o_p_z, az, dt, s, z - i - 1, x, c - (i + 1) * lx, grid, top))  # fmt: skip
+        jz = az.store[z]
+        jx = ax.store[x]
+        kx = (s * grid.lz + z) * grid.wx + jx
+        kz = (s * grid.wz + jz) * grid.lx + x
+        qx = dtype(0.0)
+        qz = dtype(0.0)
+        if jx >= 0:
+            qx = ax.bh[x] * (dt * vx[c] + o_p_x[kx])
+        if jz >= 0:
+            qz = az.bh[z] * (dt * vz[c] + o_p_z[kz])
+        keep = dtype(1.0)
+        if wp.static(fs):
+            if z == top:
+                keep = dtype(0.0)
+        pc = p[c]
+        km = k[m]
+        a1 = f1[c]
+        s1 = g1[c]
+        store_psi(jx, n_p_x, kx, qx)
+        store_psi(jz, n_p_z, kz, qz)
+        o = keep * (pc - km * ((ex * inv_dx) + (ez * inv_dx)))
+        p_new[c] = o
+        g1[c] = s1 + a1 * (o - pc)
+
+    return adjoint_velocity_cell, adjoint_pressure_cell
+
+
+def _adjoint_kernels(ns):
+    """The hand-written adjoint step's point kernels (AcousticVD.adjoint_step): the explosive sources' adjoint
+    (`source_adjoint`), the receivers' residuals into the adjoint state (`record_adjoint`), and the image's sums into
+    the adjoints of MATERIALS (`material_adjoints`).
+
+    The image: with the forward levels P^n, V^n and the adjoint's mu^n, nu^n (nu after the step's velocity launch),
+    dJ/dK = sum_n (P^{n+1} - P^n - S^{n+1}) mu^{n+1} / K^2 (-dt K div v = P^{n+1} - P^n - S^{n+1}, S the sources'
+    terms) and dJ/db = sum_n (V^{n+1} - V^n) nu^{n+1} / b^2, summed by parts: each step adds P^n (mu^n - mu^{n+1}) and
+    V^{n+1} (nu's change in its velocity launch) where it changes mu and nu (the tiled launches' `image`, the
+    residuals here), and S^{n+1} mu^{n+1} out (P^0 = V^0 = 0, and the adjoint is 0 at the last level). The sums are
+    per shot, (S, Lz, Lx): gbx, gbz, gk."""
+    M, dtype, arr2, arr3, arr4, iarr1, idx4 = ns.M, ns.dtype, ns.arr2, ns.arr3, ns.arr4, ns.iarr1, ns.idx4
+
+    @unique_kernel(enable_backward=False)
+    def source_adjoint(mu: arr3, k: arr2, amp: arr3, idx: idx4, w: arr4, n: int, clock: iarr1, scale: dtype, gk: arr3, g_amp: arr3):
+        # the adjoint of inject's term of step n: the amplitudes' (lambda_p = mu / K at the point: the surface row has
+        # no weight), and its term S^{n+1} mu^{n+1} out of gk
+        s, src, q = wp.tid()
+        t = n + clock[0]
+        wq = w[0, s, src, q]
+        if wq != dtype(0.0):
+            i = idx[0, s, src, q]
+            u = mu[s, i[0], i[1]]
+            wp.atomic_add(gk, s, i[0], i[1], -scale * (amp[s, src, t + 1] - amp[s, src, t]) * wq * u)
+            g = scale * wq * u / k[i[0], i[1]]
+            wp.atomic_add(g_amp, s, src, t + 1, g)
+            wp.atomic_add(g_amp, s, src, t, -g)
+
+    @wp.func
+    def residual_point(j: int, f: arr3, mat: arr2, res: arr3, fwd: arr3, g: arr3, idx: idx4, w: arr4, s: int, r: int, q: int, t: int):
+        # operator j's point q of receiver r: f += mat w res (f = mat lambda), its image term fwd (level n) times that into g
+        wq = w[j, s, r, q]
+        if wq != dtype(0.0):
+            i = idx[j, s, r, q]
+            u = mat[i[0], i[1]] * wq * res[s, r, t]
+            wp.atomic_add(f, s, i[0], i[1], u)
+            wp.atomic_add(g, s, i[0], i[1], fwd[s, i[0], i[1]] * u)
+
+    @unique_kernel(enable_backward=False)
+    def record_adjoint(nux: arr3, nuz: arr3, mu: arr3, bx: arr2, bz: arr2, k: arr2, r_vx: arr3, r_vz: arr3, r_p: arr3, idx: idx4,
+                       w: arr4, n: int, clock: iarr1, vx: arr3, vz: arr3, p: arr3, gbx: arr3, gbz: arr3, gk: arr3):  # fmt: skip
+        # the adjoint of record's sample n: the residuals through the operators' transposes into lambda, as nu = b lambda_v
+        # and mu = K lambda_p (no weight on a free surface's row), and their image terms with level n's vx, vz, p
+        s, r, q = wp.tid()
+        t = n + clock[0]
+        residual_point(0, mu, k, r_p, p, gk, idx, w, s, r, q, t)
+        residual_point(1, nux, bx, r_vx, vx, gbx, idx, w, s, r, q, t)
+        residual_point(2, nuz, bz, r_vz, vz, gbz, idx, w, s, r, q, t)
+
+    @unique_kernel(enable_backward=False)
+    def material_adjoints(gbx: arr3, gbz: arr3, gk: arr3, bx: arr2, bz: arr2, k: arr2, a_bx: arr2, a_bz: arr2, a_k: arr2):
+        # dJ/d(bx, bz, K) at an interior node: the sums over the shots / b^2, / K^2
+        zi, xi = wp.tid()
+        z = zi + wp.static(M)
+        x = xi + wp.static(M)
+        sx = dtype(0.0)
+        sz = dtype(0.0)
+        sk = dtype(0.0)
+        for s in range(gk.shape[0]):
+            sx += gbx[s, z, x]
+            sz += gbz[s, z, x]
+            sk += gk[s, z, x]
+        a_bx[z, x] = sx / (bx[z, x] * bx[z, x])
+        a_bz[z, x] = sz / (bz[z, x] * bz[z, x])
+        a_k[z, x] = sk / (k[z, x] * k[z, x])
+
+    return dict(source_adjoint=source_adjoint, record_adjoint=record_adjoint, material_adjoints=material_adjoints)
+
+
+def _pressure_tiles(ns, L, pressure_cell, record_thread, image=False):
     """The pressure half step untaped, as kernels/viscoacoustic's _velocity_tiles does the velocity one (L: its
     _lanes): `records` threads recording the receivers' velocities (fvx, fvz: the arrays vx, vz are, which the launch
     only reads) into `sample` (+ clock[0]), core tiles with the rows of vz in a sliding window, frame cells by
     pressure_cell. Then each thread t adds the explosive sources' terms at the cells it stepped (AcousticVD.source_plan:
     terms span[t] .. span[t + 1] - 1, in inject's order; none where span has one element): inject's arithmetic on the
-    level's new p, without its launch."""
+    level's new p, without its launch. With `image` (the adjoint's) each cell also adds f1 (p_new - p) into g1 (flat
+    and as vectors; pressure_cell takes f1, g1 last); otherwise they are None."""
     M, C, dtype, arr1, arr3, Axis, rows = ns.M, ns.C, ns.dtype, ns.arr1, ns.arr3, ns.Axis, TILE_ROWS
     arr4, iarr1, idx4, idx1 = ns.arr4, ns.iarr1, ns.idx4, wp.array(dtype=wp.vec2i)
     V, NB, vec, arrv, load, put = L.V, L.NB, L.vec, L.arrv, L.load, L.put
@@ -170,7 +386,7 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread):
 
     @wp.func
     def pressure_tile(t: int, vx: arrv, vz: arrv, p: arrv, k: arrv, p_new: arrv, dt: dtype, inv_dx: dtype, box: wp.vec4i, lz: int,
-                      lx: int):  # fmt: skip
+                      lx: int, f1: arrv, g1: arrv):  # fmt: skip
         tl = tile(t, box, lz, lx)
         n = lx // wp.static(V)
         c = tl[1] // wp.static(V)
@@ -190,6 +406,12 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread):
                         ez += dtype(wp.static(C[m])) * (w[wp.static(M + m), j] - w[wp.static(M - 1 - m), j])
                     o[j] = pc[j] - dt * km[j] * ((ex * inv_dx) + (ez * inv_dx))
                 put(p_new, i, o)
+                if wp.static(image):
+                    a1 = load(f1, i)
+                    s1 = load(g1, i)
+                    for j in range(wp.static(V)):
+                        s1[j] = s1[j] + a1[j] * (o[j] - pc[j])
+                    put(g1, i, s1)
                 if wp.static(r + 1 < rows):
                     w = slide(w, load(vz, i + wp.static(M) * n))
                 i += n
@@ -201,7 +423,7 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread):
         dt: dtype, inv_dx: dtype, top: int, grid: Grid, vxv: arrv, vzv: arrv, pv: arrv, kv: arrv, p_newv: arrv, box: wp.vec4i,
         tiles: int, frame: int, cells: int, fvx: arr3, fvz: arr3, fp: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4,
         sample: int, clock: iarr1, records: int, span: iarr1, term_cell: iarr1, term_source: idx1, term_w: arr1, amp: arr3, level: int,
-        scale: dtype,
+        scale: dtype, f1: arr1, g1: arr1, f1v: arrv, g1v: arrv,
     ):  # fmt: skip
         t = wp.tid()
         if t < records:
@@ -210,13 +432,17 @@ def _pressure_tiles(ns, L, pressure_cell, record_thread):
         t -= records
         if t < frame:
             if t < tiles:
-                pressure_tile(t, vxv, vzv, pv, kv, p_newv, dt, inv_dx, box, grid.lz, grid.lx)
+                pressure_tile(t, vxv, vzv, pv, kv, p_newv, dt, inv_dx, box, grid.lz, grid.lx, f1v, g1v)
         else:
             s = (t - frame) // cells
             zx = frame_cell(t - frame - s * cells, grid.lz, grid.lx, box)
             m = zx[0] * grid.lx + zx[1]
-            pressure_cell(vx, vz, p, k, o_p_x, o_p_z, n_p_x, n_p_z, p_new, az, ax, dt, inv_dx, top, grid, s, zx[0], zx[1], m,
-                          s * grid.lz * grid.lx + m)  # fmt: skip
+            if wp.static(image):
+                pressure_cell(vx, vz, p, k, o_p_x, o_p_z, n_p_x, n_p_z, p_new, az, ax, dt, inv_dx, top, grid, s, zx[0], zx[1], m,
+                              s * grid.lz * grid.lx + m, f1, g1)  # fmt: skip
+            else:
+                pressure_cell(vx, vz, p, k, o_p_x, o_p_z, n_p_x, n_p_z, p_new, az, ax, dt, inv_dx, top, grid, s, zx[0], zx[1], m,
+                              s * grid.lz * grid.lx + m)  # fmt: skip
         if t + 1 < span.shape[0]:
             n = level + clock[0]
             for e in range(span[t], span[t + 1]):
@@ -464,7 +690,10 @@ class AcousticVD:
         self.dt_device = dtype(dt)
         self.cuda = wp.get_device(device).is_cuda
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)  # stays 0: plain launches pass n itself
-        self.tiles = tile_plan(self.axes, self.padded, R, self.n_shots, self.free_surface, self.top) if nd == 2 else None
+        self.tiles = self.adjoint_tiles = None
+        if nd == 2:  # the adjoint's core keeps its stencils off the CPML strips (adjoint_step)
+            self.tiles = tile_plan(self.axes, self.padded, R, self.n_shots, self.free_surface, self.top)
+            self.adjoint_tiles = tile_plan(self.axes, self.padded, R, self.n_shots, self.free_surface, self.top, R)
 
     def psi_shape(self, name):
         axis = PSI[self.ndim][name]
@@ -472,12 +701,22 @@ class AcousticVD:
         shape[axis + 1] = self.strip_width[axis]
         return tuple(shape)
 
-    def new_state(self, requires_grad=False) -> State:
-        def zeros(shape):
-            return wp.zeros(shape, dtype=self.dtype, device=self.device, requires_grad=requires_grad)
-
+    def new_state(self, requires_grad=False, packed=False) -> State:
+        """A State of zeros; packed: its arrays views of one flat array, its `packed` attribute (one copy copies the
+        State: a checkpointed sweep copies a level twice a segment), each from a multiple of 64 values."""
         full = (self.n_shots, *self.padded)
-        return State({v: zeros(full) for v in VELOCITIES[self.ndim]}, zeros(full), {k: zeros(self.psi_shape(k)) for k in PSI[self.ndim]})
+        shapes = [full] * (1 + self.ndim) + [self.psi_shape(k) for k in PSI[self.ndim]]
+        if packed:
+            sizes = [-(-math.prod(s) // 64) * 64 for s in shapes]
+            buf = wp.zeros(sum(sizes), dtype=self.dtype, device=self.device, requires_grad=requires_grad)
+            starts = np.cumsum([0, *sizes])
+            arrays = [buf[int(o) : int(o) + math.prod(s)].reshape(s) for o, s in zip(starts, shapes)]
+        else:
+            arrays = [wp.zeros(s, dtype=self.dtype, device=self.device, requires_grad=requires_grad) for s in shapes]
+        nv = self.ndim
+        st = State(dict(zip(VELOCITIES[nv], arrays[:nv])), arrays[nv], dict(zip(PSI[nv], arrays[nv + 1 :])))
+        st.packed = buf if packed else None
+        return st
 
     def pad_model(self, m, requires_grad=False):
         """Padded model (Lz, [Ly,] Lx) from a physical one (a wp.array of shape), extended by edge replication."""
@@ -577,17 +816,56 @@ class AcousticVD:
             (fx, fz, fp), (ox, oz, op), mv = st.vectors(V), out.vectors(V), mat.vectors(V)
             dim, rest = frame + self.n_shots * cells, [box, tiles, frame, cells]
             rec, threads = tiled_recording(st, record, clock)
-            wp.launch(velocity, dim=threads + dim, inputs=[*vel, fx, fz, fp, *mv[:2], ox, oz, *rest, *rec], device=self.device,
+            wp.launch(velocity, dim=threads + dim, inputs=[*vel, fx, fz, fp, *mv[:2], ox, oz, *rest, *rec, *[None] * 8], device=self.device,
                       block_dim=TILE_THREADS)  # fmt: skip
             rec, threads = tiled_recording(out, None if record is None else (*record[:2], record[2] + 1), clock)
             fused = sources if sources is not None and len(sources[1]) > 2 else None
             terms = [*fused[1][2:], fused[0]] if fused is not None else [None] * 5
-            wp.launch(pressure, dim=threads + dim, inputs=[*pre, ox, oz, fp, mv[2], op, *rest, *rec, *terms, n, scale], device=self.device,
-                      block_dim=TILE_THREADS)  # fmt: skip
+            wp.launch(pressure, dim=threads + dim, inputs=[*pre, ox, oz, fp, mv[2], op, *rest, *rec, *terms, n, scale, *[None] * 4],
+                      device=self.device, block_dim=TILE_THREADS)  # fmt: skip
         if sources is not None and fused is None:
             amplitudes, (idx, w) = sources[0], sources[1][:2]
             wp.launch(self.k.inject, dim=idx.shape[1:], inputs=[out.p, amplitudes, idx, w, n, clock, scale], device=self.device)
         return out
+
+    def adjoint_step(self, st: State, nxt: State, mat, adj: tuple, sums, sources, g_amp, residual, n: int, clock=None, side=None):
+        """The hand-written adjoint of step(st, mat, sources, n, out=nxt) in 2D (_adjoint_cells: two tiled launches
+        as the step's, their core the forward's tiles with dt -> -dt, their frame the adjoint's cells).
+
+        adj = (a, b): two States sharing the adjoint fields (nu_x, nu_z, mu) = (b lambda_v, K lambda_p), each with its
+        own lambda_psi: level n + 1's in b on entry, level n's in a on return (the fields in place). sums: Materials of
+        the image's sums (gbx, gbz, gk) (S, Lz, Lx) (_adjoint_kernels), added to; sources as step's or None, g_amp:
+        dJ/d amplitudes (S, n_src, >= n + 2), added to; residual = (r_vx, r_vz, r_p) arrays (S, n_rec, >= n + 1) and
+        the receivers' operator: their sample n (+ clock[0]) into the adjoint of level n. side: None, or a second stream
+        (accel.graphs.SideStream: `with side():`, side.join()) that runs the sources' adjoint beside the velocity launch
+        (it reads mu, which that launch only reads)."""
+        clock = self.clock if clock is None else clock
+        V, box, tiles, frame, cells = self.adjoint_tiles
+        velocity, pressure = self.k.adjoint_tiled[V]
+        new, old = adj
+        f, o, m, fv, mv, gv = new.flat(), old.flat(), mat.flat, new.vectors(V), mat.vectors(V), sums.vectors(V)
+        scale = self.dtype(self.dx**-self.ndim)
+        common = [*self.axes, self.dtype(-self.dt), self.inv_dx, self.top, self.grid]
+        dim, rest = frame + self.n_shots * cells, [box, tiles, frame, cells]
+        rec = tiled_recording(new, None, clock)[0]
+        a, b = st.flat(), nxt.flat()
+        vel = [*f.v.values(), f.p, *m[:-1], o.psi["p_x"], o.psi["p_z"], f.psi["p_x"], f.psi["p_z"], *f.v.values(), *common]
+        image = [b.vx, b.vz, *sums.flat[:2], *nxt.vectors(V)[:2], *gv[:2]]
+        if sources is not None:
+            idx, w = sources[1][:2]
+            with side() if side is not None else contextlib.nullcontext():
+                wp.launch(self.k.source_adjoint, dim=idx.shape[1:], inputs=[new.p, mat[-1], sources[0], idx, w, n, clock, scale, sums[2],
+                          g_amp], device=self.device)  # fmt: skip
+        wp.launch(velocity, dim=dim, inputs=[*vel, *fv, *mv[:2], *fv[:2], *rest, *rec, *image], device=self.device, block_dim=TILE_THREADS)
+        if side is not None:
+            side.join()
+        pre = [*f.v.values(), f.p, m[-1], o.psi["vx_x"], o.psi["vz_z"], f.psi["vx_x"], f.psi["vz_z"], f.p, *common]
+        image = [a.p, sums.flat[2], st.vectors(V)[2], gv[2]]
+        wp.launch(pressure, dim=dim, inputs=[*pre, *fv, mv[2], fv[2], *rest, *rec, *[None] * 5, n, scale, *image], device=self.device,
+                  block_dim=TILE_THREADS)  # fmt: skip
+        *res, (idx, w) = residual
+        wp.launch(self.k.record_adjoint, dim=idx.shape[1:], inputs=[*new.v.values(), new.p, *mat, *res, idx, w, n, clock, *st.v.values(),
+                  st.p, *sums], device=self.device)  # fmt: skip
 
     def record(self, st: State, data, receiver_op, k: int, clock=None):
         """Add sample k (+ clock[0]) of the receivers' velocities and p into data (VELOCITIES[ndim] then pressure,

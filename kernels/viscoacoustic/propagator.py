@@ -296,17 +296,17 @@ def _lanes(ns, V: int):
 
 
 @functools.lru_cache(maxsize=32)
-def tile_plan(axes, padded, halo: int, n_shots: int, free_surface: bool, top: int):
+def tile_plan(axes, padded, halo: int, n_shots: int, free_surface: bool, top: int, margin: int = 0):
     """(V, box, tiles, frame, cells) of a 2D tiled half step (_velocity_tiles, kernels/acoustic_vd): the lanes (the
     widest of TILE_LANES that divides the padded row), the core box (rows and columns outside the CPML strips of axes
-    (z, x), below a free surface's images; columns from and to a multiple of V), its tiles over the shots, the first
-    frame thread (a block boundary) and the frame cells a shot. Kept per argument set, as cpml_axes' axes are (its
-    two reads of the strips from the device were a tenth of a VD1000 forward's setup on an H200)."""
+    (z, x) by `margin` cells, below a free surface's images; columns from and to a multiple of V), its tiles over the
+    shots, the first frame thread (a block boundary) and the frame cells a shot. Kept per argument set, as cpml_axes'
+    axes are (its two reads of the strips from the device were a tenth of a VD1000 forward's setup on an H200)."""
     R, (lz, lx) = halo, padded
     ends = []
     for a, n in zip(axes, padded):
         free = np.flatnonzero(a.store.numpy()[R:n - R] < 0) + R  # outside the CPML strips, which lie at the ends
-        ends.append((int(free[0]), int(free[-1]) + 1) if free.size else (R, R))
+        ends.append((int(free[0]) + margin, int(free[-1]) + 1 - margin) if free.size else (R, R))
     (z0, z1), (x0, x1) = ends
     if free_surface:
         z0 = max(z0, top + R)  # no stencil reaches the surface's images
@@ -330,7 +330,7 @@ def tiled_recording(st, record, clock) -> tuple:
     return [st.vx, st.vz, st.p, *data, idx, w, k, clock, threads], threads
 
 
-def _velocity_tiles(ns, L, velocity_cell, record_thread):
+def _velocity_tiles(ns, L, velocity_cell, record_thread, image=False):
     """The velocity half step untaped (never differentiated), in place or out of place, as a core and a frame in one
     1D launch, after `records` threads (a multiple of TILE_THREADS, or 0) that record the receivers' p of the level
     stepped from into `sample` (+ clock[0]) (record_thread of fp, the array p is: the launch writes only velocities).
@@ -338,7 +338,9 @@ def _velocity_tiles(ns, L, velocity_cell, record_thread):
     adjacent columns of the core box (tile_plan; L: _lanes), the rows of p along z in a sliding window; from `frame`
     (a block boundary, so that no warp mixes the two) one frame cell (an interior cell outside the box; `cells` a
     shot) by velocity_cell. The core's arithmetic is the cell's without its CPML and image terms: equal bit for bit on
-    a CPU (docs/benchmarks.md, "The staggered half steps as register tiles")."""
+    a CPU (docs/benchmarks.md, "The staggered half steps as register tiles"). With `image` (kernels/acoustic_vd's
+    adjoint) each cell also adds f (v_new - v) into g, per velocity (f1, g1: vx's; f2, g2: vz's; flat and as vectors),
+    and velocity_cell takes f1, f2, g1, g2 last; otherwise they are None."""
     M, C, dtype, arr1, arr3, Axis, rows = ns.M, ns.C, ns.dtype, ns.arr1, ns.arr3, ns.Axis, TILE_ROWS
     arr4, iarr1, idx4 = ns.arr4, ns.iarr1, ns.idx4
     V, NB, vec, arrv, load, put = L.V, L.NB, L.vec, L.arrv, L.load, L.put
@@ -346,7 +348,7 @@ def _velocity_tiles(ns, L, velocity_cell, record_thread):
 
     @wp.func
     def velocity_tile(t: int, vx: arrv, vz: arrv, p: arrv, bx: arrv, bz: arrv, vx_new: arrv, vz_new: arrv, dt: dtype, inv_dx: dtype,
-                      box: wp.vec4i, lz: int, lx: int):  # fmt: skip
+                      box: wp.vec4i, lz: int, lx: int, f1: arrv, f2: arrv, g1: arrv, g2: arrv):  # fmt: skip
         tl = tile(t, box, lz, lx)
         n = lx // wp.static(V)
         c = tl[1] // wp.static(V)
@@ -374,6 +376,16 @@ def _velocity_tiles(ns, L, velocity_cell, record_thread):
                     oz[j] = uz[j] - dt * bzm[j] * (gz * inv_dx)
                 put(vx_new, i, ox)
                 put(vz_new, i, oz)
+                if wp.static(image):
+                    a1 = load(f1, i)
+                    a2 = load(f2, i)
+                    s1 = load(g1, i)
+                    s2 = load(g2, i)
+                    for j in range(wp.static(V)):
+                        s1[j] = s1[j] + a1[j] * (ox[j] - ux[j])
+                        s2[j] = s2[j] + a2[j] * (oz[j] - uz[j])
+                    put(g1, i, s1)
+                    put(g2, i, s2)
                 if wp.static(r + 1 < rows):
                     w = slide(w, load(p, i + wp.static(M + 1) * n))
                 i += n
@@ -385,7 +397,7 @@ def _velocity_tiles(ns, L, velocity_cell, record_thread):
         vx_new: arr1, vz_new: arr1, az: Axis, ax: Axis, dt: dtype, inv_dx: dtype, top: int, grid: Grid,
         vxv: arrv, vzv: arrv, pv: arrv, bxv: arrv, bzv: arrv, vx_newv: arrv, vz_newv: arrv, box: wp.vec4i, tiles: int, frame: int,
         cells: int, fvx: arr3, fvz: arr3, fp: arr3, d_vx: arr3, d_vz: arr3, d_p: arr3, idx: idx4, w: arr4, sample: int, clock: iarr1,
-        records: int,
+        records: int, f1: arr1, f2: arr1, g1: arr1, g2: arr1, f1v: arrv, f2v: arrv, g1v: arrv, g2v: arrv,
     ):  # fmt: skip
         t = wp.tid()
         if t < records:
@@ -394,13 +406,17 @@ def _velocity_tiles(ns, L, velocity_cell, record_thread):
         t -= records
         if t < frame:
             if t < tiles:
-                velocity_tile(t, vxv, vzv, pv, bxv, bzv, vx_newv, vz_newv, dt, inv_dx, box, grid.lz, grid.lx)
+                velocity_tile(t, vxv, vzv, pv, bxv, bzv, vx_newv, vz_newv, dt, inv_dx, box, grid.lz, grid.lx, f1v, f2v, g1v, g2v)
         else:
             s = (t - frame) // cells
             zx = frame_cell(t - frame - s * cells, grid.lz, grid.lx, box)
             m = zx[0] * grid.lx + zx[1]
-            velocity_cell(vx, vz, p, bx, bz, o_vx_x, o_vz_z, n_vx_x, n_vz_z, vx_new, vz_new, az, ax, dt, inv_dx, top, grid, s, zx[0], zx[1],
-                          m, s * grid.lz * grid.lx + m)  # fmt: skip
+            if wp.static(image):
+                velocity_cell(vx, vz, p, bx, bz, o_vx_x, o_vz_z, n_vx_x, n_vz_z, vx_new, vz_new, az, ax, dt, inv_dx, top, grid, s, zx[0],
+                              zx[1], m, s * grid.lz * grid.lx + m, f1, f2, g1, g2)  # fmt: skip
+            else:
+                velocity_cell(vx, vz, p, bx, bz, o_vx_x, o_vz_z, n_vx_x, n_vz_z, vx_new, vz_new, az, ax, dt, inv_dx, top, grid, s, zx[0],
+                              zx[1], m, s * grid.lz * grid.lx + m)  # fmt: skip
 
     return velocity_tiles
 
@@ -730,7 +746,8 @@ class Viscoacoustic:
             V, box, tiles, frame, n_frame = self.tiles
             (fx, fz, fp), (ox, oz, _), mv = st.vectors(V), out.vectors(V), mat.vectors(V)
             wp.launch(self.k.velocity_tiles[V], dim=frame + self.n_shots * n_frame, device=self.device, block_dim=TILE_THREADS,
-                      inputs=[*vel, fx, fz, fp, *mv[:2], ox, oz, box, tiles, frame, n_frame, *tiled_recording(st, None, clock)[0]])  # fmt: skip
+                      inputs=[*vel, fx, fz, fp, *mv[:2], ox, oz, box, tiles, frame, n_frame, *tiled_recording(st, None, clock)[0],
+                              *[None] * 8])  # fmt: skip
         wp.launch(self.k.pressure, dim=cells, device=self.device,
                   inputs=[o.vx, o.vz, f.p, f.r, mu, g, self.c1, self.c2, f.psi["p_x"], f.psi["p_z"], o.psi["p_x"], o.psi["p_z"], o.p,
                           o.r, *common])  # fmt: skip
