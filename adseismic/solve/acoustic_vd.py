@@ -31,10 +31,6 @@ from adseismic.solve.elastic import check_model_values
 from adseismic.solve.staggered import StaggeredSetup, l2_on_device, misfit_function, observed_on_device, taped_gradient
 
 MODELS = ("vp", "rho")
-# the hand-written gradient's default memory, a multiple of its minimum: the longest segments within it (VD1000: 12
-# segments for 36, each a checkpoint copy and two graph replays fewer; docs/benchmarks.md, "acoustic_vd's 2D
-# hand-written adjoint")
-HAND_MEMORY = 1.5
 WRT = (*MODELS, "source_amplitudes")
 # vp, rho finite and > 0 (elastic's check with vs = 0); CFL speed vp; on a GPU clear where their ranges show it
 MODEL_CHECKS = common.ModelChecks(
@@ -178,9 +174,8 @@ def gradient_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, r
 
     observed: {component: (n_shots, n_receivers, nt)} for the names in `components` (vx, [vy,] vz, pressure);
     misfit: a name in misfits.MISFITS (summed over components) or a callable synthetic dict -> (J, {name: dJ/d
-    synthetic}); wrt: any of WRT. memory_budget (bytes; None: the minimum, ~sqrt(nt) steps a segment, and with the
-    hand-written adjoint the longest segments within HAND_MEMORY times it) or segment_length (steps; rounded up to
-    even with the hand-written adjoint) sets the segments. adjoint: "hand" (2D:
+    synthetic}); wrt: any of WRT. memory_budget (bytes; None: the minimum, ~sqrt(nt) steps a segment) or
+    segment_length (steps; rounded up to even with the hand-written adjoint) sets the segments. adjoint: "hand" (2D:
     the hand-written adjoint step in sweep.Sweep, on a GPU captured as CUDA graphs and kept with its arrays for the
     next call with the same grid, steps, shots and geometry), "warp" (Warp's generated adjoints under wp.Tape,
     sweep.taped_sweep: the reference, and 3D's), None: "hand" in 2D, else "warp". The materials' chain rule to vp
@@ -209,8 +204,6 @@ def gradient_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, r
     def total(seg):  # the checkpoints, a segment's levels, the adjoint (fields and two sets of lambda_psi)
         return (max(math.ceil(su.nt / seg) - 2, 0) + seg + 3) * state
 
-    if memory_budget is None and segment_length is None:
-        memory_budget = HAND_MEMORY * sweep.choose_segment(su.nt, 2, total, None, None)[1]
     seg, peak = sweep.choose_segment(su.nt, 2, total, memory_budget, segment_length)
     n_seg = math.ceil(su.nt / seg)
     bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
