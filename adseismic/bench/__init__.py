@@ -479,9 +479,9 @@ def run_job(job: BenchJob, emit=None) -> list[BenchRow]:
         return rows + (_deepwave_rows_guarded(job, a, base, emit, rows) if job.deepwave else [])
 
     def zero_data(shape):
-        # the gradient's observed data: on a GPU's acoustic scene a device array, as an FWI keeps them (the misfit is then
-        # formed on the device, as Deepwave's loss is; a host array would add its copies and the host's misfit)
-        if device_kind(device) == "cuda" and spec.kind == "acoustic":
+        # the gradient's observed data: on a GPU's acoustic and acoustic_vd scenes a device array, as an FWI keeps them (the
+        # misfit is then formed on the device, as Deepwave's loss is; a host array would add its copies)
+        if device_kind(device) == "cuda" and spec.kind in ("acoustic", "acoustic_vd"):
             return wp.zeros(shape, dtype=wp.float64, device=device)
         return np.zeros(shape)
 

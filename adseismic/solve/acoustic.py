@@ -411,10 +411,10 @@ def _host_misfit(misfit, observed, weights, dt):
     """The misfit as a host function synthetic (float64) -> (J, dJ/dsynthetic)."""
     if callable(misfit):
         return misfit
-    obs = np.asarray(observed.numpy() if isinstance(observed, wp.array) else observed, dtype=float)
+    obs = common.host_array(observed)
     if weights is None:
         return lambda d: named_misfit(misfit, d, obs, dt)
-    w = np.asarray(weights.numpy() if isinstance(weights, wp.array) else weights, dtype=float)
+    w = common.host_array(weights)
     if misfit == "l2":
         return lambda d: weighted_l2(d, obs, w, dt)
 
@@ -427,18 +427,9 @@ def _host_misfit(misfit, observed, weights, dt):
 
 def _device_arrays(su, observed: wp.array, weights) -> tuple:
     """(observed, weights or None) as float64 Warp arrays (n_shots, n_receivers, nt) on the run's device."""
-    shape = (su.prop.n_shots, su.receivers.shape[1], su.nt)
-
-    def on_device(a, name):
-        if isinstance(a, wp.array) and a.dtype == wp.float64 and str(a.device) == str(su.prop.device):
-            out = a
-        else:
-            out = wp.array(np.asarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float), dtype=wp.float64, device=su.prop.device)
-        if out.shape != shape:
-            raise ValueError(f"{name} has shape {out.shape} but the synthetics have {shape} (n_shots, n_receivers, nt)")
-        return out
-
-    return on_device(observed, "observed"), None if weights is None else on_device(weights, "weights")
+    shape, device = (su.prop.n_shots, su.receivers.shape[1], su.nt), su.prop.device
+    pairs = ((observed, "observed"), (weights, "weights"))
+    return tuple(None if a is None else common.float64_on_device(a, device, name, shape) for a, name in pairs)
 
 
 def _hand_sweep(su, vpad, seg: int, n_seg: int, loss_fn, energy, bar, device_l2=None):

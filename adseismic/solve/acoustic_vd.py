@@ -207,7 +207,8 @@ def gradient_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, r
     seg, peak = sweep.choose_segment(su.nt, 2, total, memory_budget, segment_length)
     n_seg = math.ceil(su.nt / seg)
     bar = progress_bar(total=2 * n_seg, desc="gradient segments", unit="segments", enabled=progress)
-    synthetic, J, g_amp = _hand_sweep(su, seg, n_seg, loss, bar, observed_l2, isinstance(vp, wp.array))
+    parts = 3 if callable(misfit) else int("pressure" in components) | 2 * bool({"vx", "vz"} & set(components))
+    synthetic, J, g_amp = _hand_sweep(su, seg, n_seg, loss, bar, observed_l2, isinstance(vp, wp.array), parts)
     bar.close()
     res = AcousticVDGradient(loss=float(J), synthetic=dict(zip(su.data_components, synthetic)), segment_length=seg, n_segments=n_seg,
                              peak_bytes_estimate=peak)  # fmt: skip
@@ -221,18 +222,18 @@ def gradient_acoustic_vd(vp, rho, dx, dt, source_amplitudes, source_locations, r
     return res
 
 
-def _hand_sweep(su: AcousticVDSetup, seg: int, n_seg: int, loss, bar, observed_l2=None, on_device=False):
+def _hand_sweep(su: AcousticVDSetup, seg: int, n_seg: int, loss, bar, observed_l2=None, on_device=False, parts=3):
     """The hand-written adjoint (Levels in a sweep.Sweep, the kept one on a GPU), MATERIALS' chain rule to vp and rho
     Warp's on a small tape around them. The misfit: loss (misfit_function's) on the host, or with observed_l2
     ({component: observed float64 device array}) the "l2" misfit on the device (staggered.l2_on_device: no copy of the
-    data, the loss read once the backward sweep is queued). Returns (synthetic, Warp arrays where on_device, else
-    NumPy; J; dJ/d amplitudes (S, n_src, >= nt))."""
+    data, the loss read once the backward sweep is queued); parts: the residuals it may give, p's (1), the velocities'
+    (2). Returns (synthetic, Warp arrays where on_device, else NumPy; J; dJ/d amplitudes (S, n_src, >= nt))."""
     prop = su.prop
     model_tape = wp.Tape()
     with model_tape:
         mat = su.model(on_tape=True)
-    key = ("acoustic_vd_gradient", *su.key()[1:], seg, n_seg)
-    sw = sweep.kept_sweep(key, lambda: sweep.Sweep(key, Levels(su, seg, n_seg), seg, n_seg), prop.cuda)
+    key = ("acoustic_vd_gradient", *su.key()[1:], seg, n_seg, parts)
+    sw = sweep.kept_sweep(key, lambda: sweep.Sweep(key, Levels(su, seg, n_seg, parts), seg, n_seg), prop.cuda)
     lv = sw.levels
     lv.refill(su, mat)
     sw.forward_sweep(bar)
@@ -256,17 +257,20 @@ def _hand_sweep(su: AcousticVDSetup, seg: int, n_seg: int, loss, bar, observed_l
 class Levels:
     """The 2D hand-written adjoint's arrays and segment functions (what sweep.Sweep drives).
 
-    The forward segment steps `seg` levels from levels[0] out of place into levels[1..seg] (the tiled step, recording
-    the data in its launches); the adjoint segment steps back through them (AcousticVD.adjoint_step): the adjoint
-    fields in place, the adjoints of the CPML memory variables alternating between the two States of `adj` (seg is
-    even, so every segment starts with the same roles), the materials' sums in `sums` and the amplitudes' adjoint in
-    g_amp over all steps; finish turns the sums (a shot each) into adj_mat, dJ/d MATERIALS. The levels are packed
-    (AcousticVD.new_state): start() and end() are one array each. Time indices are j + clock[0]. data and residual: (vx,
-    vz, pressure) arrays (S, n_rec, n_seg * seg)."""
+    The forward segment steps `seg` levels from levels[0] out of place into levels[1..seg] (the tiled step,
+    recording the data in its launches; in_place_segment the same steps in place on levels[0], rerun_segment
+    without recording); the adjoint segment
+    steps back through them (AcousticVD.adjoint_step): the adjoint fields in place, the adjoints of the CPML memory
+    variables alternating between the two States of `adj` (seg is even, so every segment starts with the same
+    roles), the materials' sums in `sums` and the amplitudes' adjoint in g_amp over all steps; finish turns the sums
+    (a shot each) into adj_mat, dJ/d MATERIALS. The levels are packed (AcousticVD.new_state): start() and end() are
+    one array each. Time indices are j + clock[0]. data and residual: (vx, vz, pressure) arrays (S, n_rec, n_seg *
+    seg).
+    """
 
-    def __init__(self, su: AcousticVDSetup, seg: int, n_seg: int):
+    def __init__(self, su: AcousticVDSetup, seg: int, n_seg: int, parts=3):
         prop = su.prop
-        self.su, self.seg, self.device = su, seg, prop.device
+        self.su, self.seg, self.device, self.parts = su, seg, prop.device, parts
         levels = seg * n_seg
 
         def zeros(shape):
@@ -298,16 +302,25 @@ class Levels:
         V = self.su.prop.tiles[0]
         return [*k.tiled[V], *k.adjoint_tiled[V], k.source_adjoint, k.record_adjoint]
 
-    def forward_segment(self):
+    def forward_segment(self, record=True):
         su, lv = self.su, self.levels
         for j in range(self.seg):
-            su.prop.step(lv[j], self.mat, self.sources, j, out=lv[j + 1], clock=self.clock, record=(self.data, su.receiver_op, j))
+            su.prop.step(lv[j], self.mat, self.sources, j, out=lv[j + 1], clock=self.clock,
+                         record=(self.data, su.receiver_op, j) if record else None)  # fmt: skip
+
+    def rerun_segment(self):
+        self.forward_segment(record=False)
+
+    def in_place_segment(self):
+        su, st = self.su, self.levels[0]
+        for j in range(self.seg):
+            su.prop.step(st, self.mat, self.sources, j, clock=self.clock, record=(self.data, su.receiver_op, j))
 
     def adjoint_segment(self):
         su, lv = self.su, self.levels
         for j in reversed(range(self.seg)):
             su.prop.adjoint_step(lv[j], lv[j + 1], self.mat, self.adj if j % 2 == 0 else self.adj[::-1], self.sums, self.sources,
-                                 self.g_amp, (*self.residual, su.receiver_op), j, self.clock, self.side)  # fmt: skip
+                                 self.g_amp, (*self.residual, su.receiver_op), j, self.clock, self.side, self.parts)  # fmt: skip
 
     def finish(self):
         prop = self.su.prop

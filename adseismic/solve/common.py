@@ -128,6 +128,22 @@ def checked_models(models: dict, checks: ModelChecks, dtype, device: str, requir
     return arrays, float(checks.speed(*host).max())
 
 
+def host_array(a) -> np.ndarray:
+    """a (a NumPy-like or Warp array) as a float64 NumPy array."""
+    return np.asarray(a.numpy() if isinstance(a, wp.array) else a, dtype=float)
+
+
+def float64_on_device(a, device: str, name: str, shape: tuple) -> wp.array:
+    """a (n_shots, n_receivers, nt) as a float64 Warp array on device: a contiguous float64 Warp array already there
+    as it is (an FWI's data kept on the device), anything else copied; ValueError naming `name` if its shape is not
+    shape."""
+    if not (isinstance(a, wp.array) and a.dtype == wp.float64 and str(a.device) == str(wp.get_device(device)) and a.is_contiguous):
+        a = wp.array(host_array(a), dtype=wp.float64, device=device)
+    if tuple(a.shape) != tuple(shape):
+        raise ValueError(f"{name} has shape {tuple(a.shape)} but the synthetics have {tuple(shape)} (n_shots, n_receivers, nt)")
+    return a
+
+
 def dominant_frequency(source_amplitudes: np.ndarray, dt: float) -> float:
     """Peak of the summed amplitude spectrum of all source traces (Hz)."""
     spec = np.abs(np.fft.rfft(source_amplitudes.reshape(-1, source_amplitudes.shape[-1]), n=4 * source_amplitudes.shape[-1])).sum(0)

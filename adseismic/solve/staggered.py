@@ -9,7 +9,7 @@ import warp as wp
 
 from adseismic.accel.reductions import l2_residual_kernel
 from adseismic.runs import progress_bar
-from adseismic.solve import sweep
+from adseismic.solve import common, sweep
 from adseismic.solve.misfits import misfit as named_misfit
 
 COMPONENTS = ("vx", "vz", "pressure")  # the order of the data arrays new_data gives and the launch helpers' record fills
@@ -117,7 +117,7 @@ def misfit_function(su, misfit, components, observed):
         for c in components:
             if c not in su.data_components:
                 raise ValueError(f"components: {c!r} is not one of {su.data_components}")
-            if observed is None or c not in observed or np.shape(observed[c]) != shape:
+            if observed is None or c not in observed or tuple(getattr(observed[c], "shape", np.shape(observed[c]))) != shape:
                 raise ValueError(f"observed[{c!r}]: give an array (n_shots, n_receivers, nt) = {shape} for each of `components`")
 
     def loss(synthetic):
@@ -127,7 +127,7 @@ def misfit_function(su, misfit, components, observed):
         else:
             J, adj = 0.0, {}
             for c in components:
-                j, adj[c] = named_misfit(misfit, syn[c], np.asarray(observed[c], dtype=float), su.prop.dt)
+                j, adj[c] = named_misfit(misfit, syn[c], common.host_array(observed[c]), su.prop.dt)
                 J += j
         return J, tuple(None if adj.get(c) is None else np.asarray(adj[c], dtype=float) for c in su.data_components)
 
@@ -135,15 +135,11 @@ def misfit_function(su, misfit, components, observed):
 
 
 def observed_on_device(su, observed, name: str) -> wp.array:
-    """observed[name] (n_shots, n_receivers, nt) as a float64 array on the run's device (ValueError if missing or
-    misshapen)."""
+    """observed[name] (n_shots, n_receivers, nt) as a float64 array on the run's device (common.float64_on_device: a
+    Warp array there as it is); ValueError if missing or misshapen."""
     if observed is None or name not in observed:
         raise ValueError(f"observed: no {name!r} data; give observed[{name!r}] (n_shots, n_receivers, nt) for each of `components`")
-    o = np.asarray(observed[name], dtype=float)
-    shape = (su.prop.n_shots, su.receivers.shape[1], su.nt)
-    if o.shape != shape:
-        raise ValueError(f"observed[{name!r}] has shape {o.shape} but the synthetics have {shape} (n_shots, n_receivers, nt)")
-    return wp.array(o, dtype=wp.float64, device=su.prop.device)
+    return common.float64_on_device(observed[name], su.prop.device, f"observed[{name!r}]", (su.prop.n_shots, su.receivers.shape[1], su.nt))
 
 
 def l2_on_device(data, residual, observed_l2, nt: int, dt: float, components) -> wp.array:

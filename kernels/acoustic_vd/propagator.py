@@ -342,14 +342,17 @@ def _adjoint_kernels(ns):
 
     @unique_kernel(enable_backward=False)
     def record_adjoint(nux: arr3, nuz: arr3, mu: arr3, bx: arr2, bz: arr2, k: arr2, r_vx: arr3, r_vz: arr3, r_p: arr3, idx: idx4,
-                       w: arr4, n: int, clock: iarr1, vx: arr3, vz: arr3, p: arr3, gbx: arr3, gbz: arr3, gk: arr3):  # fmt: skip
+                       w: arr4, n: int, clock: iarr1, vx: arr3, vz: arr3, p: arr3, gbx: arr3, gbz: arr3, gk: arr3, parts: int):  # fmt: skip
         # the adjoint of record's sample n: the residuals through the operators' transposes into lambda, as nu = b lambda_v
-        # and mu = K lambda_p (no weight on a free surface's row), and their image terms with level n's vx, vz, p
+        # and mu = K lambda_p (no weight on a free surface's row), and their image terms with level n's vx, vz, p; parts
+        # (record_point's bits): p's (1), the velocities' (2)
         s, r, q = wp.tid()
         t = n + clock[0]
-        residual_point(0, mu, k, r_p, p, gk, idx, w, s, r, q, t)
-        residual_point(1, nux, bx, r_vx, vx, gbx, idx, w, s, r, q, t)
-        residual_point(2, nuz, bz, r_vz, vz, gbz, idx, w, s, r, q, t)
+        if (parts & 1) != 0:
+            residual_point(0, mu, k, r_p, p, gk, idx, w, s, r, q, t)
+        if (parts & 2) != 0:
+            residual_point(1, nux, bx, r_vx, vx, gbx, idx, w, s, r, q, t)
+            residual_point(2, nuz, bz, r_vz, vz, gbz, idx, w, s, r, q, t)
 
     @unique_kernel(enable_backward=False)
     def material_adjoints(gbx: arr3, gbz: arr3, gk: arr3, bx: arr2, bz: arr2, k: arr2, a_bx: arr2, a_bz: arr2, a_k: arr2):
@@ -828,7 +831,8 @@ class AcousticVD:
             wp.launch(self.k.inject, dim=idx.shape[1:], inputs=[out.p, amplitudes, idx, w, n, clock, scale], device=self.device)
         return out
 
-    def adjoint_step(self, st: State, nxt: State, mat, adj: tuple, sums, sources, g_amp, residual, n: int, clock=None, side=None):
+    def adjoint_step(self, st: State, nxt: State, mat, adj: tuple, sums, sources, g_amp, residual, n: int, clock=None, side=None,
+                     parts=3):  # fmt: skip
         """The hand-written adjoint of step(st, mat, sources, n, out=nxt) in 2D (_adjoint_cells: two tiled launches
         as the step's, their core the forward's tiles with dt -> -dt, their frame the adjoint's cells).
 
@@ -838,7 +842,7 @@ class AcousticVD:
         dJ/d amplitudes (S, n_src, >= n + 2), added to; residual = (r_vx, r_vz, r_p) arrays (S, n_rec, >= n + 1) and
         the receivers' operator: their sample n (+ clock[0]) into the adjoint of level n. side: None, or a second stream
         (accel.graphs.SideStream: `with side():`, side.join()) that runs the sources' adjoint beside the velocity launch
-        (it reads mu, which that launch only reads)."""
+        (it reads mu, which that launch only reads). parts: which residuals to add, p's (1) and the velocities' (2)."""
         clock = self.clock if clock is None else clock
         V, box, tiles, frame, cells = self.adjoint_tiles
         velocity, pressure = self.k.adjoint_tiled[V]
@@ -865,7 +869,7 @@ class AcousticVD:
                   block_dim=TILE_THREADS)  # fmt: skip
         *res, (idx, w) = residual
         wp.launch(self.k.record_adjoint, dim=idx.shape[1:], inputs=[*new.v.values(), new.p, *mat, *res, idx, w, n, clock, *st.v.values(),
-                  st.p, *sums], device=self.device)  # fmt: skip
+                  st.p, *sums, parts], device=self.device)  # fmt: skip
 
     def record(self, st: State, data, receiver_op, k: int, clock=None):
         """Add sample k (+ clock[0]) of the receivers' velocities and p into data (VELOCITIES[ndim] then pressure,
