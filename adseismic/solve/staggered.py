@@ -117,8 +117,9 @@ def misfit_function(su, misfit, components, observed):
         for c in components:
             if c not in su.data_components:
                 raise ValueError(f"components: {c!r} is not one of {su.data_components}")
-            if observed is None or c not in observed or tuple(getattr(observed[c], "shape", np.shape(observed[c]))) != shape:
-                raise ValueError(f"observed[{c!r}]: give an array (n_shots, n_receivers, nt) = {shape} for each of `components`")
+            given = "missing" if observed is None or c not in observed else f"shape {_shape(observed[c])}"
+            if given != f"shape {shape}":
+                raise ValueError(f"observed[{c!r}]: {given}; give an array (n_shots, n_receivers, nt) = {shape} for each of `components`")
 
     def loss(synthetic):
         syn = dict(zip(su.data_components, synthetic))
@@ -132,6 +133,11 @@ def misfit_function(su, misfit, components, observed):
         return J, tuple(None if adj.get(c) is None else np.asarray(adj[c], dtype=float) for c in su.data_components)
 
     return loss
+
+
+def _shape(a) -> tuple:
+    """a's shape, a Warp array's without a copy to the host."""
+    return tuple(a.shape) if isinstance(a, wp.array) else np.shape(a)
 
 
 def observed_on_device(su, observed, name: str) -> wp.array:
