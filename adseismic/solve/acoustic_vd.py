@@ -258,15 +258,13 @@ class Levels:
     """The 2D hand-written adjoint's arrays and segment functions (what sweep.Sweep drives).
 
     The forward segment steps `seg` levels from levels[0] out of place into levels[1..seg] (the tiled step,
-    recording the data in its launches; in_place_segment the same steps in place on levels[0], rerun_segment
-    without recording); the adjoint segment
-    steps back through them (AcousticVD.adjoint_step): the adjoint fields in place, the adjoints of the CPML memory
-    variables alternating between the two States of `adj` (seg is even, so every segment starts with the same
-    roles), the materials' sums in `sums` and the amplitudes' adjoint in g_amp over all steps; finish turns the sums
-    (a shot each) into adj_mat, dJ/d MATERIALS. The levels are packed (AcousticVD.new_state): start() and end() are
-    one array each. Time indices are j + clock[0]. data and residual: (vx, vz, pressure) arrays (S, n_rec, n_seg *
-    seg).
-    """
+    recording the data in its launches; in_place_segment the same steps in place on levels[0], rerun_segment without
+    recording); the adjoint segment steps back through them (AcousticVD.adjoint_step): the adjoint fields in place,
+    the adjoints of the CPML memory variables alternating between the two States of `adj` (seg is even, so every
+    segment starts with the same roles), the materials' sums in `sums` and the amplitudes' adjoint in g_amp over all
+    steps; finish turns the sums (a shot each) into adj_mat, dJ/d MATERIALS. The levels are packed
+    (AcousticVD.new_state): start() and end() are one array each. Time indices are j + clock[0]. data and residual:
+    (vx, vz, pressure) arrays (S, n_rec, n_seg * seg)."""
 
     def __init__(self, su: AcousticVDSetup, seg: int, n_seg: int, parts=3):
         prop = su.prop
