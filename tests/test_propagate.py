@@ -218,6 +218,35 @@ def reference_traces(su):
 SAME_KERNELS = 0.0 if DEVICE == "cpu" else 1e-6
 
 
+def test_a_kept_helper_gives_each_call_its_own_coefficients_and_operators(monkeypatch):
+    """make_propagator's kept helper (a GPU's default, forced here on DEVICE): a later call with the same arguments
+    gets a copy with the kept CPML coefficients and operators as device copies. A kept time loop copies a later call's
+    inputs into the arrays it was captured with, so a call's arrays written must leave the kept ones, and the next
+    call's, as they were; attributes set on one copy stay on it; and its traces are a fresh helper's."""
+    monkeypatch.setattr(propagate, "_KEPT", {})
+    v, dx, dt, s, src, rec = small_scene()
+    kw = dict(device=DEVICE, precision="float32", pml_width=10)
+    fresh = propagate.forward(v, dx, dt, s, src, rec, **kw).receiver_amplitudes
+    real = propagate.make_propagator
+    monkeypatch.setattr(propagate, "make_propagator", lambda *a: real(*a, keep=True))
+    first = propagate.setup(v, dx, dt, s, src, rec, **kw)
+    a0 = first.prop.axes[2].a.numpy().copy()
+    first.prop.axes[2].a.fill_(7.0)
+    first.receiver_op[1].fill_(7.0)
+    first.prop.core_cols = 1
+    second = propagate.setup(v, dx, dt, s, src, rec, **kw)
+    assert len(propagate._KEPT) == 1 and second.prop is not first.prop
+    assert np.array_equal(second.prop.axes[2].a.numpy(), a0) and second.prop.core_cols != 1
+    assert not np.any(second.receiver_op[1].numpy() == 7.0)
+    kept = propagate.forward(v, dx, dt, s, src, rec, **kw).receiver_amplitudes
+    assert np.abs(fresh).max() > 0
+    assert np.abs(kept - fresh).max() <= SAME_KERNELS * np.abs(fresh).max()
+    other = propagate.setup(v, dx, dt, s, src, rec + 3.0, **kw)  # receivers off the nodes: an operator of their own
+    assert not np.array_equal(other.receiver_op[1].numpy(), second.receiver_op[1].numpy())
+    propagate.setup(v, dx, dt * 0.9, s, src, rec, **kw)
+    assert len(propagate._KEPT) == 2
+
+
 @pytest.mark.parametrize("free_surface", [False, True])
 def test_optimised_kernels_equal_reference_kernels(free_surface):
     # forward's fast path (row kernels and threads on a CPU; core + frame kernels and CUDA graphs on a GPU)

@@ -16,7 +16,9 @@ adjoint's arrays and segment functions (Levels).
 
 from __future__ import annotations
 
+import copy
 import math
+import threading
 from dataclasses import dataclass
 from typing import Callable
 
@@ -104,10 +106,52 @@ def upload_velocity(velocity, dtype, device: str, requires_grad=False):
     return vel, tuple(shape), (vmin, vmax, bad)
 
 
-def make_propagator(shape, dx, dt, n_shots, order, pml, free_surface, device, dtype) -> Acoustic:
+KEPT_PROPAGATORS = 8  # launch helpers kept per process for later calls on a GPU (each a few small arrays)
+_KEPT: dict = {}  # make_propagator's arguments -> the Acoustic made for them
+_KEPT_LOCK = threading.Lock()
+
+
+def make_propagator(shape, dx, dt, n_shots, order, pml, free_surface, device, dtype, keep=None) -> Acoustic:
     """The Acoustic launch helper for a grid of `shape` cells on a resolved device; pml: (width, reflection,
-    frequency, reference speed) from pml_settings."""
-    return Acoustic(shape, dx, dt, order, n_shots, *pml, free_surface=free_surface, dtype=dtype, device=device)
+    frequency, reference speed) from pml_settings. keep (default: on a GPU) starts from the helper an earlier call
+    made for the same arguments, with the operators it made (an FWI's evaluations, a bench's repeats: 2-3 ms a call
+    on a GPU, a sixth of a warm S600 forward): a shallow copy whose CPML coefficients are device copies of the kept
+    ones (a kept time loop copies a later call's inputs into the arrays it was captured with), its attributes the
+    caller's. A CPU helper is not kept: its threads record launches per set of arrays."""
+    if keep is None:
+        keep = wp.get_device(device).is_cuda
+    if not keep:
+        return Acoustic(shape, dx, dt, order, n_shots, *pml, free_surface=free_surface, dtype=dtype, device=device)
+    key = (tuple(shape), float(dx), float(dt), int(n_shots), int(order), tuple(pml), bool(free_surface), str(device), dtype)
+    with _KEPT_LOCK:
+        prop = _KEPT.pop(key, None)
+        if prop is None:
+            prop = Acoustic(shape, dx, dt, order, n_shots, *pml, free_surface=free_surface, dtype=dtype, device=device)
+            prop.kept_operators = {}
+        _KEPT[key] = prop  # the newest last
+        while len(_KEPT) > KEPT_PROPAGATORS:
+            _KEPT.pop(next(iter(_KEPT)))
+    mine = copy.copy(prop)
+    mine._launches = {}  # a CPU's recorded launches (keep=True on a CPU: tests)
+    mine.axes = [prop.k.Axis() for _ in prop.axes]
+    for ax, kept in zip(mine.axes, prop.axes):
+        ax.a, ax.b, ax.store, ax.pos = wp.clone(kept.a), wp.clone(kept.b), kept.store, kept.pos  # store, pos: fixed by the key
+    return mine
+
+
+def make_operator(prop: Acoustic, locations: wp.array, host: np.ndarray, differentiable=False):
+    """prop.operator(locations, differentiable), a device copy of the one a kept helper made at the same points in
+    an earlier call if it did (host: locations' values, (S, n, 3) metres)."""
+    kept = getattr(prop, "kept_operators", None)
+    if kept is None or differentiable:
+        return prop.operator(locations, differentiable)
+    key = (host.shape, host.tobytes())
+    op = kept.get(key)
+    if op is None:
+        op = kept[key] = prop.operator(locations)
+        while len(kept) > 2 * KEPT_PROPAGATORS:
+            kept.pop(next(iter(kept)), None)
+    return tuple(wp.clone(a) for a in op)
 
 
 def velocity_3d(velocity) -> np.ndarray:
@@ -210,10 +254,10 @@ def setup(velocity, dx, dt, source_amplitudes, source_locations, receiver_locati
     def put(x, name):
         return wp.array(x, dtype=prop.dtype, device=prop.device, requires_grad=name in requires_grad)
 
-    su = Setup(prop, ndim, amp.shape[2], vel, put(amp, "source_amplitudes"),
-               put(to_zyx(source_locations, ndim), "source_locations"), put(to_zyx(receiver_locations, ndim), "receiver_locations"))  # fmt: skip
-    su.source_op = prop.operator(su.sources, differentiable="source_locations" in requires_grad)
-    su.receiver_op = prop.operator(su.receivers)
+    src, rec = to_zyx(source_locations, ndim), to_zyx(receiver_locations, ndim)
+    su = Setup(prop, ndim, amp.shape[2], vel, put(amp, "source_amplitudes"), put(src, "source_locations"), put(rec, "receiver_locations"))
+    su.source_op = make_operator(prop, su.sources, src, differentiable="source_locations" in requires_grad)
+    su.receiver_op = make_operator(prop, su.receivers, rec)
     return su
 
 
@@ -529,7 +573,8 @@ class Levels:
         mine = self.su
         prop = mine.prop
         for a, b in zip(mine.inputs(), su.inputs()):
-            wp.copy(a, b)
+            if a.ptr != b.ptr:  # a kept helper's arrays are the same
+                wp.copy(a, b)
         wp.copy(self.amplitudes[:, :, : su.amplitudes.shape[2]], su.amplitudes)  # the padding past nt stays zero
         wp.copy(self.vpad, vpad)
         wp.launch(prop.k.squared, dim=prop.padded, inputs=[self.vpad, prop.dt2, self.w], device=prop.device)
