@@ -25,6 +25,7 @@ from typing import Callable
 import numpy as np
 import warp as wp
 
+from adseismic.accel import graphs
 from adseismic.accel.reductions import l2_residual_kernel, value_range, weighted_l2_residual_kernel
 from adseismic.kernels.acoustic import DESCRIPTION, Acoustic, State
 from adseismic.kernels.common import operator_shape
@@ -531,6 +532,7 @@ class Levels:
         self.adj_zeta = [prop.new_state(with_prev=False).zeta for _ in range(2)]
         self.energy = wp.zeros(prop.padded, dtype=prop.dtype, device=prop.device) if illumination else None
         self.clock = wp.zeros(1, dtype=wp.int32, device=prop.device)
+        self.side = graphs.SideStream(prop.device)
 
     def start(self):
         return self.levels[0].arrays()
@@ -558,9 +560,11 @@ class Levels:
             lam, adj, out = (self.lam[(j + d) % 3] for d in (1, 2, 0))
             psi = (self.adj_psi[(j + 1) % 2], self.adj_psi[j % 2])
             zeta = (self.adj_zeta[(j + 1) % 2], self.adj_zeta[j % 2])
-            prop.inject_adjoint(lam, self.vpad, self.amplitudes, su.source_op, j, self.clock)
+            with self.side():  # beside the step's launches, which neither write lam nor read what it adds into
+                prop.inject_adjoint(lam, self.vpad, self.amplitudes, su.source_op, j, self.clock)
             prop.adjoint_step(lv[j], lv[j + 1], self.vpad, self.w, lam, adj, self.g[(j + 1) % 2], psi, zeta,
                               residual=(self.residual, su.receiver_op, j, self.clock), out=(out, self.g[j % 2]))  # fmt: skip
+            self.side.join()  # before lam's array is written again, two steps on
             if self.energy is not None:
                 prop.accumulate_energy(lv[j].u, self.energy, j, self.clock, su.nt)
 
