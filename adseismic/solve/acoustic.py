@@ -115,8 +115,8 @@ _KEPT_LOCK = threading.Lock()
 def make_propagator(shape, dx, dt, n_shots, order, pml, free_surface, device, dtype, keep=None) -> Acoustic:
     """The Acoustic launch helper for a grid of `shape` cells on a resolved device; pml: (width, reflection,
     frequency, reference speed) from pml_settings. keep (default: on a GPU) starts from the helper an earlier call
-    made for the same arguments, with the operators it made (an FWI's evaluations, a bench's repeats: 2-3 ms a call
-    on a GPU, a sixth of a warm S600 forward): a shallow copy whose CPML coefficients are device copies of the kept
+    made for the same arguments, with the operators it made (an FWI's evaluations, a bench's repeats: 2.5 ms a call
+    on an H200, a fifth of a warm S600 forward): a shallow copy whose CPML coefficients are device copies of the kept
     ones (a kept time loop copies a later call's inputs into the arrays it was captured with), its attributes the
     caller's. A CPU helper is not kept: its threads record launches per set of arrays."""
     if keep is None:
@@ -577,7 +577,7 @@ class Levels:
         mine = self.su
         prop = mine.prop
         for a, b in zip(mine.inputs(), su.inputs()):
-            if a.ptr != b.ptr:  # a kept helper's arrays are the same
+            if a.ptr != b.ptr:  # the same arrays where su is the setup these levels were made from
                 wp.copy(a, b)
         wp.copy(self.amplitudes[:, :, : su.amplitudes.shape[2]], su.amplitudes)  # the padding past nt stays zero
         wp.copy(self.vpad, vpad)
