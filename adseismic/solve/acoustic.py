@@ -17,8 +17,8 @@ adjoint's arrays and segment functions (Levels).
 from __future__ import annotations
 
 import copy
+import functools
 import math
-import threading
 from dataclasses import dataclass
 from typing import Callable
 
@@ -108,30 +108,28 @@ def upload_velocity(velocity, dtype, device: str, requires_grad=False):
 
 
 KEPT_PROPAGATORS = 8  # launch helpers kept per process for later calls on a GPU (each a few small arrays)
-_KEPT: dict = {}  # make_propagator's arguments -> the Acoustic made for them
-_KEPT_LOCK = threading.Lock()
+
+
+@functools.lru_cache(maxsize=KEPT_PROPAGATORS)
+def _kept_propagator(shape, dx, dt, n_shots, order, pml, free_surface, device, dtype) -> Acoustic:
+    prop = Acoustic(shape, dx, dt, order, n_shots, *pml, free_surface=free_surface, dtype=dtype, device=device)
+    prop.kept_operators = {}  # make_operator's, by the locations' values
+    return prop
 
 
 def make_propagator(shape, dx, dt, n_shots, order, pml, free_surface, device, dtype, keep=None) -> Acoustic:
     """The Acoustic launch helper for a grid of `shape` cells on a resolved device; pml: (width, reflection,
     frequency, reference speed) from pml_settings. keep (default: on a GPU) starts from the helper an earlier call
-    made for the same arguments, with the operators it made (an FWI's evaluations, a bench's repeats: 2.5 ms a call
-    on an H200, a fifth of a warm S600 forward): a shallow copy whose CPML coefficients are device copies of the kept
-    ones (a kept time loop copies a later call's inputs into the arrays it was captured with), its attributes the
-    caller's. A CPU helper is not kept: its threads record launches per set of arrays."""
+    made for the same arguments, with the operators it made (an FWI's evaluations, a bench's repeats; docs/benchmarks.md):
+    a shallow copy whose CPML coefficients are device copies of the kept ones (a kept time loop copies a later call's
+    inputs into the arrays it was captured with), its attributes the caller's. A CPU helper is not kept: its threads
+    record launches per set of arrays."""
     if keep is None:
         keep = wp.get_device(device).is_cuda
     if not keep:
         return Acoustic(shape, dx, dt, order, n_shots, *pml, free_surface=free_surface, dtype=dtype, device=device)
-    key = (tuple(shape), float(dx), float(dt), int(n_shots), int(order), tuple(pml), bool(free_surface), str(device), dtype)
-    with _KEPT_LOCK:
-        prop = _KEPT.pop(key, None)
-        if prop is None:
-            prop = Acoustic(shape, dx, dt, order, n_shots, *pml, free_surface=free_surface, dtype=dtype, device=device)
-            prop.kept_operators = {}
-        _KEPT[key] = prop  # the newest last
-        while len(_KEPT) > KEPT_PROPAGATORS:
-            _KEPT.pop(next(iter(_KEPT)))
+    prop = _kept_propagator(tuple(shape), float(dx), float(dt), int(n_shots), int(order), tuple(pml), bool(free_surface), str(device),
+                            dtype)  # fmt: skip
     mine = copy.copy(prop)
     mine._launches = {}  # a CPU's recorded launches (keep=True on a CPU: tests)
     mine.axes = [prop.k.Axis() for _ in prop.axes]
